@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Renders every gallery scene at 256×256 into docs/gallery/ (the README's pictures).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+cargo build --release -p coordinator
+out=${1:-docs/gallery}
+mkdir -p "$out"
+for scene in scenes/*.ron; do
+    name=$(basename "$scene" .ron)
+    ./target/release/coordinator --scene "$scene" --out "$out/$name.png" --width 256 --height 256
+done

@@ -1,0 +1,144 @@
+//! Maps through control points: colour, alpha and refractive index over density.
+//!
+//! The paper maps density to colour and opacity with colour and alpha maps;
+//! "step functions or splines may be appropriate". A [`Curve`] is piecewise
+//! linear or a Catmull–Rom spline through its control points, and constant
+//! beyond the first and last key.
+
+use crate::scene::desc::{CurveDesc, Interpolation};
+
+/// A map from [0, 1] to `N` values through control points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Curve<const N: usize> {
+    /// Keys, strictly increasing (validated at load).
+    keys: Vec<f32>,
+    /// The value at each key.
+    values: Vec<[f32; N]>,
+    /// Linear or spline.
+    interpolation: Interpolation,
+}
+
+impl<const N: usize> Curve<N> {
+    /// A curve through `points` (keys strictly increasing, at least one point).
+    pub fn new(
+        interpolation: Interpolation,
+        points: impl IntoIterator<Item = (f32, [f32; N])>,
+    ) -> Self {
+        let (keys, values): (Vec<f32>, Vec<[f32; N]>) = points.into_iter().unzip();
+        assert!(!keys.is_empty(), "a curve needs a control point");
+        Curve {
+            keys,
+            values,
+            interpolation,
+        }
+    }
+
+    /// The constant curve.
+    pub fn constant(value: [f32; N]) -> Self {
+        Curve::new(Interpolation::Linear, [(0.0, value)])
+    }
+
+    /// The value at `t`.
+    #[inline]
+    pub fn eval(&self, t: f32) -> [f32; N] {
+        let n = self.keys.len();
+        if n == 1 || t.is_nan() || t <= self.keys[0] {
+            return self.values[0];
+        }
+        if t >= self.keys[n - 1] {
+            return self.values[n - 1];
+        }
+        // The segment [keys[i], keys[i + 1]] holding t.
+        let i = self.keys.partition_point(|&k| k <= t) - 1;
+        let u = (t - self.keys[i]) / (self.keys[i + 1] - self.keys[i]);
+        let (p1, p2) = (self.values[i], self.values[i + 1]);
+        let mut out = [0.0; N];
+        match self.interpolation {
+            Interpolation::Linear => {
+                for c in 0..N {
+                    out[c] = p1[c] + (p2[c] - p1[c]) * u;
+                }
+            }
+            Interpolation::Spline => {
+                let p0 = self.values[i.saturating_sub(1)];
+                let p3 = self.values[(i + 2).min(n - 1)];
+                let (u2, u3) = (u * u, u * u * u);
+                for c in 0..N {
+                    let (a, b, d, e) = (p0[c], p1[c], p2[c], p3[c]);
+                    out[c] = 0.5
+                        * (2.0 * b
+                            + (d - a) * u
+                            + (2.0 * a - 5.0 * b + 4.0 * d - e) * u2
+                            + (3.0 * b - a - 3.0 * d + e) * u3);
+                }
+            }
+        }
+        out
+    }
+}
+
+impl Curve<3> {
+    /// A colour map from its description.
+    pub fn colours(desc: &CurveDesc<crate::scene::desc::Rgb>) -> Self {
+        Curve::new(
+            desc.interpolation,
+            desc.points.iter().map(|(k, v)| (*k, v.0)),
+        )
+    }
+}
+
+impl Curve<1> {
+    /// A scalar map from its description.
+    pub fn scalars<T: Copy + Into<f32>>(desc: &CurveDesc<T>) -> Self {
+        Curve::new(
+            desc.interpolation,
+            desc.points.iter().map(|(k, v)| (*k, [(*v).into()])),
+        )
+    }
+
+    /// The scalar value at `t`.
+    #[inline]
+    pub fn eval1(&self, t: f32) -> f32 {
+        self.eval(t)[0]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn linear_hits_control_points_and_interpolates() {
+        let c = Curve::new(
+            Interpolation::Linear,
+            [(0.0, [0.0]), (0.5, [1.0]), (1.0, [0.0])],
+        );
+        assert_eq!(c.eval1(0.0), 0.0);
+        assert_eq!(c.eval1(0.5), 1.0);
+        assert_eq!(c.eval1(1.0), 0.0);
+        assert_eq!(c.eval1(0.25), 0.5);
+        assert_eq!(c.eval1(-1.0), 0.0);
+        assert_eq!(c.eval1(2.0), 0.0);
+        assert_eq!(c.eval1(f32::NAN), 0.0);
+    }
+
+    #[test]
+    fn spline_passes_through_control_points() {
+        let pts = [
+            (0.0, [0.0, 1.0, 0.0]),
+            (0.3, [1.0, 0.0, 0.5]),
+            (0.6, [0.2, 0.2, 0.2]),
+            (1.0, [1.0, 1.0, 1.0]),
+        ];
+        let c = Curve::new(Interpolation::Spline, pts);
+        for (k, v) in pts {
+            let got = c.eval(k);
+            for i in 0..3 {
+                assert!((got[i] - v[i]).abs() < 1e-6, "at {k}: {got:?} vs {v:?}");
+            }
+        }
+        // Smooth in between: the midpoint lies between neighbours' extremes.
+        let mid = c.eval(0.15)[0];
+        assert!(mid > 0.0 && mid < 1.0);
+    }
+}

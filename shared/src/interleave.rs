@@ -1,0 +1,205 @@
+//! Interleaved pixel sets: how an image is split among processors.
+//!
+//! As on the paper's 64-processor Pixel Machine, each processor computes an
+//! interleaved subset of the screen: with a B×B interleave, pixel (x, y) belongs to
+//! set `(y mod B)·B + (x mod B)`. Every set is spread evenly over the image, so each
+//! costs about the same (load balance) and any one of them is a complete
+//! low-resolution image. Sets are further cut into bands of rows ([`WorkUnit`]) so
+//! that there are many small units per worker, and handed out coarse to fine in
+//! the order of a Bayer matrix: after the first set the whole image exists at 1/B
+//! resolution, after the first four at 2/B, and so on (like Adam7).
+
+/// The default interleave: 8×8, 64 pixel sets, as the paper's 64 processors.
+pub const DEFAULT_INTERLEAVE: u32 = 8;
+
+/// The default largest unit, in pixels (a tile of 4096 samples is ~150 KB on the wire).
+pub const DEFAULT_MAX_UNIT_PIXELS: u32 = 4096;
+
+/// One interleaved pixel set of an image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct PixelSet {
+    /// The interleave B (sets are B×B).
+    pub interleave: u32,
+    /// The set index `(y mod B)·B + (x mod B)`, in `0..B²`.
+    pub index: u32,
+}
+
+impl PixelSet {
+    /// The set pixel (x, y) belongs to.
+    pub fn of_pixel(interleave: u32, x: u32, y: u32) -> PixelSet {
+        PixelSet {
+            interleave,
+            index: (y % interleave) * interleave + (x % interleave),
+        }
+    }
+
+    /// The offset (x mod B, y mod B) shared by the set's pixels.
+    pub fn offset(&self) -> (u32, u32) {
+        (self.index % self.interleave, self.index / self.interleave)
+    }
+
+    /// Columns of the set in an image `width` wide.
+    pub fn columns(&self, width: u32) -> u32 {
+        let (ox, _) = self.offset();
+        if ox >= width {
+            0
+        } else {
+            (width - ox).div_ceil(self.interleave)
+        }
+    }
+
+    /// Rows of the set in an image `height` high.
+    pub fn rows(&self, height: u32) -> u32 {
+        let (_, oy) = self.offset();
+        if oy >= height {
+            0
+        } else {
+            (height - oy).div_ceil(self.interleave)
+        }
+    }
+}
+
+/// A unit of work: the rows `first_row..first_row + row_count` of one pixel set.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct WorkUnit {
+    /// The set.
+    pub set: PixelSet,
+    /// First row of the set (row r is image row `offset.y + r·B`).
+    pub first_row: u32,
+    /// Number of set rows.
+    pub row_count: u32,
+}
+
+impl WorkUnit {
+    /// The unit's pixels in image coordinates, row-major: the order of its tile.
+    pub fn pixels(&self, width: u32) -> impl Iterator<Item = (u32, u32)> + '_ {
+        let (ox, oy) = self.set.offset();
+        let b = self.set.interleave;
+        let columns = self.set.columns(width);
+        (self.first_row..self.first_row + self.row_count)
+            .flat_map(move |r| (0..columns).map(move |c| (ox + c * b, oy + r * b)))
+    }
+
+    /// Number of pixels in the unit (the length of its tile).
+    pub fn pixel_count(&self, width: u32) -> usize {
+        self.set.columns(width) as usize * self.row_count as usize
+    }
+}
+
+/// The rank of (x, y) in the B×B Bayer matrix (B a power of two): every prefix of
+/// length 4^k of the ranks is a regular lattice of spacing B / 2^k.
+pub fn bayer_rank(interleave: u32, x: u32, y: u32) -> u32 {
+    let bits = interleave.trailing_zeros();
+    let mut rank = 0;
+    for bit in 0..bits {
+        // The coarsest level (highest bit of the rank) is decided by the lowest bit of
+        // x and y: (0,0) first, then (1,1), (1,0), (0,1) — the classic dither order.
+        let xb = (x >> bit) & 1;
+        let yb = (y >> bit) & 1;
+        let digit = match (xb, yb) {
+            (0, 0) => 0,
+            (1, 1) => 1,
+            (1, 0) => 2,
+            _ => 3,
+        };
+        rank |= digit << (2 * (bits - 1 - bit));
+    }
+    rank
+}
+
+/// The work units of a `width × height` image, in coarse-to-fine order: sets by
+/// Bayer rank, each cut into bands of at most `max_unit_pixels` pixels (at least
+/// one row). `interleave` must be a power of two from 1 to 64.
+pub fn work_units(width: u32, height: u32, interleave: u32, max_unit_pixels: u32) -> Vec<WorkUnit> {
+    assert!(
+        interleave.is_power_of_two() && interleave <= 64,
+        "interleave must be a power of two ≤ 64"
+    );
+    let mut sets: Vec<PixelSet> = (0..interleave * interleave)
+        .map(|index| PixelSet { interleave, index })
+        .collect();
+    sets.sort_by_key(|s| {
+        let (x, y) = s.offset();
+        bayer_rank(interleave, x, y)
+    });
+    let mut units = Vec::new();
+    for set in sets {
+        let (columns, rows) = (set.columns(width), set.rows(height));
+        if columns == 0 || rows == 0 {
+            continue;
+        }
+        let band = (max_unit_pixels / columns).max(1);
+        let mut first_row = 0;
+        while first_row < rows {
+            let row_count = band.min(rows - first_row);
+            units.push(WorkUnit {
+                set,
+                first_row,
+                row_count,
+            });
+            first_row += row_count;
+        }
+    }
+    units
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn set_of_pixel_is_the_papers_interleave() {
+        assert_eq!(PixelSet::of_pixel(8, 0, 0).index, 0);
+        assert_eq!(PixelSet::of_pixel(8, 9, 0).index, 1);
+        assert_eq!(PixelSet::of_pixel(8, 3, 10).index, 2 * 8 + 3);
+        assert_eq!(PixelSet::of_pixel(8, 3, 10).offset(), (3, 2));
+    }
+
+    #[test]
+    fn units_cover_every_pixel_exactly_once() {
+        for (w, h, b, max) in [
+            (37, 23, 8, 7),
+            (64, 64, 8, 4096),
+            (5, 3, 8, 1),
+            (100, 1, 4, 10),
+            (1, 1, 8, 4096),
+        ] {
+            let mut seen = vec![0u8; (w * h) as usize];
+            for unit in work_units(w, h, b, max) {
+                assert!(unit.pixel_count(w) <= max.max(unit.set.columns(w)) as usize);
+                let pixels: Vec<_> = unit.pixels(w).collect();
+                assert_eq!(pixels.len(), unit.pixel_count(w));
+                for (x, y) in pixels {
+                    assert_eq!(PixelSet::of_pixel(b, x, y), unit.set);
+                    seen[(y * w + x) as usize] += 1;
+                }
+            }
+            assert!(seen.iter().all(|&n| n == 1), "{w}×{h} B={b}");
+        }
+    }
+
+    #[test]
+    fn order_is_coarse_to_fine() {
+        let order: Vec<(u32, u32)> = {
+            let mut sets: Vec<_> = (0..64u32).map(|i| (i % 8, i / 8)).collect();
+            sets.sort_by_key(|&(x, y)| bayer_rank(8, x, y));
+            sets
+        };
+        assert_eq!(order[0], (0, 0));
+        // The first 4 sets form the lattice of spacing 4, the first 16 of spacing 2.
+        for (k, spacing) in [(4, 4), (16, 2), (64, 1)] {
+            let prefix = &order[..k];
+            for &(x, y) in prefix {
+                assert_eq!((x % spacing, y % spacing), (0, 0), "prefix {k}: {prefix:?}");
+            }
+        }
+        let ranks: std::collections::BTreeSet<_> =
+            (0..64).map(|i| bayer_rank(8, i % 8, i / 8)).collect();
+        assert_eq!(ranks.len(), 64);
+        // And units follow that order.
+        let units = work_units(64, 64, 8, 4096);
+        assert_eq!(units.len(), 64);
+        assert_eq!(units[0].set.offset(), (0, 0));
+        assert_eq!(units[1].set.offset(), (4, 4));
+    }
+}

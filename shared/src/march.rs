@@ -1,0 +1,330 @@
+//! The ray marcher of section 3.1.
+//!
+//! Each ray is clipped to the bounding parallelepiped (slab test), then sampled at
+//! `x = x0 + k·Δx_μ` for k = 0, 1, 2, … At each sample the hypertexture f(x) is
+//! evaluated; inside the soft region (0 < f < 1) the gradient is estimated by the
+//! paper's finite differences along the ray basis (Δx_μ, Δx_ν, Δx_ω) and used as
+//! the shading normal. Samples are composited front to back,
+//! `t = α_k(1 - α); colour += t·colour_k; α += t`, with
+//! `α_k = 1 - (1 - density)^(c·step)` so that the picture does not depend on the
+//! step. Where the refractive index changes between samples the ray bends by
+//! Snell's law.
+
+use glam::Vec3;
+
+use crate::camera::Ray;
+use crate::density::Field;
+use crate::film::Sample;
+use crate::scene::{ColourIndex, Light, Scene};
+use crate::shaping::clamp01;
+
+/// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
+/// t ≥ 0, or `None` when it misses (the slab test).
+#[inline]
+pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
+    let mut t0: f32 = 0.0;
+    let mut t1 = f32::INFINITY;
+    for axis in 0..3 {
+        let (o, d) = (ray.origin[axis], ray.direction[axis]);
+        if d == 0.0 {
+            if o < min[axis] || o > max[axis] {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d;
+        let (mut near, mut far) = ((min[axis] - o) * inv, (max[axis] - o) * inv);
+        if near > far {
+            std::mem::swap(&mut near, &mut far);
+        }
+        t0 = t0.max(near);
+        t1 = t1.min(far);
+    }
+    (t0 <= t1).then_some((t0, t1))
+}
+
+/// Two vectors perpendicular to the unit vector `d` and to each other, each of
+/// length `step`: Δx_ν and Δx_ω of the paper.
+#[inline]
+fn perpendiculars(d: Vec3, step: f32) -> (Vec3, Vec3) {
+    let helper = if d.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
+    let v = d.cross(helper).normalize();
+    let w = d.cross(v);
+    (v * step, w * step)
+}
+
+/// The marching state along one (possibly bent) ray.
+struct Basis {
+    ray: Ray,
+    /// Δx_μ, Δx_ν, Δx_ω.
+    du: Vec3,
+    dv: Vec3,
+    dw: Vec3,
+    /// Entry and exit parameters.
+    t0: f32,
+    t1: f32,
+}
+
+impl Basis {
+    fn new(ray: Ray, step: f32, t0: f32, t1: f32) -> Basis {
+        let (dv, dw) = perpendiculars(ray.direction, step);
+        Basis {
+            ray,
+            du: ray.direction * step,
+            dv,
+            dw,
+            t0,
+            t1,
+        }
+    }
+}
+
+/// Marches one ray through the scene and returns what the pixel records.
+pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
+    let (min, max) = scene.bounds;
+    let Some((t0, t1)) = slab(&ray, min, max) else {
+        let (bg, bg_alpha) = scene.background.sample(ray.direction);
+        return Sample {
+            rgba: [bg.x, bg.y, bg.z, bg_alpha],
+            ..Sample::default()
+        };
+    };
+    let step = scene.step;
+    let f_at = |x: Vec3| scene.density.eval(x, field);
+
+    let mut basis = Basis::new(ray, step, t0, t1);
+    // Distance travelled along the path before the current ray segment.
+    let mut path = 0.0f32;
+    let mut colour = Vec3::ZERO;
+    let mut alpha = 0.0f32;
+    let mut weighted_density = 0.0f32;
+    let mut depth = 0.0f32;
+    let mut first_normal: Option<Vec3> = None;
+    let mut last_normal: Option<Vec3> = None;
+    // f(x - Δx_μ): the previous sample, when it lay on the current segment.
+    let mut previous: Option<f32> = None;
+    let mut medium_index = scene.refraction.as_ref().map(|c| c.eval1(0.0));
+    // Every sample costs a step of the budget, so a ray bent back and forth inside
+    // the volume (total internal reflection) still terminates.
+    let diagonal = (max - min).length();
+    let mut budget = (4.0 * diagonal / step) as u64 + 64;
+    let mut k: u32 = 0;
+
+    loop {
+        let t = basis.t0 + k as f32 * step;
+        if t > basis.t1 || budget == 0 {
+            break;
+        }
+        budget -= 1;
+        let x = basis.ray.at(t);
+        let f = f_at(x);
+
+        let mut normal = None;
+        if f > 0.0 && f < 1.0 {
+            normal = gradient_normal(&f_at, x, f, previous, &basis);
+        }
+
+        if f > 0.0 {
+            if depth == 0.0 {
+                depth = path + t;
+            }
+            if normal.is_some() {
+                last_normal = normal;
+                if first_normal.is_none() {
+                    first_normal = normal;
+                }
+            }
+            let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
+            let key = match scene.colour_index {
+                ColourIndex::Density => f,
+                ColourIndex::Strata {
+                    frequency,
+                    amplitude,
+                    octaves,
+                } => {
+                    let q = x - field.offset;
+                    let turb = field.noise.turbulence(q, octaves);
+                    0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
+                }
+            };
+            let base = Vec3::from_array(scene.colour_map.eval(key));
+            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
+            let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
+            let alpha_k = 1.0 - libm::powf(1.0 - rho, scene.opacity_exponent);
+            let weight = alpha_k * (1.0 - alpha);
+            colour += sample_colour * weight;
+            alpha += weight;
+            weighted_density += f * weight;
+            if alpha >= scene.threshold {
+                break;
+            }
+        }
+
+        if let (Some(refraction), Some(n1)) = (scene.refraction.as_ref(), medium_index) {
+            let n2 = refraction.eval1(f);
+            if (n2 - n1).abs() > 1e-6 {
+                medium_index = Some(n2);
+                let n = normal.or_else(|| gradient_normal(&f_at, x, f, previous, &basis));
+                if let Some(n) = n {
+                    let bent = refract(basis.ray.direction, n, n1 / n2);
+                    let ray = Ray {
+                        origin: x,
+                        direction: bent,
+                    };
+                    if let Some((_, exit)) = slab(&ray, min, max) {
+                        path += t;
+                        basis = Basis::new(ray, step, 0.0, exit);
+                        previous = None;
+                        k = 1;
+                        continue;
+                    }
+                }
+            }
+        }
+
+        previous = Some(f);
+        k += 1;
+    }
+
+    let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
+    let rgb = colour + bg * (1.0 - alpha);
+    let normal = first_normal.unwrap_or(Vec3::ZERO);
+    Sample {
+        rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
+        density: if alpha > 0.0 {
+            weighted_density / alpha
+        } else {
+            0.0
+        },
+        depth,
+        normal: normal.to_array(),
+    }
+}
+
+/// The unit outward normal at x from the paper's finite differences
+/// `[f(x) - f(x - Δx_μ), f(x + Δx_ν) - f(x), f(x + Δx_ω) - f(x)]`, converted to
+/// xyz by the matrix whose rows are the ray basis, negated (density grows inwards).
+#[inline]
+fn gradient_normal(
+    f_at: &impl Fn(Vec3) -> f32,
+    x: Vec3,
+    f: f32,
+    previous: Option<f32>,
+    basis: &Basis,
+) -> Option<Vec3> {
+    let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
+    let g = basis.du * (f - behind)
+        + basis.dv * (f_at(x + basis.dv) - f)
+        + basis.dw * (f_at(x + basis.dw) - f);
+    let len2 = g.length_squared();
+    (len2 > 1e-30).then(|| -g / len2.sqrt())
+}
+
+/// Light reaching the eye from a unit of material at x with unit normal n, seen
+/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light.
+#[inline]
+fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3) -> Vec3 {
+    let mut light = scene.ambient;
+    for source in &scene.lights {
+        let (l, colour) = match *source {
+            Light::Directional { direction, colour } => (direction, colour),
+            Light::Point { position, colour } => {
+                let to = position - x;
+                let d2 = to.length_squared().max(1e-4);
+                (to / d2.sqrt(), colour / d2)
+            }
+        };
+        let lambert = n.dot(l);
+        if lambert <= 0.0 {
+            continue;
+        }
+        let mut response = scene.diffuse * lambert;
+        if scene.specular > 0.0 {
+            let h = (l - dir).normalize_or_zero();
+            let nh = n.dot(h);
+            if nh > 0.0 {
+                response += scene.specular * libm::powf(nh, scene.shininess);
+            }
+        }
+        light += colour * response;
+    }
+    light
+}
+
+/// Snell's law: `d` bent at a surface of unit normal `n` from index n1 to n2
+/// (`eta = n1 / n2`); total internal reflection mirrors it.
+#[inline]
+fn refract(d: Vec3, n: Vec3, eta: f32) -> Vec3 {
+    let mut n = n;
+    let mut cos_i = -n.dot(d);
+    if cos_i < 0.0 {
+        n = -n;
+        cos_i = -cos_i;
+    }
+    let k = 1.0 - eta * eta * (1.0 - cos_i * cos_i);
+    if k < 0.0 {
+        (d + n * (2.0 * cos_i)).normalize()
+    } else {
+        (d * eta + n * (eta * cos_i - k.sqrt())).normalize()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slab_clips_rays() {
+        let (min, max) = (Vec3::splat(-1.0), Vec3::splat(1.0));
+        let hit = Ray {
+            origin: Vec3::new(0.0, 0.0, 5.0),
+            direction: Vec3::NEG_Z,
+        };
+        assert_eq!(slab(&hit, min, max), Some((4.0, 6.0)));
+        let miss = Ray {
+            origin: Vec3::new(2.0, 0.0, 5.0),
+            direction: Vec3::NEG_Z,
+        };
+        assert_eq!(slab(&miss, min, max), None);
+        let away = Ray {
+            origin: Vec3::new(0.0, 0.0, 5.0),
+            direction: Vec3::Z,
+        };
+        assert_eq!(slab(&away, min, max), None);
+        let inside = Ray {
+            origin: Vec3::ZERO,
+            direction: Vec3::new(1.0, 1.0, 0.0).normalize(),
+        };
+        let (t0, t1) = slab(&inside, min, max).unwrap();
+        assert_eq!(t0, 0.0);
+        assert!((t1 - 2f32.sqrt()).abs() < 1e-6);
+        let diagonal = Ray {
+            origin: Vec3::new(-3.0, -3.0, -3.0),
+            direction: Vec3::ONE.normalize(),
+        };
+        let (t0, t1) = slab(&diagonal, min, max).unwrap();
+        assert!((t0 - 2.0 * 3f32.sqrt()).abs() < 1e-5 && (t1 - 4.0 * 3f32.sqrt()).abs() < 1e-5);
+    }
+
+    #[test]
+    fn snell() {
+        // Straight through at normal incidence.
+        let d = refract(Vec3::NEG_Z, Vec3::Z, 1.0 / 1.5);
+        assert!((d - Vec3::NEG_Z).length() < 1e-6);
+        // 45° into glass: sin θt = sin 45° / 1.5.
+        let d = refract(Vec3::new(1.0, 0.0, -1.0).normalize(), Vec3::Z, 1.0 / 1.5);
+        assert!((d.x - std::f32::consts::FRAC_1_SQRT_2 / 1.5).abs() < 1e-6);
+        // Total internal reflection leaving glass at a grazing angle.
+        let d = refract(Vec3::new(1.0, 0.0, -0.2).normalize(), Vec3::Z, 1.5);
+        assert!(d.z > 0.0);
+    }
+
+    #[test]
+    fn basis_is_orthogonal() {
+        for d in [Vec3::X, Vec3::Y, Vec3::new(0.3, -0.4, 0.8).normalize()] {
+            let (v, w) = perpendiculars(d, 0.1);
+            assert!(v.dot(d).abs() < 1e-6 && w.dot(d).abs() < 1e-6 && v.dot(w).abs() < 1e-6);
+            assert!((v.length() - 0.1).abs() < 1e-6 && (w.length() - 0.1).abs() < 1e-6);
+        }
+    }
+}

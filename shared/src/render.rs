@@ -1,0 +1,44 @@
+//! Rendering whole images or any set of pixels.
+//!
+//! A pixel's value is a function of (scene, pixel, frame, sample) only: each is
+//! traced on its own, with nothing shared between pixels but the immutable scene.
+//! Parallelism comes from the caller's rayon pool, so the same image comes out of
+//! 1 thread or 64, of one machine or a farm.
+
+use rayon::prelude::*;
+
+use crate::film::{Film, Sample};
+use crate::march;
+use crate::scene::Scene;
+
+/// The sample of pixel (x, y) of `frame`: one ray through the pixel centre.
+#[inline]
+pub fn render_pixel(scene: &Scene, x: u32, y: u32, frame: u32) -> Sample {
+    let field = scene.field(frame);
+    march::trace(scene, scene.camera.ray(x, y, (0.5, 0.5)), &field)
+}
+
+/// Renders the whole image of `frame` on the current rayon pool, calling
+/// `progress(rows)` as rows complete (from any thread, in any order).
+pub fn render(scene: &Scene, frame: u32, progress: &(dyn Fn(u64) + Sync)) -> Film {
+    let mut film = Film::new(scene.width, scene.height);
+    let width = scene.width as usize;
+    film.pixels_mut()
+        .par_chunks_mut(width)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                *out = render_pixel(scene, x as u32, y as u32, frame);
+            }
+            progress(1);
+        });
+    film
+}
+
+/// Renders the listed pixels of `frame` on the current rayon pool, in the order given.
+pub fn render_pixels(scene: &Scene, frame: u32, pixels: &[(u32, u32)]) -> Vec<Sample> {
+    pixels
+        .par_iter()
+        .map(|&(x, y)| render_pixel(scene, x, y, frame))
+        .collect()
+}

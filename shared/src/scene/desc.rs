@@ -1,0 +1,1045 @@
+//! The scene as written in RON: plain data, validated while it is read.
+//!
+//! This is phase one of loading (as in pbrt-v4: text → description → runtime
+//! objects). Every range check happens inside deserialisation (`try_from`), so a
+//! bad value is reported by `ron` with the line and column where it was read.
+//! Checks that relate several fields run when their struct is complete and point
+//! at its end.
+
+use serde::Deserialize;
+
+/// The largest image we accept: 16384 pixels a side and 64 Mi pixels in all.
+pub const MAX_SIDE: u32 = 16_384;
+/// The largest pixel count we accept (a 2 GiB film at 32 bytes a pixel).
+pub const MAX_PIXELS: u64 = 64 * 1024 * 1024;
+
+/// A whole scene file.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "SceneFields")]
+pub struct SceneDesc {
+    /// Image size in pixels.
+    pub image: ImageDesc,
+    /// The viewpoint.
+    pub camera: CameraDesc,
+    /// What a ray that leaves the volume sees.
+    #[serde(default)]
+    pub background: BackgroundDesc,
+    /// Light sources and ambient light.
+    #[serde(default)]
+    pub lights: LightsDesc,
+    /// Ray marching settings (section 3.1).
+    pub march: MarchDesc,
+    /// The object density function D(x): a tree of soft objects.
+    pub object: ObjectDesc,
+    /// Density modulation functions applied to the whole object, in order.
+    #[serde(default)]
+    pub modulation: Vec<DmfDesc>,
+    /// Colour over density (or over `colour_index`).
+    #[serde(default = "CurveDesc::white")]
+    pub colour_map: CurveDesc<Rgb>,
+    /// What indexes the colour map.
+    #[serde(default)]
+    pub colour_index: ColourIndexDesc,
+    /// Opacity density over density (default: the identity).
+    #[serde(default)]
+    pub alpha_map: Option<CurveDesc<Finite>>,
+    /// Refractive index over density; none means rays go straight.
+    #[serde(default)]
+    pub refraction: Option<CurveDesc<Positive>>,
+    /// Surface response of the shaded samples.
+    #[serde(default)]
+    pub shading: ShadingDesc,
+    /// Seed of the noise tables.
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    /// Drift of the noise domain per frame: noise is evaluated at `x - frame · flow`,
+    /// so an animation's texture streams through the object (rising flames).
+    #[serde(default)]
+    pub flow: V3,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Scene")]
+struct SceneFields {
+    /// Image size in pixels.
+    image: ImageDesc,
+    /// The viewpoint.
+    camera: CameraDesc,
+    /// What a ray that leaves the volume sees.
+    #[serde(default)]
+    background: BackgroundDesc,
+    /// Light sources and ambient light.
+    #[serde(default)]
+    lights: LightsDesc,
+    /// Ray marching settings (section 3.1).
+    march: MarchDesc,
+    /// The object density function D(x): a tree of soft objects.
+    object: ObjectDesc,
+    /// Density modulation functions applied to the whole object, in order.
+    #[serde(default)]
+    modulation: Vec<DmfDesc>,
+    /// Colour over density (or over `colour_index`).
+    #[serde(default = "CurveDesc::white")]
+    colour_map: CurveDesc<Rgb>,
+    /// What indexes the colour map.
+    #[serde(default)]
+    colour_index: ColourIndexDesc,
+    /// Opacity density over density (default: the identity).
+    #[serde(default)]
+    alpha_map: Option<CurveDesc<Finite>>,
+    /// Refractive index over density; none means rays go straight.
+    #[serde(default)]
+    refraction: Option<CurveDesc<Positive>>,
+    /// Surface response of the shaded samples.
+    #[serde(default)]
+    shading: ShadingDesc,
+    /// Seed of the noise tables.
+    #[serde(default = "default_seed")]
+    seed: u64,
+    /// Drift of the noise domain per frame: noise is evaluated at `x - frame · flow`,
+    /// so an animation's texture streams through the object (rising flames).
+    #[serde(default)]
+    flow: V3,
+}
+
+impl TryFrom<SceneFields> for SceneDesc {
+    type Error = String;
+    fn try_from(f: SceneFields) -> Result<Self, String> {
+        check_chain(&f.object, &f.modulation)?;
+        Ok(SceneDesc {
+            image: f.image,
+            camera: f.camera,
+            background: f.background,
+            lights: f.lights,
+            march: f.march,
+            object: f.object,
+            modulation: f.modulation,
+            colour_map: f.colour_map,
+            colour_index: f.colour_index,
+            alpha_map: f.alpha_map,
+            refraction: f.refraction,
+            shading: f.shading,
+            seed: f.seed,
+            flow: f.flow,
+        })
+    }
+}
+
+fn default_seed() -> u64 {
+    crate::noise::DEFAULT_SEED
+}
+
+/// Image size.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "ImageFields")]
+pub struct ImageDesc {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Image")]
+struct ImageFields {
+    width: u32,
+    height: u32,
+}
+
+impl TryFrom<ImageFields> for ImageDesc {
+    type Error = String;
+    fn try_from(f: ImageFields) -> Result<Self, String> {
+        check_resolution(f.width, f.height)?;
+        Ok(ImageDesc {
+            width: f.width,
+            height: f.height,
+        })
+    }
+}
+
+/// Checks an image size against [`MAX_SIDE`] and [`MAX_PIXELS`].
+pub fn check_resolution(width: u32, height: u32) -> Result<(), String> {
+    if width == 0 || height == 0 {
+        return Err(format!(
+            "image size {width}×{height}: both sides must be at least 1"
+        ));
+    }
+    if width > MAX_SIDE || height > MAX_SIDE {
+        return Err(format!(
+            "image size {width}×{height}: a side may be at most {MAX_SIDE} pixels"
+        ));
+    }
+    if u64::from(width) * u64::from(height) > MAX_PIXELS {
+        return Err(format!(
+            "image size {width}×{height}: at most {MAX_PIXELS} pixels in all"
+        ));
+    }
+    Ok(())
+}
+
+/// Camera: a pinhole with a vertical field of view, or an orthographic view.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "CameraFields")]
+pub struct CameraDesc {
+    /// Eye point.
+    pub eye: V3,
+    /// Point looked at.
+    pub look_at: V3,
+    /// Up direction (need not be perpendicular to the view direction).
+    pub up: V3,
+    /// Perspective or orthographic.
+    pub projection: ProjectionDesc,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Camera")]
+struct CameraFields {
+    eye: V3,
+    look_at: V3,
+    #[serde(default = "V3::y")]
+    up: V3,
+    projection: ProjectionDesc,
+}
+
+impl TryFrom<CameraFields> for CameraDesc {
+    type Error = String;
+    fn try_from(f: CameraFields) -> Result<Self, String> {
+        let forward = f.look_at.0 - f.eye.0;
+        if forward.length() < 1e-6 {
+            return Err("camera: eye and look_at are the same point".into());
+        }
+        if forward.normalize().cross(f.up.0).length() < 1e-4 {
+            return Err("camera: up is parallel to the view direction".into());
+        }
+        Ok(CameraDesc {
+            eye: f.eye,
+            look_at: f.look_at,
+            up: f.up,
+            projection: f.projection,
+        })
+    }
+}
+
+/// How the camera projects.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum ProjectionDesc {
+    /// Pinhole camera with this vertical field of view in degrees.
+    Perspective {
+        /// Vertical field of view in degrees, in (0, 180).
+        fov_y: FieldOfView,
+    },
+    /// Parallel rays; `height` is the height of the view in scene units.
+    Orthographic {
+        /// Height of the view in scene units.
+        height: Positive,
+    },
+}
+
+/// What a ray sees when it leaves the volume.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum BackgroundDesc {
+    /// Alpha 0: the image can be composited over anything.
+    #[default]
+    Transparent,
+    /// An opaque colour.
+    Colour(Rgb),
+    /// An opaque checkerboard on the sphere of directions, so that refraction shows.
+    Checker {
+        /// The two colours.
+        colours: (Rgb, Rgb),
+        /// Squares around the horizon (≥ 2).
+        squares: Squares,
+    },
+}
+
+/// Lights.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LightsDesc {
+    /// Ambient light, added everywhere.
+    #[serde(default = "Rgb::ambient")]
+    pub ambient: Rgb,
+    /// Directional and point lights.
+    #[serde(default = "LightsDesc::default_sources")]
+    pub sources: Vec<LightDesc>,
+}
+
+impl Default for LightsDesc {
+    fn default() -> Self {
+        LightsDesc {
+            ambient: Rgb::ambient(),
+            sources: LightsDesc::default_sources(),
+        }
+    }
+}
+
+impl LightsDesc {
+    fn default_sources() -> Vec<LightDesc> {
+        vec![LightDesc::Directional {
+            direction: Direction(glam::Vec3::new(0.4, 0.9, 0.5).normalize()),
+            colour: Rgb([1.0, 1.0, 1.0]),
+        }]
+    }
+}
+
+/// One light source.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum LightDesc {
+    /// Light arriving from `direction` (pointing towards the light), like the sun.
+    Directional {
+        /// Direction towards the light (need not be unit length, must not be zero).
+        direction: Direction,
+        /// Its colour and intensity.
+        colour: Rgb,
+    },
+    /// Light from a point, falling off with the square of the distance.
+    Point {
+        /// Where the light is.
+        position: V3,
+        /// Colour and intensity at distance 1.
+        colour: Rgb,
+    },
+}
+
+/// Ray marching settings.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "MarchFields")]
+pub struct MarchDesc {
+    /// The parallelepiped (axis-aligned box) that bounds the hypertexture.
+    pub bounds: BoundsDesc,
+    /// The step Δμ along the ray.
+    pub step: StepDesc,
+    /// The opacity constant c in `α = 1 - (1 - density)^(c · step)`.
+    pub opacity: Positive,
+    /// Accumulated opacity at which a ray stops.
+    pub threshold: Fraction,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "March")]
+struct MarchFields {
+    bounds: BoundsDesc,
+    step: StepDesc,
+    opacity: Positive,
+    #[serde(default = "Fraction::threshold")]
+    threshold: Fraction,
+}
+
+impl TryFrom<MarchFields> for MarchDesc {
+    type Error = String;
+    fn try_from(f: MarchFields) -> Result<Self, String> {
+        let diagonal = (f.bounds.max.0 - f.bounds.min.0).length();
+        let step = f.step.length(diagonal);
+        // Guard against a march of absurd length (a hang in disguise).
+        if diagonal / step > 1.0e6 {
+            return Err(format!(
+                "march: step {step} is too small for bounds of diagonal {diagonal} (more than a million samples per ray)"
+            ));
+        }
+        Ok(MarchDesc {
+            bounds: f.bounds,
+            step: f.step,
+            opacity: f.opacity,
+            threshold: f.threshold,
+        })
+    }
+}
+
+/// An axis-aligned box.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "BoundsFields")]
+pub struct BoundsDesc {
+    /// The corner with the smallest coordinates.
+    pub min: V3,
+    /// The corner with the largest coordinates.
+    pub max: V3,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Bounds")]
+struct BoundsFields {
+    min: V3,
+    max: V3,
+}
+
+impl TryFrom<BoundsFields> for BoundsDesc {
+    type Error = String;
+    fn try_from(f: BoundsFields) -> Result<Self, String> {
+        if !f.min.0.cmplt(f.max.0).all() {
+            return Err(format!(
+                "bounds: min {:?} must be smaller than max {:?} on every axis",
+                f.min.0.to_array(),
+                f.max.0.to_array()
+            ));
+        }
+        Ok(BoundsDesc {
+            min: f.min,
+            max: f.max,
+        })
+    }
+}
+
+/// The marching step.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum StepDesc {
+    /// A fixed length in scene units.
+    Length(Positive),
+    /// The bounding box's diagonal divided by this many steps.
+    Diagonal(Positive),
+}
+
+impl StepDesc {
+    /// The step length for a bounding box of this diagonal.
+    pub fn length(&self, diagonal: f32) -> f32 {
+        match *self {
+            StepDesc::Length(l) => l.0,
+            StepDesc::Diagonal(n) => diagonal / n.0,
+        }
+    }
+}
+
+/// A node of the object density tree.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum ObjectDesc {
+    /// A soft sphere.
+    Sphere(SphereDesc),
+    /// A soft box.
+    Box(BoxDesc),
+    /// A soft torus.
+    Torus(TorusDesc),
+    /// Generalized union `a + b - ab`, folded over the list.
+    Union(Vec<ObjectDesc>),
+    /// Generalized intersection `ab`, folded over the list.
+    Intersection(Vec<ObjectDesc>),
+    /// Generalized difference `a - ab`.
+    Difference(Box<ObjectDesc>, Box<ObjectDesc>),
+    /// Generalized complement `1 - a`.
+    Complement(Box<ObjectDesc>),
+    /// Fuzzy-set union: the largest density.
+    Max(Vec<ObjectDesc>),
+    /// Fuzzy-set intersection: the smallest density.
+    Min(Vec<ObjectDesc>),
+    /// An object with its own density modulation functions applied.
+    Hypertexture(HypertextureDesc),
+}
+
+/// An object with its own DMFs: `Hypertexture(object: ..., modulation: [...])`.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "HypertextureFields")]
+pub struct HypertextureDesc {
+    /// The object modulated.
+    pub object: Box<ObjectDesc>,
+    /// Its DMFs, applied in order.
+    pub modulation: Vec<DmfDesc>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Hypertexture")]
+struct HypertextureFields {
+    object: Box<ObjectDesc>,
+    modulation: Vec<DmfDesc>,
+}
+
+impl TryFrom<HypertextureFields> for HypertextureDesc {
+    type Error = String;
+    fn try_from(f: HypertextureFields) -> Result<Self, String> {
+        check_chain(&f.object, &f.modulation)?;
+        Ok(HypertextureDesc {
+            object: f.object,
+            modulation: f.modulation,
+        })
+    }
+}
+
+/// The most DMFs one object may have.
+pub const MAX_DMFS: usize = 32;
+
+/// Checks a DMF chain against its object: position-dependent DMFs first (they
+/// choose where D is evaluated), and fur only on objects that can project.
+pub fn check_chain(object: &ObjectDesc, dmfs: &[DmfDesc]) -> Result<(), String> {
+    if dmfs.len() > MAX_DMFS {
+        return Err(format!(
+            "modulation: at most {MAX_DMFS} DMFs, found {}",
+            dmfs.len()
+        ));
+    }
+    let mut first_value: Option<&str> = None;
+    for (i, dmf) in dmfs.iter().enumerate() {
+        if dmf.is_position_dependent() {
+            if let Some(value) = first_value {
+                return Err(format!(
+                    "modulation[{i}]: {} moves the point x where D is evaluated, so it must come before {value}",
+                    dmf.name()
+                ));
+            }
+        } else if first_value.is_none() {
+            first_value = Some(dmf.name());
+        }
+        if matches!(dmf, DmfDesc::Fur { .. })
+            && !matches!(
+                object,
+                ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_)
+            )
+        {
+            return Err(format!(
+                "modulation[{i}]: Fur projects x onto the object's inner surface, so its object must be a Sphere, Box or Torus (wrap one in Hypertexture(object: ..., modulation: [Fur(...)]))"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A soft sphere.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "SphereFields")]
+pub struct SphereDesc {
+    /// Centre.
+    pub centre: V3,
+    /// Radius r.
+    pub radius: f32,
+    /// Softness s: D = 1 inside r - s/2, 0 outside r + s/2.
+    pub softness: f32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Sphere")]
+struct SphereFields {
+    #[serde(default)]
+    centre: V3,
+    radius: Positive,
+    softness: NonNegative,
+}
+
+impl TryFrom<SphereFields> for SphereDesc {
+    type Error = String;
+    fn try_from(f: SphereFields) -> Result<Self, String> {
+        check_softness("sphere", "radius", f.radius.0, f.softness.0)?;
+        Ok(SphereDesc {
+            centre: f.centre,
+            radius: f.radius.0,
+            softness: f.softness.0,
+        })
+    }
+}
+
+fn check_softness(what: &str, radius_name: &str, radius: f32, softness: f32) -> Result<(), String> {
+    if softness > 2.0 * radius {
+        return Err(format!(
+            "{what}: softness {softness} is more than twice the {radius_name} {radius} (the inner radius r - s/2 would be negative)"
+        ));
+    }
+    Ok(())
+}
+
+/// A soft box: the product of three soft slabs.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "BoxFields")]
+pub struct BoxDesc {
+    /// Centre.
+    pub centre: V3,
+    /// Half the size along each axis.
+    pub half_size: V3,
+    /// Softness of each face.
+    pub softness: f32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Box")]
+struct BoxFields {
+    #[serde(default)]
+    centre: V3,
+    half_size: V3,
+    softness: NonNegative,
+}
+
+impl TryFrom<BoxFields> for BoxDesc {
+    type Error = String;
+    fn try_from(f: BoxFields) -> Result<Self, String> {
+        for h in f.half_size.0.to_array() {
+            if h <= 0.0 {
+                return Err(format!("box: half_size {h} must be positive"));
+            }
+            check_softness("box", "half_size", h, f.softness.0)?;
+        }
+        Ok(BoxDesc {
+            centre: f.centre,
+            half_size: f.half_size,
+            softness: f.softness.0,
+        })
+    }
+}
+
+/// A soft torus.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "TorusFields")]
+pub struct TorusDesc {
+    /// Centre of the ring.
+    pub centre: V3,
+    /// Axis of the ring.
+    pub axis: Direction,
+    /// Radius of the core circle.
+    pub major_radius: f32,
+    /// Radius of the tube.
+    pub minor_radius: f32,
+    /// Softness of the tube.
+    pub softness: f32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Torus")]
+struct TorusFields {
+    #[serde(default)]
+    centre: V3,
+    #[serde(default = "Direction::y")]
+    axis: Direction,
+    major_radius: Positive,
+    minor_radius: Positive,
+    softness: NonNegative,
+}
+
+impl TryFrom<TorusFields> for TorusDesc {
+    type Error = String;
+    fn try_from(f: TorusFields) -> Result<Self, String> {
+        check_softness("torus", "minor_radius", f.minor_radius.0, f.softness.0)?;
+        Ok(TorusDesc {
+            centre: f.centre,
+            axis: f.axis,
+            major_radius: f.major_radius.0,
+            minor_radius: f.minor_radius.0,
+            softness: f.softness.0,
+        })
+    }
+}
+
+/// A density modulation function (section 2.4).
+///
+/// The first four are position-dependent: they move the point x at which D is
+/// evaluated (the paper's `sphere(x(1 + ...))`), and must come before the others.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum DmfDesc {
+    /// Noise-scaled radius: `D(c + (x - c)(1 + amplitude · noise(frequency · x)))`.
+    /// The paper's noisy sphere uses amplitude 1/frequency.
+    NoisyRadius {
+        /// Frequency f of the noise.
+        frequency: Positive,
+        /// Amplitude of the radius modulation.
+        amplitude: NonNegative,
+        /// Centre of the scaling.
+        #[serde(default)]
+        centre: V3,
+    },
+    /// Fractal sum: `D(c + (x - c)(1 + Σ noise(2^i f x) / (2^i f)))`, the octaves
+    /// clamped so that the finest is no smaller than the marching step.
+    FractalRadius {
+        /// Base frequency f.
+        frequency: Positive,
+        /// Most octaves to sum.
+        #[serde(default = "Octaves::six")]
+        octaves: Octaves,
+        /// Overall amplitude (1 is the paper's).
+        #[serde(default = "NonNegative::one")]
+        amplitude: NonNegative,
+        /// Centre of the scaling.
+        #[serde(default)]
+        centre: V3,
+    },
+    /// Shaped noise on one axis: below the centre only y is scaled, by the positive
+    /// part of noise that varies slowly in y (`stretch`), so material hangs in drips:
+    /// `y' = c.y + (y - c.y)(1 - a · max(0, noise(f · (x, stretch · y, z))))`.
+    Dripping {
+        /// Frequency of the noise across x and z.
+        frequency: Positive,
+        /// Amplitude of the y modulation.
+        amplitude: NonNegative,
+        /// Frequency of the noise along y relative to x and z (small: long drips).
+        #[serde(default = "NonNegative::fifth")]
+        stretch: NonNegative,
+        /// Centre of the scaling.
+        #[serde(default)]
+        centre: V3,
+    },
+    /// Turbulence-scaled radius, the fire ball: `D(c + (x - c)(1 + a·turbulence(f x)))`.
+    TurbulentRadius {
+        /// Frequency of the turbulence.
+        #[serde(default = "Positive::one")]
+        frequency: Positive,
+        /// Amplitude a.
+        #[serde(default = "NonNegative::one")]
+        amplitude: NonNegative,
+        /// Most octaves (clamped by the step).
+        #[serde(default = "Octaves::six")]
+        octaves: Octaves,
+        /// Centre of the scaling.
+        #[serde(default)]
+        centre: V3,
+    },
+    /// `bias_b` of the density.
+    Bias(UnitOpen),
+    /// `gain_g` of the density.
+    Gain(UnitOpen),
+    /// Fur (and curly fur): `s = noise(frequency · project(x'))`,
+    /// `f = gain_g(bias_b(s)) · d` with `d = D(x)` and
+    /// `x' = x + gain_{curl_gain}(1 - d) · curliness · vnoise(x)`.
+    Fur {
+        /// Fineness: the frequency of the noise on the inner surface.
+        frequency: Positive,
+        /// Bias b (0.3 in the paper: more empty space than hair).
+        #[serde(default = "UnitOpen::fur_bias")]
+        bias: UnitOpen,
+        /// Gain g (0.9 in the paper: hard-edged hairs).
+        #[serde(default = "UnitOpen::fur_gain")]
+        gain: UnitOpen,
+        /// Curliness (0: straight hair).
+        #[serde(default)]
+        curliness: NonNegative,
+        /// Gain shaping the curl from root to tip (0.8 in the paper).
+        #[serde(default = "UnitOpen::curl_gain")]
+        curl_gain: UnitOpen,
+    },
+}
+
+impl DmfDesc {
+    /// The DMF's name as written in a scene.
+    pub fn name(&self) -> &'static str {
+        match self {
+            DmfDesc::NoisyRadius { .. } => "NoisyRadius",
+            DmfDesc::FractalRadius { .. } => "FractalRadius",
+            DmfDesc::Dripping { .. } => "Dripping",
+            DmfDesc::TurbulentRadius { .. } => "TurbulentRadius",
+            DmfDesc::Bias(_) => "Bias",
+            DmfDesc::Gain(_) => "Gain",
+            DmfDesc::Fur { .. } => "Fur",
+        }
+    }
+
+    /// Whether this DMF moves the point at which D is evaluated.
+    pub fn is_position_dependent(&self) -> bool {
+        matches!(
+            self,
+            DmfDesc::NoisyRadius { .. }
+                | DmfDesc::FractalRadius { .. }
+                | DmfDesc::Dripping { .. }
+                | DmfDesc::TurbulentRadius { .. }
+        )
+    }
+}
+
+/// What indexes the colour map.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum ColourIndexDesc {
+    /// The density (the paper's colour maps).
+    #[default]
+    Density,
+    /// Strata bent by turbulence, as the 1985 marble:
+    /// `0.5 + 0.5 sin(frequency · y + amplitude · turbulence(x))`.
+    Strata {
+        /// Frequency of the layers along y.
+        frequency: Positive,
+        /// How much turbulence bends them.
+        amplitude: NonNegative,
+        /// Octaves of turbulence (clamped by the step).
+        #[serde(default = "Octaves::six")]
+        octaves: Octaves,
+    },
+}
+
+/// Shading parameters.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ShadingDesc {
+    /// Diffuse reflectance factor.
+    #[serde(default = "NonNegative::one")]
+    pub diffuse: NonNegative,
+    /// Specular reflectance factor.
+    #[serde(default)]
+    pub specular: NonNegative,
+    /// Phong exponent of the highlight.
+    #[serde(default = "Positive::shininess")]
+    pub shininess: Positive,
+}
+
+impl Default for ShadingDesc {
+    fn default() -> Self {
+        ShadingDesc {
+            diffuse: NonNegative(1.0),
+            specular: NonNegative(0.0),
+            shininess: Positive(20.0),
+        }
+    }
+}
+
+/// A curve through control points over [0, 1], e.g. colour over density.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(
+    deny_unknown_fields,
+    try_from = "CurveFields<T>",
+    bound = "T: Deserialize<'de>"
+)]
+pub struct CurveDesc<T> {
+    /// How to interpolate between control points.
+    pub interpolation: Interpolation,
+    /// Control points (key in [0, 1], value), keys strictly increasing.
+    pub points: Vec<(f32, T)>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Map", bound = "T: Deserialize<'de>")]
+struct CurveFields<T> {
+    #[serde(default)]
+    interpolation: Interpolation,
+    points: Vec<(Fraction, T)>,
+}
+
+impl<T> TryFrom<CurveFields<T>> for CurveDesc<T> {
+    type Error = String;
+    fn try_from(f: CurveFields<T>) -> Result<Self, String> {
+        if f.points.is_empty() {
+            return Err("a map needs at least one control point".into());
+        }
+        if f.points.len() > 256 {
+            return Err(format!(
+                "a map may have at most 256 control points, not {}",
+                f.points.len()
+            ));
+        }
+        for w in f.points.windows(2) {
+            if w[1].0.0 <= w[0].0.0 {
+                return Err(format!(
+                    "map keys must increase: {} comes after {}",
+                    w[1].0.0, w[0].0.0
+                ));
+            }
+        }
+        Ok(CurveDesc {
+            interpolation: f.interpolation,
+            points: f.points.into_iter().map(|(k, v)| (k.0, v)).collect(),
+        })
+    }
+}
+
+impl CurveDesc<Rgb> {
+    fn white() -> Self {
+        CurveDesc {
+            interpolation: Interpolation::Linear,
+            points: vec![(0.0, Rgb([1.0, 1.0, 1.0]))],
+        }
+    }
+}
+
+/// Interpolation between control points.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+pub enum Interpolation {
+    /// Piecewise linear.
+    #[default]
+    Linear,
+    /// Catmull–Rom spline through the points.
+    Spline,
+}
+
+macro_rules! checked_float {
+    ($(#[$doc:meta])* $name:ident, $what:literal, |$v:ident| $ok:expr) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, PartialOrd)]
+        #[serde(try_from = "f64")]
+        pub struct $name(pub f32);
+
+        impl TryFrom<f64> for $name {
+            type Error = String;
+            fn try_from(raw: f64) -> Result<Self, String> {
+                let $v = raw as f32;
+                if raw.is_finite() && $v.is_finite() && $ok {
+                    Ok($name($v))
+                } else {
+                    Err(format!("expected {}, found {}", $what, raw))
+                }
+            }
+        }
+
+        impl From<$name> for f32 {
+            fn from(v: $name) -> f32 {
+                v.0
+            }
+        }
+    };
+}
+
+checked_float!(
+    /// A finite number.
+    Finite, "a finite number", |v| true
+);
+checked_float!(
+    /// A finite number > 0.
+    Positive, "a positive number", |v| v > 0.0
+);
+checked_float!(
+    /// A finite number ≥ 0.
+    NonNegative, "a number ≥ 0", |v| v >= 0.0
+);
+checked_float!(
+    /// A number in [0, 1].
+    Fraction, "a number in [0, 1]", |v| (0.0..=1.0).contains(&v)
+);
+checked_float!(
+    /// A number strictly between 0 and 1 (a bias or gain parameter).
+    UnitOpen, "a number strictly between 0 and 1", |v| v > 0.0 && v < 1.0
+);
+checked_float!(
+    /// A vertical field of view in degrees, strictly between 0 and 180.
+    FieldOfView, "a field of view strictly between 0 and 180 degrees", |v| v > 0.0 && v < 180.0
+);
+
+impl Positive {
+    fn one() -> Self {
+        Positive(1.0)
+    }
+    fn shininess() -> Self {
+        Positive(20.0)
+    }
+}
+
+impl NonNegative {
+    fn one() -> Self {
+        NonNegative(1.0)
+    }
+    fn fifth() -> Self {
+        NonNegative(0.2)
+    }
+}
+
+impl Fraction {
+    fn threshold() -> Self {
+        Fraction(0.99)
+    }
+}
+
+impl UnitOpen {
+    fn fur_bias() -> Self {
+        UnitOpen(0.3)
+    }
+    fn fur_gain() -> Self {
+        UnitOpen(0.9)
+    }
+    fn curl_gain() -> Self {
+        UnitOpen(0.8)
+    }
+}
+
+/// An octave count, 1 to 16.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(try_from = "u64")]
+pub struct Octaves(pub u32);
+
+impl TryFrom<u64> for Octaves {
+    type Error = String;
+    fn try_from(n: u64) -> Result<Self, String> {
+        if (1..=16).contains(&n) {
+            Ok(Octaves(n as u32))
+        } else {
+            Err(format!("expected an octave count from 1 to 16, found {n}"))
+        }
+    }
+}
+
+impl Octaves {
+    fn six() -> Self {
+        Octaves(6)
+    }
+}
+
+/// Checker squares around the horizon, 2 to 1024.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(try_from = "u64")]
+pub struct Squares(pub u32);
+
+impl TryFrom<u64> for Squares {
+    type Error = String;
+    fn try_from(n: u64) -> Result<Self, String> {
+        if (2..=1024).contains(&n) {
+            Ok(Squares(n as u32))
+        } else {
+            Err(format!("expected a square count from 2 to 1024, found {n}"))
+        }
+    }
+}
+
+/// A point or vector with finite coordinates, written `(x, y, z)`.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(try_from = "(f64, f64, f64)")]
+pub struct V3(pub glam::Vec3);
+
+impl TryFrom<(f64, f64, f64)> for V3 {
+    type Error = String;
+    fn try_from((x, y, z): (f64, f64, f64)) -> Result<Self, String> {
+        let v = glam::Vec3::new(x as f32, y as f32, z as f32);
+        if v.is_finite() {
+            Ok(V3(v))
+        } else {
+            Err(format!(
+                "expected a vector of finite numbers, found ({x}, {y}, {z})"
+            ))
+        }
+    }
+}
+
+impl V3 {
+    fn y() -> Self {
+        V3(glam::Vec3::Y)
+    }
+}
+
+/// A non-zero vector with finite coordinates, normalised when read.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(try_from = "(f64, f64, f64)")]
+pub struct Direction(pub glam::Vec3);
+
+impl TryFrom<(f64, f64, f64)> for Direction {
+    type Error = String;
+    fn try_from(t: (f64, f64, f64)) -> Result<Self, String> {
+        let v = V3::try_from(t)?.0;
+        if v.length() < 1e-6 {
+            return Err(format!(
+                "expected a non-zero direction, found {:?}",
+                v.to_array()
+            ));
+        }
+        Ok(Direction(v.normalize()))
+    }
+}
+
+impl Direction {
+    fn y() -> Self {
+        Direction(glam::Vec3::Y)
+    }
+}
+
+/// A linear RGB colour with finite components ≥ 0, written `(r, g, b)`.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(try_from = "(f64, f64, f64)")]
+pub struct Rgb(pub [f32; 3]);
+
+impl TryFrom<(f64, f64, f64)> for Rgb {
+    type Error = String;
+    fn try_from(t: (f64, f64, f64)) -> Result<Self, String> {
+        let v = V3::try_from(t)?.0;
+        if v.min_element() < 0.0 {
+            return Err(format!(
+                "expected a colour with components ≥ 0, found {:?}",
+                v.to_array()
+            ));
+        }
+        Ok(Rgb(v.to_array()))
+    }
+}
+
+impl Rgb {
+    fn ambient() -> Self {
+        Rgb([0.1, 0.1, 0.1])
+    }
+}

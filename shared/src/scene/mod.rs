@@ -1,0 +1,295 @@
+//! Scenes: loading a RON file into a ready-to-render [`Scene`].
+//!
+//! Loading has two phases, as in pbrt-v4: the text is read into a plain
+//! description ([`desc::SceneDesc`]), every value checked where it stands so that
+//! errors carry file:line:column; then the description is built into runtime
+//! objects with every constant precomputed. After that nothing can fail.
+
+pub mod desc;
+
+use std::path::Path;
+
+use glam::Vec3;
+
+use crate::camera::Camera;
+use crate::curve::Curve;
+use crate::density::Density;
+use crate::noise::{Noise, clamped_octaves};
+use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, ObjectDesc, SceneDesc};
+
+/// The largest scene file we read. The paper's whole database was under 5 KB.
+pub const MAX_SCENE_BYTES: usize = 64 * 1024;
+
+/// Why a scene could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("{path}: cannot read the scene: {source}")]
+    Io {
+        /// The scene file.
+        path: String,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// The file is larger than [`MAX_SCENE_BYTES`].
+    #[error("{path}: the scene is {size} bytes; a scene may be at most {MAX_SCENE_BYTES} bytes")]
+    TooLarge {
+        /// The scene file.
+        path: String,
+        /// Its size.
+        size: usize,
+    },
+    /// Syntax error, unknown field, wrong type or out-of-range value.
+    #[error("{path}:{line}:{column}: {message}")]
+    Parse {
+        /// The scene file.
+        path: String,
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// What was wrong and what was expected.
+        message: String,
+    },
+    /// An override (from the command line) is out of range.
+    #[error("{0}")]
+    Override(String),
+}
+
+/// Settings that replace the scene file's own at load time (from the command line).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Overrides {
+    /// Image width in pixels.
+    pub width: Option<u32>,
+    /// Image height in pixels.
+    pub height: Option<u32>,
+}
+
+/// Parses scene text; `path` names it in error messages.
+pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
+    if text.len() > MAX_SCENE_BYTES {
+        return Err(SceneError::TooLarge {
+            path: path.to_string(),
+            size: text.len(),
+        });
+    }
+    let options = ron::Options::default()
+        .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
+        .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
+    options
+        .from_str::<SceneDesc>(text)
+        .map_err(|e| SceneError::Parse {
+            path: path.to_string(),
+            line: e.span.start.line,
+            column: e.span.start.col,
+            message: e.code.to_string(),
+        })
+}
+
+/// How a ray that leaves the volume is coloured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Background {
+    Transparent,
+    Colour(Vec3),
+    Checker { colours: (Vec3, Vec3), squares: f32 },
+}
+
+impl Background {
+    /// (colour, alpha) seen along a unit direction.
+    #[inline]
+    pub(crate) fn sample(&self, d: Vec3) -> (Vec3, f32) {
+        match *self {
+            Background::Transparent => (Vec3::ZERO, 0.0),
+            Background::Colour(c) => (c, 1.0),
+            Background::Checker { colours, squares } => {
+                let u = libm::atan2f(d.z, d.x) / std::f32::consts::TAU + 0.5;
+                let v = libm::asinf(d.y.clamp(-1.0, 1.0)) / std::f32::consts::PI + 0.5;
+                let cell = (u * squares).floor() as i64 + (v * squares / 2.0).floor() as i64;
+                (if cell & 1 == 0 { colours.0 } else { colours.1 }, 1.0)
+            }
+        }
+    }
+}
+
+/// A light source.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Light {
+    Directional { direction: Vec3, colour: Vec3 },
+    Point { position: Vec3, colour: Vec3 },
+}
+
+/// What indexes the colour map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum ColourIndex {
+    Density,
+    Strata {
+        frequency: f32,
+        amplitude: f32,
+        octaves: u32,
+    },
+}
+
+/// A scene ready to render: immutable, shared by every thread.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    pub(crate) camera: Camera,
+    pub(crate) bounds: (Vec3, Vec3),
+    /// The marching step Δμ.
+    pub(crate) step: f32,
+    /// `c · step`, the exponent of the opacity.
+    pub(crate) opacity_exponent: f32,
+    pub(crate) threshold: f32,
+    pub(crate) density: Density,
+    pub(crate) noise: Noise,
+    pub(crate) colour_map: Curve<3>,
+    pub(crate) colour_index: ColourIndex,
+    pub(crate) alpha_map: Option<Curve<1>>,
+    pub(crate) refraction: Option<Curve<1>>,
+    pub(crate) background: Background,
+    pub(crate) ambient: Vec3,
+    pub(crate) lights: Vec<Light>,
+    pub(crate) diffuse: f32,
+    pub(crate) specular: f32,
+    pub(crate) shininess: f32,
+    pub(crate) flow: Vec3,
+}
+
+impl Scene {
+    /// Reads, checks and builds the scene in `path`.
+    pub fn load(path: impl AsRef<Path>, overrides: Overrides) -> Result<Scene, SceneError> {
+        let path = path.as_ref();
+        let name = path.display().to_string();
+        let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        let text = std::str::from_utf8(&bytes).map_err(|e| {
+            let before = &bytes[..e.valid_up_to()];
+            let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
+            let column = before.iter().rev().take_while(|&&b| b != b'\n').count() + 1;
+            SceneError::Parse {
+                path: name.clone(),
+                line,
+                column,
+                message: "the scene is not valid UTF-8 text".into(),
+            }
+        })?;
+        Scene::from_text(text, &name, overrides)
+    }
+
+    /// Checks and builds a scene from its text; `path` names it in errors.
+    pub fn from_text(text: &str, path: &str, overrides: Overrides) -> Result<Scene, SceneError> {
+        let mut desc = parse(text, path)?;
+        if let Some(w) = overrides.width {
+            desc.image.width = w;
+        }
+        if let Some(h) = overrides.height {
+            desc.image.height = h;
+        }
+        desc::check_resolution(desc.image.width, desc.image.height)
+            .map_err(SceneError::Override)?;
+        Ok(Scene::build(&desc))
+    }
+
+    /// Builds the runtime scene from a checked description.
+    pub fn build(desc: &SceneDesc) -> Scene {
+        let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
+        let step = desc.march.step.length((max - min).length());
+        let object = if desc.modulation.is_empty() {
+            desc.object.clone()
+        } else {
+            ObjectDesc::Hypertexture(desc::HypertextureDesc {
+                object: Box::new(desc.object.clone()),
+                modulation: desc.modulation.clone(),
+            })
+        };
+        let background = match desc.background {
+            BackgroundDesc::Transparent => Background::Transparent,
+            BackgroundDesc::Colour(c) => Background::Colour(Vec3::from_array(c.0)),
+            BackgroundDesc::Checker { colours, squares } => Background::Checker {
+                colours: (Vec3::from_array(colours.0.0), Vec3::from_array(colours.1.0)),
+                squares: squares.0 as f32,
+            },
+        };
+        let lights = desc
+            .lights
+            .sources
+            .iter()
+            .map(|l| match *l {
+                LightDesc::Directional { direction, colour } => Light::Directional {
+                    direction: direction.0,
+                    colour: Vec3::from_array(colour.0),
+                },
+                LightDesc::Point { position, colour } => Light::Point {
+                    position: position.0,
+                    colour: Vec3::from_array(colour.0),
+                },
+            })
+            .collect();
+        let colour_index = match desc.colour_index {
+            ColourIndexDesc::Density => ColourIndex::Density,
+            ColourIndexDesc::Strata {
+                frequency,
+                amplitude,
+                octaves,
+            } => ColourIndex::Strata {
+                frequency: frequency.0,
+                amplitude: amplitude.0,
+                octaves: clamped_octaves(frequency.0, step, octaves.0),
+            },
+        };
+        Scene {
+            width: desc.image.width,
+            height: desc.image.height,
+            camera: Camera::new(&desc.camera, desc.image.width, desc.image.height),
+            bounds: (min, max),
+            step,
+            opacity_exponent: desc.march.opacity.0 * step,
+            threshold: desc.march.threshold.0,
+            density: Density::build(&object, step),
+            noise: Noise::new(desc.seed),
+            colour_map: Curve::colours(&desc.colour_map),
+            colour_index,
+            alpha_map: desc.alpha_map.as_ref().map(Curve::scalars),
+            refraction: desc.refraction.as_ref().map(Curve::scalars),
+            background,
+            ambient: Vec3::from_array(desc.lights.ambient.0),
+            lights,
+            diffuse: desc.shading.diffuse.0,
+            specular: desc.shading.specular.0,
+            shininess: desc.shading.shininess.0,
+            flow: desc.flow.0,
+        }
+    }
+
+    /// Image width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Image height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// The marching step Δμ in scene units.
+    pub fn step(&self) -> f32 {
+        self.step
+    }
+
+    /// The hypertexture H(x) for `frame`, in [0, 1].
+    pub fn density_at(&self, x: Vec3, frame: u32) -> f32 {
+        self.density.eval(x, &self.field(frame))
+    }
+
+    /// The evaluation context of `frame`.
+    #[inline]
+    pub(crate) fn field(&self, frame: u32) -> crate::density::Field<'_> {
+        crate::density::Field {
+            noise: &self.noise,
+            offset: self.flow * frame as f32,
+        }
+    }
+}

@@ -1,0 +1,139 @@
+//! The paper's shaping base functions, `bias` and `gain` (section 2.3).
+//!
+//! Both map the unit interval onto itself. Powers go through `libm` (a port of
+//! musl's libm in plain Rust) rather than the platform's libm, so that every
+//! machine of the farm computes the same bits.
+
+/// `bias_b(t) = t^(ln b / ln 0.5)`: pushes values in the unit interval up (b > 0.5)
+/// or down (b < 0.5) while keeping `bias_b(0) = 0`, `bias_b(1/2) = b`,
+/// `bias_b(1) = 1`. `t` is clamped to `[0, 1]` first (densities live there).
+#[inline]
+pub fn bias(b: f32, t: f32) -> f32 {
+    Bias::new(b).apply(t)
+}
+
+/// `gain_g(t)`: a spline of two bias curves that makes the mid-range steeper
+/// (g > 0.5) or flatter (g < 0.5): `bias_{1-g}(2t)/2` for `t < 1/2`, else
+/// `1 - bias_{1-g}(2 - 2t)/2`. `t` is clamped to `[0, 1]` first.
+#[inline]
+pub fn gain(g: f32, t: f32) -> f32 {
+    Gain::new(g).apply(t)
+}
+
+/// `bias_b` with its exponent `ln b / ln 0.5` computed once (at scene load).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bias {
+    /// `ln b / ln 0.5`.
+    exponent: f32,
+}
+
+impl Bias {
+    /// The bias curve with parameter `b` in (0, 1).
+    pub fn new(b: f32) -> Self {
+        Bias {
+            exponent: libm::logf(b) / libm::logf(0.5),
+        }
+    }
+
+    /// `bias_b(t)` for `t` clamped to `[0, 1]`.
+    #[inline]
+    pub fn apply(&self, t: f32) -> f32 {
+        let t = clamp01(t);
+        if t == 0.0 {
+            // 0^e is 0 for every e > 0; spelt out so that b = 1 (e = 0) keeps bias(0) = 0.
+            return 0.0;
+        }
+        libm::powf(t, self.exponent)
+    }
+}
+
+/// `gain_g`, built on `bias_{1-g}`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Gain {
+    /// `bias_{1-g}`.
+    bias: Bias,
+}
+
+impl Gain {
+    /// The gain curve with parameter `g` in (0, 1).
+    pub fn new(g: f32) -> Self {
+        Gain {
+            bias: Bias::new(1.0 - g),
+        }
+    }
+
+    /// `gain_g(t)` for `t` clamped to `[0, 1]`.
+    #[inline]
+    pub fn apply(&self, t: f32) -> f32 {
+        let t = clamp01(t);
+        if t < 0.5 {
+            self.bias.apply(2.0 * t) / 2.0
+        } else {
+            1.0 - self.bias.apply(2.0 - 2.0 * t) / 2.0
+        }
+    }
+}
+
+/// Clamp to the unit interval; NaN becomes 0 so that nothing downstream sees it.
+#[inline]
+pub fn clamp01(t: f32) -> f32 {
+    if t > 0.0 {
+        if t < 1.0 { t } else { 1.0 }
+    } else {
+        0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const EPS: f32 = 1e-6;
+
+    #[test]
+    fn bias_defining_points() {
+        for b in [0.1, 0.25, 0.3, 0.5, 0.75, 0.9] {
+            assert_eq!(bias(b, 0.0), 0.0);
+            assert!(
+                (bias(b, 0.5) - b).abs() < EPS,
+                "bias_{b}(1/2) = {}",
+                bias(b, 0.5)
+            );
+            assert!((bias(b, 1.0) - 1.0).abs() < EPS);
+        }
+    }
+
+    #[test]
+    fn gain_defining_points() {
+        for g in [0.1, 0.25, 0.5, 0.75, 0.9] {
+            assert_eq!(gain(g, 0.0), 0.0);
+            assert!((gain(g, 0.25) - (1.0 - g) / 2.0).abs() < EPS);
+            assert!((gain(g, 0.5) - 0.5).abs() < EPS);
+            assert!((gain(g, 0.75) - (1.0 + g) / 2.0).abs() < EPS);
+            assert!((gain(g, 1.0) - 1.0).abs() < EPS);
+        }
+    }
+
+    #[test]
+    fn half_is_the_identity() {
+        for i in 0..=100 {
+            let t = i as f32 / 100.0;
+            assert!((bias(0.5, t) - t).abs() < EPS);
+            assert!((gain(0.5, t) - t).abs() < EPS);
+        }
+    }
+
+    #[test]
+    fn monotone_and_clamped() {
+        let mut last = (0.0, 0.0);
+        for i in 0..=1000 {
+            let t = i as f32 / 1000.0;
+            let now = (bias(0.3, t), gain(0.9, t));
+            assert!(now.0 >= last.0 && now.1 >= last.1);
+            last = now;
+        }
+        assert_eq!(bias(0.3, -2.0), 0.0);
+        assert_eq!(gain(0.9, 7.0), 1.0);
+        assert_eq!(bias(0.3, f32::NAN), 0.0);
+    }
+}

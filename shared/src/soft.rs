@@ -1,0 +1,297 @@
+//! Soft objects (section 2.1) and the generalized booleans (section 2.2).
+//!
+//! A soft object is a density function D(x) with range [0, 1]: 1 in its hard
+//! region, 0 outside, and in between over a soft region of non-zero thickness.
+//! Every primitive here uses the paper's sphere falloff: with `r1 = r - s/2` the
+//! inner (D = 1) radius and `r0 = r + s/2` the outer (D = 0) radius of a distance
+//! `d` from the primitive's core, `D = (r0² - d²) / (r0² - r1²)` in between.
+
+use glam::Vec3;
+
+/// The paper's quadratic falloff, with the squared radii precomputed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Falloff {
+    /// `r1 = r - s/2`, the inner (D = 1) radius.
+    inner: f32,
+    /// `r1²`.
+    inner2: f32,
+    /// `r0²`, the outer (D = 0) radius squared.
+    outer2: f32,
+    /// `1 / (r0² - r1²)` (0 for a hard object, s = 0).
+    inv_width: f32,
+}
+
+impl Falloff {
+    /// The falloff of radius `radius` and softness `softness`
+    /// (validated at load: `0 ≤ softness ≤ 2·radius`).
+    pub fn new(radius: f32, softness: f32) -> Self {
+        let inner = radius - softness / 2.0;
+        let outer = radius + softness / 2.0;
+        let (inner2, outer2) = (inner * inner, outer * outer);
+        let width = outer2 - inner2;
+        Falloff {
+            inner,
+            inner2,
+            outer2,
+            inv_width: if width > 0.0 { 1.0 / width } else { 0.0 },
+        }
+    }
+
+    /// D for a squared distance `d2` from the core.
+    #[inline]
+    pub fn density(&self, d2: f32) -> f32 {
+        if d2 <= self.inner2 {
+            1.0
+        } else if d2 >= self.outer2 {
+            0.0
+        } else {
+            (self.outer2 - d2) * self.inv_width
+        }
+    }
+
+    /// The inner (D = 1) radius.
+    pub fn inner(&self) -> f32 {
+        self.inner
+    }
+
+    /// The outer (D = 0) radius.
+    pub fn outer(&self) -> f32 {
+        self.outer2.sqrt()
+    }
+}
+
+/// A soft sphere: the paper's `D[c, r, s](x)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SoftSphere {
+    /// Centre c.
+    pub centre: Vec3,
+    /// Radial falloff from radius r and softness s.
+    pub falloff: Falloff,
+}
+
+impl SoftSphere {
+    /// D(x).
+    #[inline]
+    pub fn density(&self, x: Vec3) -> f32 {
+        self.falloff.density((x - self.centre).length_squared())
+    }
+
+    /// x projected perpendicularly onto the inner (D = 1) surface.
+    #[inline]
+    pub fn project(&self, x: Vec3) -> Vec3 {
+        self.centre + direction_or(x - self.centre, Vec3::Y) * self.falloff.inner
+    }
+}
+
+/// A soft box: the generalized intersection (product) of three soft slabs, one
+/// per axis, each with the paper's falloff on the distance from the mid-plane.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SoftBox {
+    /// Centre of the box.
+    pub centre: Vec3,
+    /// Per-axis falloff from the half size and softness.
+    pub falloff: [Falloff; 3],
+}
+
+impl SoftBox {
+    /// D(x) = D_x · D_y · D_z.
+    #[inline]
+    pub fn density(&self, x: Vec3) -> f32 {
+        let q = x - self.centre;
+        let dx = self.falloff[0].density(q.x * q.x);
+        if dx == 0.0 {
+            return 0.0;
+        }
+        let dy = self.falloff[1].density(q.y * q.y);
+        if dy == 0.0 {
+            return 0.0;
+        }
+        dx * dy * self.falloff[2].density(q.z * q.z)
+    }
+
+    /// x projected onto the inner (D = 1) box: the nearest point of its surface.
+    pub fn project(&self, x: Vec3) -> Vec3 {
+        let q = x - self.centre;
+        let h = Vec3::new(
+            self.falloff[0].inner,
+            self.falloff[1].inner,
+            self.falloff[2].inner,
+        );
+        let inside = q.abs().cmple(h).all();
+        let p = if inside {
+            // Push out through the nearest face.
+            let gap = h - q.abs();
+            let mut p = q;
+            if gap.x <= gap.y && gap.x <= gap.z {
+                p.x = h.x.copysign(q.x);
+            } else if gap.y <= gap.z {
+                p.y = h.y.copysign(q.y);
+            } else {
+                p.z = h.z.copysign(q.z);
+            }
+            p
+        } else {
+            q.clamp(-h, h)
+        };
+        self.centre + p
+    }
+}
+
+/// A soft torus: a tube of radius r and softness s around a circle of radius R.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SoftTorus {
+    /// Centre of the ring.
+    pub centre: Vec3,
+    /// Unit axis of the ring (the donut's hole runs along it).
+    pub axis: Vec3,
+    /// Radius R of the ring (the core circle).
+    pub major_radius: f32,
+    /// Falloff around the core circle from the minor radius r and softness s.
+    pub falloff: Falloff,
+}
+
+impl SoftTorus {
+    /// The point of the core circle nearest to x.
+    #[inline]
+    fn core_point(&self, x: Vec3) -> Vec3 {
+        let q = x - self.centre;
+        let radial = q - self.axis * q.dot(self.axis);
+        self.centre + direction_or(radial, self.axis.any_orthonormal_vector()) * self.major_radius
+    }
+
+    /// D(x), from the squared distance to the core circle.
+    #[inline]
+    pub fn density(&self, x: Vec3) -> f32 {
+        let q = x - self.centre;
+        let h = q.dot(self.axis);
+        let radial = (q - self.axis * h).length() - self.major_radius;
+        self.falloff.density(radial * radial + h * h)
+    }
+
+    /// x projected perpendicularly onto the inner (D = 1) surface of the tube.
+    #[inline]
+    pub fn project(&self, x: Vec3) -> Vec3 {
+        let core = self.core_point(x);
+        core + direction_or(x - core, self.axis) * self.falloff.inner
+    }
+}
+
+/// `v` normalised, or `fallback` where `v` is too short to have a direction.
+#[inline]
+fn direction_or(v: Vec3, fallback: Vec3) -> Vec3 {
+    let len2 = v.length_squared();
+    if len2 > 1e-20 {
+        v / len2.sqrt()
+    } else {
+        fallback
+    }
+}
+
+/// The generalized booleans of section 2.2 on densities `a` and `b`.
+pub mod boolean {
+    /// Union `A ∪ B = a + b - ab`.
+    #[inline]
+    pub fn union(a: f32, b: f32) -> f32 {
+        a + b - a * b
+    }
+
+    /// Intersection `A ∩ B = ab`.
+    #[inline]
+    pub fn intersection(a: f32, b: f32) -> f32 {
+        a * b
+    }
+
+    /// Difference `A - B = a - ab`.
+    #[inline]
+    pub fn difference(a: f32, b: f32) -> f32 {
+        a - a * b
+    }
+
+    /// Complement `1 - a`.
+    #[inline]
+    pub fn complement(a: f32) -> f32 {
+        1.0 - a
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::boolean::*;
+    use super::*;
+
+    fn sphere() -> SoftSphere {
+        SoftSphere {
+            centre: Vec3::ZERO,
+            falloff: Falloff::new(1.0, 0.5),
+        }
+    }
+
+    #[test]
+    fn sphere_regions() {
+        let s = sphere();
+        assert_eq!(s.density(Vec3::ZERO), 1.0);
+        assert_eq!(s.density(Vec3::new(0.75, 0.0, 0.0)), 1.0);
+        assert_eq!(s.density(Vec3::new(1.25, 0.0, 0.0)), 0.0);
+        assert_eq!(s.density(Vec3::new(0.0, 3.0, 0.0)), 0.0);
+        // The paper's quadratic falloff: (r0² - d²) / (r0² - r1²).
+        let d = s.density(Vec3::new(0.0, 0.0, 1.0));
+        assert!((d - (1.5625 - 1.0) / (1.5625 - 0.5625)).abs() < 1e-6);
+        let p = s.project(Vec3::new(0.0, 2.0, 0.0));
+        assert!((p - Vec3::new(0.0, 0.75, 0.0)).length() < 1e-6);
+    }
+
+    #[test]
+    fn torus_regions_and_projection() {
+        let t = SoftTorus {
+            centre: Vec3::ZERO,
+            axis: Vec3::Y,
+            major_radius: 1.0,
+            falloff: Falloff::new(0.475, 0.25),
+        };
+        assert_eq!(t.density(Vec3::new(1.0, 0.0, 0.0)), 1.0);
+        assert_eq!(t.density(Vec3::new(1.34, 0.0, 0.0)), 1.0);
+        assert_eq!(t.density(Vec3::new(0.0, 0.0, 1.61)), 0.0);
+        assert_eq!(t.density(Vec3::ZERO), 0.0);
+        let d = t.density(Vec3::new(0.0, 0.5, -1.0));
+        assert!(d > 0.0 && d < 1.0);
+        let p = t.project(Vec3::new(1.5, 0.0, 0.0));
+        assert!((p - Vec3::new(1.35, 0.0, 0.0)).length() < 1e-5);
+        let p = t.project(Vec3::new(0.0, 0.5, -1.0));
+        assert!((p - Vec3::new(0.0, 0.35, -1.0)).length() < 1e-5);
+    }
+
+    #[test]
+    fn box_is_a_product_of_slabs() {
+        let b = SoftBox {
+            centre: Vec3::ZERO,
+            falloff: [Falloff::new(1.0, 0.2); 3],
+        };
+        assert_eq!(b.density(Vec3::splat(0.85)), 1.0);
+        assert_eq!(b.density(Vec3::new(1.2, 0.0, 0.0)), 0.0);
+        let edge = b.density(Vec3::new(1.0, 0.0, 0.0));
+        assert!(edge > 0.0 && edge < 1.0);
+        assert!((b.density(Vec3::new(1.0, 1.0, 0.0)) - edge * edge).abs() < 1e-6);
+        let p = b.project(Vec3::new(0.1, 0.2, 0.85));
+        assert_eq!(p, Vec3::new(0.1, 0.2, 0.9));
+        let p = b.project(Vec3::new(2.0, 0.0, 0.0));
+        assert_eq!(p, Vec3::new(0.9, 0.0, 0.0));
+    }
+
+    #[test]
+    fn generalized_booleans() {
+        let (a, b) = (0.25, 0.5);
+        assert_eq!(union(a, b), 0.625);
+        assert_eq!(intersection(a, b), 0.125);
+        assert_eq!(difference(a, b), 0.125);
+        assert_eq!(complement(a), 0.75);
+        // Hard sets behave as ordinary sets.
+        for (a, b) in [(0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0)] {
+            let (sa, sb) = (a == 1.0, b == 1.0);
+            assert_eq!(union(a, b) == 1.0, sa || sb);
+            assert_eq!(intersection(a, b) == 1.0, sa && sb);
+            assert_eq!(difference(a, b) == 1.0, sa && !sb);
+        }
+        // The paper's remark: A ∩ A ≠ A for a soft A.
+        assert_ne!(intersection(a, a), a);
+    }
+}

@@ -1,0 +1,142 @@
+//! Whole-render properties: determinism across thread counts and tilings, and
+//! independence of the marching step.
+
+use hypertexture::{Film, Overrides, Scene};
+
+fn scene(name: &str, size: u32) -> Scene {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../scenes/{name}.ron"));
+    Scene::load(
+        path,
+        Overrides {
+            width: Some(size),
+            height: Some(size),
+        },
+    )
+    .unwrap()
+}
+
+fn render_with(scene: &Scene, threads: usize) -> Film {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| hypertexture::render::render(scene, 0, &|_| {}))
+}
+
+fn bits(film: &Film) -> Vec<u32> {
+    film.pixels()
+        .iter()
+        .flat_map(|s| s.to_array())
+        .map(f32::to_bits)
+        .collect()
+}
+
+#[test]
+fn one_thread_and_many_give_identical_bits() {
+    for name in ["fur", "blue_glass"] {
+        let scene = scene(name, 40);
+        let serial = render_with(&scene, 1);
+        for threads in [2, 3, 8] {
+            assert_eq!(
+                bits(&serial),
+                bits(&render_with(&scene, threads)),
+                "{name} with {threads} threads"
+            );
+        }
+    }
+}
+
+#[test]
+fn any_pixel_can_be_rendered_alone_in_any_order() {
+    let scene = scene("tribble", 24);
+    let film = render_with(&scene, 2);
+    let mut pixels: Vec<(u32, u32)> = (0..24).flat_map(|y| (0..24).map(move |x| (x, y))).collect();
+    pixels.reverse();
+    let samples = hypertexture::render::render_pixels(&scene, 0, &pixels);
+    for (&(x, y), s) in pixels.iter().zip(&samples) {
+        assert_eq!(
+            film.get(x, y).to_array().map(f32::to_bits),
+            s.to_array().map(f32::to_bits)
+        );
+    }
+}
+
+#[test]
+fn every_sample_is_finite() {
+    for name in ["fur", "blue_glass", "fire_ball", "eroded_cube"] {
+        let film = render_with(&scene(name, 24), 2);
+        assert!(film.pixels().iter().all(|s| s.is_finite()), "{name}");
+    }
+}
+
+/// α = 1 - (1 - density)^(c·step) makes the picture independent of the step: the
+/// fur rendered at step s and at s/2 differs little. Measured: mean absolute
+/// difference of the linear RGBA channels 0.0088 at 48×48; the bound is 0.02.
+#[test]
+fn opacity_is_resolution_independent() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/fur.ron");
+    let text = std::fs::read_to_string(path).unwrap();
+    let size = Overrides {
+        width: Some(48),
+        height: Some(48),
+    };
+    let coarse = Scene::from_text(&text, "fur.ron", size).unwrap();
+    let fine = Scene::from_text(
+        &text.replace("Diagonal(200)", "Diagonal(400)"),
+        "fur-fine.ron",
+        size,
+    )
+    .unwrap();
+    assert!((coarse.step() / fine.step() - 2.0).abs() < 1e-5);
+    let (a, b) = (render_with(&coarse, 2), render_with(&fine, 2));
+    let mut sum = 0.0f64;
+    for (p, q) in a.pixels().iter().zip(b.pixels()) {
+        for c in 0..4 {
+            sum += f64::from((p.rgba[c] - q.rgba[c]).abs());
+        }
+    }
+    let mad = sum / (a.pixels().len() * 4) as f64;
+    println!("mean absolute difference between step s and s/2: {mad:.4}");
+    assert!(mad < 0.02, "mean absolute difference {mad}");
+    // And it is not trivially zero: the fur is actually there.
+    let coverage: f32 = a.pixels().iter().map(|s| s.rgba[3]).sum::<f32>() / a.pixels().len() as f32;
+    assert!(coverage > 0.3, "coverage {coverage}");
+}
+
+#[test]
+fn known_answer_hard_sphere_under_a_known_light() {
+    // An opaque hard-edged sphere lit head-on by a unit white light with no ambient:
+    // the centre pixel sees the normal facing the light, so its colour is the
+    // albedo; the corner pixel misses and sees the background.
+    let text = r#"Scene(
+        image: (width: 33, height: 33),
+        camera: (eye: (0.0, 0.0, 5.0), look_at: (0.0, 0.0, 0.0), projection: Orthographic(height: 3.0)),
+        background: Colour(0.0, 0.0, 1.0),
+        lights: (ambient: (0.0, 0.0, 0.0), sources: [Directional(direction: (0.0, 0.0, 1.0), colour: (1.0, 1.0, 1.0))]),
+        march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Length(0.002), opacity: 2000.0, threshold: 0.999),
+        object: Sphere(radius: 1.0, softness: 0.05),
+        colour_map: (points: [(0.0, (0.5, 0.25, 1.0))]),
+    )"#;
+    let scene = Scene::from_text(text, "known.ron", Overrides::default()).unwrap();
+    let centre = hypertexture::render::render_pixel(&scene, 16, 16, 0);
+    let expected = [0.5, 0.25, 1.0];
+    for (got, want) in centre.rgba.iter().zip(expected) {
+        assert!((got - want).abs() < 0.01, "{:?}", centre.rgba);
+    }
+    assert!(centre.rgba[3] > 0.999);
+    assert!(
+        (centre.normal[2] - 1.0).abs() < 0.01,
+        "normal {:?}",
+        centre.normal
+    );
+    // The first sample with density lies within a step of the outer radius 1.025.
+    assert!(
+        (centre.depth - (5.0 - 1.025)).abs() < 0.005,
+        "depth {}",
+        centre.depth
+    );
+    let corner = hypertexture::render::render_pixel(&scene, 0, 0, 0);
+    assert_eq!(corner.rgba, [0.0, 0.0, 1.0, 1.0]);
+    assert_eq!(corner.depth, 0.0);
+}

@@ -1,0 +1,173 @@
+//! Loading scene files: every gallery scene loads, and bad input is reported with
+//! file:line:column and what was expected.
+
+use hypertexture::{Overrides, Scene, SceneError};
+
+fn gallery() -> Vec<std::path::PathBuf> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    let mut scenes: Vec<_> = std::fs::read_dir(&dir)
+        .expect("scenes/ exists")
+        .map(|e| e.expect("readable entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "ron"))
+        .collect();
+    scenes.sort();
+    scenes
+}
+
+#[test]
+fn every_gallery_scene_loads() {
+    let scenes = gallery();
+    assert!(
+        scenes.len() >= 10,
+        "the 1989 gallery has ten scenes, found {}",
+        scenes.len()
+    );
+    for path in scenes {
+        let scene = Scene::load(&path, Overrides::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert!(scene.width() > 0 && scene.step() > 0.0);
+    }
+}
+
+#[test]
+fn fur_is_the_scene_the_issue_specifies() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/fur.ron");
+    let scene = Scene::load(&path, Overrides::default()).unwrap();
+    assert_eq!((scene.width(), scene.height()), (512, 512));
+    // step = bounding-box diagonal / 200 for the box ±1.6 × ±0.6 × ±1.6.
+    let diagonal = (3.2f32 * 3.2 + 1.2 * 1.2 + 3.2 * 3.2).sqrt();
+    assert!((scene.step() - diagonal / 200.0).abs() < 1e-6);
+    // D = 1 inside minor radius 0.35, 0 beyond 0.60 (fur only thins the soft region).
+    assert_eq!(scene.density_at(glam::Vec3::new(0.0, 0.0, 1.61), 0), 0.0);
+    assert_eq!(scene.density_at(glam::Vec3::new(0.0, 0.61, 0.0), 0), 0.0);
+}
+
+const GOOD: &str = r#"Scene(
+    image: (width: 32, height: 32),
+    camera: (eye: (0.0, 0.0, 4.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 45.0)),
+    march: (bounds: (min: (-1.0, -1.0, -1.0), max: (1.0, 1.0, 1.0)), step: Diagonal(100), opacity: 10.0),
+    object: Sphere(radius: 0.8, softness: 0.2),
+)"#;
+
+fn error_of(text: &str) -> (usize, usize, String) {
+    match Scene::from_text(text, "bad.ron", Overrides::default()) {
+        Err(SceneError::Parse {
+            path,
+            line,
+            column,
+            message,
+        }) => {
+            assert_eq!(path, "bad.ron");
+            (line, column, message)
+        }
+        Err(other) => panic!("expected a parse error, got {other}"),
+        Ok(_) => panic!("expected an error for:\n{text}"),
+    }
+}
+
+#[test]
+fn a_minimal_scene_loads() {
+    let scene = Scene::from_text(GOOD, "good.ron", Overrides::default()).unwrap();
+    assert_eq!(scene.width(), 32);
+}
+
+#[test]
+fn unknown_field_names_line_and_column() {
+    let (line, column, message) =
+        error_of(&GOOD.replace("softness: 0.2", "softness: 0.2, colour: 3"));
+    assert_eq!(line, 5);
+    assert!(column > 40, "column {column}");
+    assert!(message.contains("colour"), "{message}");
+}
+
+#[test]
+fn negative_radius_is_out_of_range() {
+    let (line, _, message) = error_of(&GOOD.replace("radius: 0.8", "radius: -0.8"));
+    assert_eq!(line, 5);
+    assert!(
+        message.contains("positive") && message.contains("-0.8"),
+        "{message}"
+    );
+}
+
+#[test]
+fn zero_step_and_nan_are_rejected() {
+    let (line, _, message) = error_of(&GOOD.replace("Diagonal(100)", "Length(0.0)"));
+    assert_eq!(line, 4);
+    assert!(message.contains("positive"), "{message}");
+    let (line, _, message) = error_of(&GOOD.replace("opacity: 10.0", "opacity: NaN"));
+    assert_eq!(line, 4);
+    assert!(message.contains("NaN"), "{message}");
+}
+
+#[test]
+fn wrong_type_is_reported() {
+    let (line, _, message) = error_of(&GOOD.replace("width: 32", "width: \"wide\""));
+    assert_eq!(line, 2);
+    assert!(message.to_lowercase().contains("expected"), "{message}");
+}
+
+#[test]
+fn huge_resolution_is_refused() {
+    let (line, _, message) =
+        error_of(&GOOD.replace("width: 32, height: 32", "width: 16384, height: 16384"));
+    assert_eq!(line, 2);
+    assert!(message.contains("pixels"), "{message}");
+    let err = Scene::from_text(
+        GOOD,
+        "good.ron",
+        Overrides {
+            width: Some(0),
+            height: None,
+        },
+    )
+    .map(|_| ())
+    .expect_err("width 0 is refused");
+    assert!(err.to_string().contains("at least 1"));
+}
+
+#[test]
+fn syntax_error_points_at_the_spot() {
+    let (line, column, _) =
+        error_of(&GOOD.replace("look_at: (0.0, 0.0, 0.0)", "look_at: (0.0, 0.0 0.0)"));
+    assert_eq!(line, 3);
+    assert!(column > 40, "column {column}");
+}
+
+#[test]
+fn softness_beyond_radius_and_misordered_dmfs() {
+    let (_, _, message) = error_of(&GOOD.replace("softness: 0.2", "softness: 2.0"));
+    assert!(message.contains("twice the radius"), "{message}");
+    let chain = GOOD.replace(
+        "object: Sphere(radius: 0.8, softness: 0.2),",
+        "object: Sphere(radius: 0.8, softness: 0.2),\n    modulation: [Gain(0.7), NoisyRadius(frequency: 2.0, amplitude: 0.5)],",
+    );
+    let (_, _, message) = error_of(&chain);
+    assert!(message.contains("must come before Gain"), "{message}");
+    let fur_on_union = GOOD.replace(
+        "object: Sphere(radius: 0.8, softness: 0.2),",
+        "object: Union([Sphere(radius: 0.8, softness: 0.2), Sphere(radius: 0.3, softness: 0.1)]),\n    modulation: [Fur(frequency: 10.0)],",
+    );
+    let (_, _, message) = error_of(&fur_on_union);
+    assert!(message.contains("Fur"), "{message}");
+}
+
+#[test]
+fn missing_file_and_non_utf8_are_clear() {
+    let err = Scene::load("/definitely/not/here.ron", Overrides::default())
+        .err()
+        .unwrap();
+    assert!(
+        err.to_string()
+            .starts_with("/definitely/not/here.ron: cannot read"),
+        "{err}"
+    );
+}
+
+#[test]
+fn oversized_scene_is_refused() {
+    let big = format!("{GOOD}\n//{}", "x".repeat(70_000));
+    let err = Scene::from_text(&big, "big.ron", Overrides::default())
+        .err()
+        .unwrap();
+    assert!(matches!(err, SceneError::TooLarge { .. }), "{err}");
+}

@@ -1,0 +1,60 @@
+//! Known-answer images: 64×64 renders of gallery scenes compared pixel for pixel
+//! with the PNGs in tests/golden/. They change only on purpose:
+//! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden` rewrites them.
+
+mod support;
+
+use support::*;
+
+const SCENES: [&str; 5] = ["fur", "tribble", "fire_ball", "blue_glass", "eroded_cube"];
+
+#[test]
+fn gallery_matches_golden_images() {
+    let bless = std::env::var_os("HYPERTEXTURE_BLESS").is_some_and(|v| v == "1");
+    let dir = scratch("golden");
+    let mut failures = Vec::new();
+    for name in SCENES {
+        let out_path = dir.join(format!("{name}.png"));
+        let out = coordinator(&[
+            "--scene",
+            scene(name).to_str().unwrap(),
+            "--out",
+            out_path.to_str().unwrap(),
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--quiet",
+        ]);
+        assert!(
+            out.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let golden = root().join("tests/golden").join(format!("{name}.png"));
+        if bless {
+            std::fs::copy(&out_path, &golden).unwrap();
+            continue;
+        }
+        assert!(
+            golden.exists(),
+            "{} is missing: run HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden",
+            golden.display()
+        );
+        let (got, want) = (decode_png(&out_path), decode_png(&golden));
+        if got.as_raw() != want.as_raw() {
+            let differing = got
+                .pixels()
+                .zip(want.pixels())
+                .filter(|(a, b)| a != b)
+                .count();
+            failures.push(format!("{name}: {differing} of {} pixels differ", 64 * 64));
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(
+        failures.is_empty(),
+        "golden images differ (bless with HYPERTEXTURE_BLESS=1 if intended):\n{}",
+        failures.join("\n")
+    );
+}
