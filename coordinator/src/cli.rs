@@ -1,11 +1,13 @@
 //! Command-line arguments, converted into a library [`Config`].
 
+use std::net::SocketAddr;
 use std::num::NonZeroUsize;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use clap::Parser;
 
-use crate::Config;
+use crate::{Config, FarmOptions};
 
 /// Render a hypertexture scene to PNG or OpenEXR.
 #[derive(Debug, Parser)]
@@ -24,12 +26,45 @@ pub struct Cli {
     /// Image height in pixels (overrides the scene's).
     #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
     pub height: Option<u32>,
-    /// Render in this process with a thread pool, without the farm.
+    /// Render in this process with a thread pool, without the farm (no gRPC).
     #[arg(long)]
     pub in_process: bool,
-    /// Threads to render with (default: every core). 1 is the serial baseline.
+    /// Threads: of the pool with --in-process (default: every core; 1 is the serial
+    /// baseline), or of each local worker on the farm (default 1).
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
+    /// Where the farm listens for workers. Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// Shared secret workers must present (required beyond loopback).
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+    /// Give up (exit non-zero) when no worker is connected for this many seconds.
+    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
+    pub worker_timeout: f64,
+    /// Rewrite the partial image at --out every SECS seconds while rendering.
+    #[arg(long, value_name = "SECS", value_parser = positive_seconds)]
+    pub preview_every: Option<f64>,
+    /// TLS certificate (PEM) for the farm's server; needs --tls-key.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
+    #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
+    pub interleave: u32,
     /// Frame number (animated scenes drift their noise by frame · flow).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
@@ -48,6 +83,17 @@ impl Cli {
                 .map_or_else(|| "render".into(), |s| s.to_os_string());
             PathBuf::from(stem).with_extension("png")
         });
+        let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+        let farm = (!self.in_process).then(|| FarmOptions {
+            listen: self.listen,
+            token: self.token.filter(|t| !t.is_empty()),
+            lease: Duration::from_secs_f64(self.lease_timeout),
+            worker_timeout: Duration::from_secs_f64(self.worker_timeout),
+            local_workers: self.local_workers.unwrap_or(cores),
+            preview_every: self.preview_every.map(Duration::from_secs_f64),
+            tls: self.tls_cert.zip(self.tls_key),
+            interleave: self.interleave,
+        });
         Config {
             scene: self.scene,
             out,
@@ -56,6 +102,25 @@ impl Cli {
             threads: self.threads,
             frame: self.frame,
             progress: !self.quiet,
+            farm,
         }
+    }
+}
+
+fn positive_seconds(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("expected a number of seconds, found {s:?}"))?;
+    if v.is_finite() && v > 0.0 && v <= 86_400.0 {
+        Ok(v)
+    } else {
+        Err(format!("expected seconds between 0 and 86400, found {s}"))
+    }
+}
+
+fn interleave(s: &str) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(b) if b.is_power_of_two() && b <= 64 => Ok(b),
+        _ => Err(format!("expected 1, 2, 4, 8, 16, 32 or 64, found {s:?}")),
     }
 }

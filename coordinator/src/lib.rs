@@ -3,8 +3,12 @@
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
 pub mod cli;
+pub mod farm;
+pub mod local;
 pub mod logging;
 pub mod output;
+pub mod progress;
+pub mod scheduler;
 
 use std::io::IsTerminal;
 use std::num::NonZeroUsize;
@@ -30,6 +34,29 @@ pub struct Config {
     pub frame: u32,
     /// Show a progress bar when stderr is a terminal.
     pub progress: bool,
+    /// Render on the farm with these options; `None`: in-process.
+    pub farm: Option<FarmOptions>,
+}
+
+/// How to run the farm (from the command line).
+#[derive(Clone, Debug)]
+pub struct FarmOptions {
+    /// Listen address.
+    pub listen: std::net::SocketAddr,
+    /// Shared secret.
+    pub token: Option<String>,
+    /// Lease time-out.
+    pub lease: Duration,
+    /// Give up after this long without workers.
+    pub worker_timeout: Duration,
+    /// Local workers to start.
+    pub local_workers: usize,
+    /// Preview interval.
+    pub preview_every: Option<Duration>,
+    /// TLS certificate and key files.
+    pub tls: Option<(PathBuf, PathBuf)>,
+    /// The interleave B.
+    pub interleave: u32,
 }
 
 impl Config {
@@ -43,6 +70,7 @@ impl Config {
             threads: None,
             frame: 0,
             progress: false,
+            farm: None,
         }
     }
 }
@@ -56,6 +84,12 @@ pub enum CoordinatorError {
     /// The image could not be written.
     #[error(transparent)]
     Output(#[from] output::OutputError),
+    /// The farm failed.
+    #[error(transparent)]
+    Farm(#[from] farm::FarmError),
+    /// The async runtime could not be started.
+    #[error("cannot start the async runtime: {0}")]
+    Runtime(std::io::Error),
     /// The render threads could not be started.
     #[error("cannot start {threads} render threads: {message}")]
     Threads {
@@ -75,30 +109,62 @@ pub struct Summary {
     pub out: PathBuf,
 }
 
-/// Loads the scene, renders it in-process and writes the image.
+/// Loads the scene, renders it (on the farm, or in-process) and writes the image.
 pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
     output::ImageFormat::from_path(&config.out)?;
-    let scene = Scene::load(
-        &config.scene,
+    let scene_text = hypertexture::scene::read_text(&config.scene)?;
+    let scene = Scene::from_text(
+        &scene_text,
+        &config.scene.display().to_string(),
         Overrides {
             width: config.width,
             height: config.height,
         },
     )?;
-    let threads = config.threads.map_or_else(
-        || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
-        NonZeroUsize::get,
-    );
-    let (film, render_time) = render_in_process(&scene, config.frame, threads, config.progress)?;
+    let (film, render_time, how) = match &config.farm {
+        None => {
+            let threads = config.threads.map_or_else(
+                || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+                NonZeroUsize::get,
+            );
+            let (film, time) = render_in_process(&scene, config.frame, threads, config.progress)?;
+            (
+                film,
+                time,
+                format!("{threads} thread{}", if threads == 1 { "" } else { "s" }),
+            )
+        }
+        Some(options) => {
+            let report = render_on_farm(&config, options, &scene, scene_text)?;
+            for w in &report.workers {
+                tracing::info!(
+                    "worker {}: {} units, {} pixels, render cpu {:.3} s{}",
+                    w.name,
+                    w.units,
+                    w.pixels,
+                    w.render_cpu_micros as f64 / 1e6,
+                    w.process_cpu_micros.map_or_else(String::new, |c| format!(
+                        ", process cpu {:.3} s",
+                        c as f64 / 1e6
+                    ))
+                );
+            }
+            let n = report.workers.len();
+            (
+                report.film,
+                report.render_time,
+                format!("{n} worker{}", if n == 1 { "" } else { "s" }),
+            )
+        }
+    };
     output::write_image(&film, &config.out)?;
     tracing::info!(
-        "rendered {} ({}×{}, frame {}) with {threads} thread{} in {:.3} s → {}",
+        "rendered {} ({}×{}, frame {}) with {how} in {:.3} s → {}",
         config.scene.display(),
         scene.width(),
         scene.height(),
         config.frame,
-        if threads == 1 { "" } else { "s" },
         render_time.as_secs_f64(),
         config.out.display()
     );
@@ -106,6 +172,45 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
         render_time,
         out: config.out,
     })
+}
+
+/// Renders the frame on the farm (starting local workers as configured).
+pub fn render_on_farm(
+    config: &Config,
+    options: &FarmOptions,
+    scene: &Scene,
+    scene_text: String,
+) -> Result<farm::FarmReport, CoordinatorError> {
+    let tls = match &options.tls {
+        Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+        None => None,
+    };
+    let job = farm::FrameJob {
+        scene_text,
+        scene_name: config.scene.display().to_string(),
+        width: scene.width(),
+        height: scene.height(),
+        frame: config.frame,
+    };
+    let farm_config = farm::FarmConfig {
+        listen: options.listen,
+        token: options.token.clone(),
+        lease: options.lease,
+        worker_timeout: options.worker_timeout,
+        local_workers: options.local_workers,
+        local_threads: config.threads.map_or(1, NonZeroUsize::get),
+        preview_every: options.preview_every,
+        preview_path: options.preview_every.map(|_| config.out.clone()),
+        tls,
+        interleave: options.interleave,
+        progress: config.progress,
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(CoordinatorError::Runtime)?;
+    Ok(runtime.block_on(farm::render(job, farm_config))?)
 }
 
 /// Renders the whole frame on a pool of `threads` threads in this process.

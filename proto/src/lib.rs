@@ -1,1 +1,25 @@
-//! The wire protocol.
+//! The wire protocol of the render farm (package `hypertexture.v1`), and the one
+//! place where wire types and the program's own types meet ([`convert`]).
+//!
+//! Only this crate knows the wire format: the coordinator and worker speak in
+//! `hypertexture` types and convert at the gRPC edge.
+
+pub mod convert;
+
+/// The code generated from `hypertexture.proto`.
+#[allow(clippy::all, clippy::pedantic, missing_docs)]
+pub mod pb {
+    tonic::include_proto!("hypertexture.v1");
+}
+
+/// Bumped whenever the protocol changes incompatibly; checked at registration.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// The largest message either side accepts (tonic's default is 4 MiB). A tile is
+/// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] samples
+/// (~150 KB); anything near this limit is malformed and refused with
+/// RESOURCE_EXHAUSTED rather than silently truncated.
+pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+/// The metadata key carrying `Bearer <token>`.
+pub const AUTHORIZATION: &str = "authorization";

@@ -1,1 +1,45 @@
-fn main() {}
+//! `worker`: parses arguments, sets up logging and signals, runs the work loop.
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use worker::cli::Cli;
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    worker::logging::init(cli.quiet);
+    let config = match cli.into_config() {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: cannot start the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let result = runtime.block_on(async {
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            worker::shutdown_signal().await;
+            tracing::info!("shutting down: finishing the current unit");
+            let _ = stop.send(true);
+        });
+        worker::run(config, stopped).await
+    });
+    match result {
+        Ok(_) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -86,6 +86,33 @@ pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
         })
 }
 
+/// Reads a scene file's text (at most [`MAX_SCENE_BYTES`], valid UTF-8).
+pub fn read_text(path: &Path) -> Result<String, SceneError> {
+    let name = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+        path: name.clone(),
+        source,
+    })?;
+    if bytes.len() > MAX_SCENE_BYTES {
+        return Err(SceneError::TooLarge {
+            path: name,
+            size: bytes.len(),
+        });
+    }
+    let text = std::str::from_utf8(&bytes).map_err(|e| {
+        let before = &bytes[..e.valid_up_to()];
+        let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
+        let column = before.iter().rev().take_while(|&&b| b != b'\n').count() + 1;
+        SceneError::Parse {
+            path: name.clone(),
+            line,
+            column,
+            message: "the scene is not valid UTF-8 text".into(),
+        }
+    })?;
+    Ok(text.to_string())
+}
+
 /// How a ray that leaves the volume is coloured.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum Background {
@@ -160,23 +187,8 @@ impl Scene {
     /// Reads, checks and builds the scene in `path`.
     pub fn load(path: impl AsRef<Path>, overrides: Overrides) -> Result<Scene, SceneError> {
         let path = path.as_ref();
-        let name = path.display().to_string();
-        let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        let text = std::str::from_utf8(&bytes).map_err(|e| {
-            let before = &bytes[..e.valid_up_to()];
-            let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
-            let column = before.iter().rev().take_while(|&&b| b != b'\n').count() + 1;
-            SceneError::Parse {
-                path: name.clone(),
-                line,
-                column,
-                message: "the scene is not valid UTF-8 text".into(),
-            }
-        })?;
-        Scene::from_text(text, &name, overrides)
+        let text = read_text(path)?;
+        Scene::from_text(&text, &path.display().to_string(), overrides)
     }
 
     /// Checks and builds a scene from its text; `path` names it in errors.

@@ -1,0 +1,521 @@
+//! The farm: a gRPC server that hands interleaved pixel sets to workers.
+//!
+//! Workers dial in, register, pull units and push tiles back; the
+//! [`Scheduler`](crate::scheduler::Scheduler) decides everything else. This file is
+//! the gRPC edge: authentication, conversion of refusals to `tonic::Status`, the
+//! run loop (lease expiry, progress, previews, time-outs) and the local workers.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use hypertexture::Film;
+use hypertexture::interleave::{DEFAULT_MAX_UNIT_PIXELS, work_units};
+use hypertexture_proto::pb::farm_server::{Farm, FarmServer};
+use hypertexture_proto::pb::{self, get_work_result::Outcome};
+use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
+use tokio::sync::watch;
+use tonic::{Request, Response, Status};
+
+use crate::scheduler::{Next, Refusal, Scheduler};
+
+/// How the farm runs.
+#[derive(Clone, Debug)]
+pub struct FarmConfig {
+    /// Where to listen (port 0: any free port).
+    pub listen: SocketAddr,
+    /// Shared secret every worker must present.
+    pub token: Option<String>,
+    /// A worker silent this long loses its units.
+    pub lease: Duration,
+    /// Give up when no worker is present for this long.
+    pub worker_timeout: Duration,
+    /// Local worker processes to start.
+    pub local_workers: usize,
+    /// Threads per local worker.
+    pub local_threads: usize,
+    /// Rewrite the partial image this often.
+    pub preview_every: Option<Duration>,
+    /// Where previews go (the output path).
+    pub preview_path: Option<PathBuf>,
+    /// TLS certificate and key (PEM).
+    pub tls: Option<(Vec<u8>, Vec<u8>)>,
+    /// The pixel-set interleave B.
+    pub interleave: u32,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+/// Why the farm could not render.
+#[derive(Debug, thiserror::Error)]
+pub enum FarmError {
+    /// The address could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// Listening beyond loopback without a token.
+    #[error(
+        "listening on {0} (not loopback) needs a shared token: pass --token or set HYPERTEXTURE_TOKEN"
+    )]
+    TokenRequired(SocketAddr),
+    /// TLS set-up failed.
+    #[error("TLS: {0}")]
+    Tls(String),
+    /// No worker came, or all left, for the whole worker time-out.
+    #[error("{0}")]
+    NoWorkers(String),
+    /// The gRPC server failed.
+    #[error("the farm's server failed: {0}")]
+    Server(String),
+    /// A local worker could not be started.
+    #[error("cannot start local worker {path}: {source}")]
+    Spawn {
+        /// The binary.
+        path: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+}
+
+/// One frame to render.
+#[derive(Clone, Debug)]
+pub struct FrameJob {
+    /// The scene's RON text.
+    pub scene_text: String,
+    /// Its name (file path) for messages.
+    pub scene_name: String,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Frame number.
+    pub frame: u32,
+}
+
+/// What the farm reports when the frame is done.
+#[derive(Clone, Debug)]
+pub struct FarmReport {
+    /// The image.
+    pub film: Film,
+    /// Wall time from the first unit handed out to the last tile.
+    pub render_time: Duration,
+    /// One line per worker: name, units, pixels, CPU.
+    pub workers: Vec<crate::scheduler::WorkerState>,
+    /// CPU microseconds of each unit.
+    pub unit_costs: Vec<u64>,
+    /// Bytes of tiles received.
+    pub tile_bytes: u64,
+}
+
+/// The shared state behind the gRPC service.
+struct Shared {
+    scheduler: Mutex<Scheduler>,
+    job: pb::Job,
+    token: Option<String>,
+    heartbeat: Duration,
+    /// Set to true when the frame completes.
+    finished: watch::Sender<bool>,
+    tile_bytes: std::sync::atomic::AtomicU64,
+    first_assignment: Mutex<Option<Instant>>,
+}
+
+/// The gRPC service.
+#[derive(Clone)]
+struct Service(Arc<Shared>);
+
+impl Service {
+    fn authorize<T>(&self, request: &Request<T>) -> Result<(), Status> {
+        let Some(token) = &self.0.token else {
+            return Ok(());
+        };
+        let presented = request
+            .metadata()
+            .get(hypertexture_proto::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        let ok = presented.is_some_and(|p| constant_time_eq(p.as_bytes(), token.as_bytes()));
+        if ok {
+            Ok(())
+        } else {
+            let peer = request
+                .remote_addr()
+                .map_or_else(|| "unknown".into(), |a| a.to_string());
+            tracing::warn!("refused a call from {peer}: missing or wrong token");
+            Err(Status::unauthenticated("missing or wrong token"))
+        }
+    }
+
+    fn scheduler(&self) -> std::sync::MutexGuard<'_, Scheduler> {
+        // A panic while holding the lock would be a bug; the state is still usable.
+        self.0.scheduler.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+fn refusal(r: Refusal) -> Status {
+    match r {
+        Refusal::UnknownWorker(_) => Status::not_found(r.to_string()),
+        Refusal::NotHeld(_) => Status::failed_precondition(r.to_string()),
+        Refusal::NeverAssigned(_) | Refusal::WrongUnit(_) | Refusal::Malformed { .. } => {
+            Status::invalid_argument(r.to_string())
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl Farm for Service {
+    async fn register(
+        &self,
+        request: Request<pb::RegisterParams>,
+    ) -> Result<Response<pb::RegisterResult>, Status> {
+        self.authorize(&request)?;
+        let peer = request.remote_addr();
+        let params = request.into_inner();
+        if params.protocol_version != PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "protocol version mismatch: the worker speaks {}, the coordinator {}",
+                params.protocol_version, PROTOCOL_VERSION
+            )));
+        }
+        let name: String = params
+            .name
+            .chars()
+            .filter(|c| !c.is_control())
+            .take(64)
+            .collect();
+        let worker_id = self
+            .scheduler()
+            .register(&name, params.threads, Instant::now());
+        tracing::info!(
+            "worker {name} joined from {} ({} threads)",
+            peer.map_or_else(|| "?".into(), |a| a.to_string()),
+            params.threads
+        );
+        Ok(Response::new(pb::RegisterResult {
+            worker_id,
+            heartbeat_ms: self.0.heartbeat.as_millis() as u32,
+        }))
+    }
+
+    async fn get_work(
+        &self,
+        request: Request<pb::GetWorkParams>,
+    ) -> Result<Response<pb::GetWorkResult>, Status> {
+        self.authorize(&request)?;
+        let next = self
+            .scheduler()
+            .next(&request.get_ref().worker_id, Instant::now())
+            .map_err(refusal)?;
+        let outcome = match next {
+            Next::Assign {
+                assignment_id,
+                unit,
+            } => {
+                self.0
+                    .first_assignment
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get_or_insert_with(Instant::now);
+                Outcome::Assignment(pb::Assignment {
+                    assignment_id,
+                    job: Some(self.0.job.clone()),
+                    unit: Some(convert::unit_to_wire(&unit)),
+                })
+            }
+            Next::Wait => Outcome::RetryAfterMs(50),
+            Next::Finished => Outcome::Finished(true),
+        };
+        Ok(Response::new(pb::GetWorkResult {
+            outcome: Some(outcome),
+        }))
+    }
+
+    async fn submit_tile(
+        &self,
+        request: Request<pb::SubmitTileParams>,
+    ) -> Result<Response<pb::SubmitTileResult>, Status> {
+        self.authorize(&request)?;
+        let p = request.into_inner();
+        let accepted = {
+            let mut s = self.scheduler();
+            let accepted = s
+                .submit(
+                    &p.worker_id,
+                    p.assignment_id,
+                    p.unit.as_ref(),
+                    &p.samples,
+                    p.render_cpu_micros,
+                    Instant::now(),
+                )
+                .map_err(|r| {
+                    tracing::warn!("refused a tile from {}: {r}", p.worker_id);
+                    refusal(r)
+                })?;
+            if s.finished() {
+                let _ = self.0.finished.send(true);
+            }
+            accepted
+        };
+        self.0.tile_bytes.fetch_add(
+            (p.samples.len() * 4) as u64,
+            std::sync::atomic::Ordering::Relaxed,
+        );
+        Ok(Response::new(pb::SubmitTileResult { accepted }))
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<pb::HeartbeatParams>,
+    ) -> Result<Response<pb::HeartbeatResult>, Status> {
+        self.authorize(&request)?;
+        self.scheduler()
+            .heartbeat(&request.get_ref().worker_id, Instant::now())
+            .map_err(refusal)?;
+        Ok(Response::new(pb::HeartbeatResult {}))
+    }
+
+    async fn goodbye(
+        &self,
+        request: Request<pb::GoodbyeParams>,
+    ) -> Result<Response<pb::GoodbyeResult>, Status> {
+        self.authorize(&request)?;
+        let p = request.into_inner();
+        self.scheduler()
+            .goodbye(&p.worker_id, p.process_cpu_micros)
+            .map_err(refusal)?;
+        Ok(Response::new(pb::GoodbyeResult {}))
+    }
+}
+
+/// Renders one frame on the farm: serves workers (starting local ones) until every
+/// unit is in, then stops the local workers and the server.
+pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
+    let loopback = config.listen.ip().is_loopback();
+    if !loopback && config.token.is_none() {
+        return Err(FarmError::TokenRequired(config.listen));
+    }
+    // Local workers always authenticate, even on loopback: other users of the
+    // machine cannot join with a token they never saw.
+    let token = config.token.clone().or_else(|| Some(random_token()));
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .map_err(|source| FarmError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+    let addr = listener.local_addr().map_err(|source| FarmError::Bind {
+        addr: config.listen,
+        source,
+    })?;
+
+    let units = work_units(
+        job.width,
+        job.height,
+        config.interleave,
+        DEFAULT_MAX_UNIT_PIXELS,
+    );
+    let unit_count = units.len();
+    let (finished_tx, mut finished_rx) = watch::channel(false);
+    let heartbeat = (config.lease / 4).max(Duration::from_millis(50));
+    let shared = Arc::new(Shared {
+        scheduler: Mutex::new(Scheduler::new(units, job.width, job.height, config.lease)),
+        job: pb::Job {
+            scene_hash: convert::scene_hash(&job.scene_text, job.width, job.height),
+            scene_text: job.scene_text.clone(),
+            scene_name: job.scene_name.clone(),
+            width: job.width,
+            height: job.height,
+            frame: job.frame,
+        },
+        token: token.clone(),
+        heartbeat,
+        finished: finished_tx,
+        tile_bytes: std::sync::atomic::AtomicU64::new(0),
+        first_assignment: Mutex::new(None),
+    });
+
+    let mut server = tonic::transport::Server::builder();
+    let scheme = if let Some((cert, key)) = &config.tls {
+        let identity = tonic::transport::Identity::from_pem(cert, key);
+        server = server
+            .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+            .map_err(|e| FarmError::Tls(e.to_string()))?;
+        "https"
+    } else {
+        "http"
+    };
+    let service = FarmServer::new(Service(Arc::clone(&shared)))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
+    let server_task = tokio::spawn(server.add_service(service).serve_with_incoming_shutdown(
+        // No Nagle: a tile's reply must not wait for a delayed ACK.
+        tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
+        async {
+            let _ = server_stopped.await;
+        },
+    ));
+
+    let public = if addr.ip().is_unspecified() {
+        "THIS-HOST".to_string()
+    } else {
+        addr.ip().to_string()
+    };
+    tracing::info!(
+        "farm listening on {addr}: workers join with `worker --coordinator {scheme}://{public}:{}{}`",
+        addr.port(),
+        if config.token.is_some() {
+            " --token …"
+        } else {
+            ""
+        }
+    );
+    tracing::info!(
+        "{} × {}, {unit_count} units of {} pixel sets",
+        job.width,
+        job.height,
+        config.interleave * config.interleave
+    );
+
+    let local_url = format!(
+        "{scheme}://{}:{}",
+        if config.tls.is_some() {
+            "localhost"
+        } else {
+            "127.0.0.1"
+        },
+        addr.port()
+    );
+    let mut locals = crate::local::LocalWorkers::start(&config, &local_url, token.as_deref())?;
+
+    let start = Instant::now();
+    let bar = crate::progress::FarmProgress::new(config.progress, unit_count as u64);
+    let mut last_preview = Instant::now();
+    let mut no_worker_since = Some(Instant::now());
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    let outcome = loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = finished_rx.changed() => {}
+        }
+        let now = Instant::now();
+        let (done, alive, preview) = {
+            let mut s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
+            for name in s.expire(now) {
+                tracing::warn!("worker {name} stopped answering: its units go to others");
+            }
+            bar.update(&s, now);
+            let preview = match (config.preview_every, &config.preview_path) {
+                (Some(every), Some(_)) if now - last_preview >= every && !s.finished() => {
+                    Some(s.preview())
+                }
+                _ => None,
+            };
+            (s.finished(), s.alive(), preview)
+        };
+        if let (Some(film), Some(path)) = (preview, &config.preview_path) {
+            last_preview = now;
+            if let Err(e) = crate::output::write_image(&film, path) {
+                tracing::warn!("preview: {e}");
+            }
+        }
+        if done {
+            break Ok(());
+        }
+        if alive > 0 {
+            no_worker_since = None;
+        } else {
+            let since = *no_worker_since.get_or_insert(now);
+            if now - since >= config.worker_timeout {
+                let (complete, total) = shared
+                    .scheduler
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .progress();
+                break Err(FarmError::NoWorkers(format!(
+                    "no worker has been connected for {:.0} s ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
+                    config.worker_timeout.as_secs_f64(),
+                    addr.port()
+                )));
+            }
+        }
+        if let Some(e) = locals.check() {
+            tracing::warn!("{e}");
+        }
+    };
+    bar.finish();
+    let render_time = shared
+        .first_assignment
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .map_or(Duration::ZERO, |t| t.elapsed())
+        .min(start.elapsed());
+
+    // Local workers see `finished` on their next call and exit; give them a moment.
+    locals.stop(Duration::from_secs(10)).await;
+    let _ = stop_server.send(());
+    if let Ok(Ok(Err(e))) = tokio::time::timeout(Duration::from_secs(3), server_task).await {
+        tracing::warn!("server: {e}");
+    }
+    outcome?;
+
+    let shared = Arc::try_unwrap(shared)
+        .map_err(|_| FarmError::Server("the server is still running".into()))?;
+    let tile_bytes = shared.tile_bytes.into_inner();
+    let scheduler = shared
+        .scheduler
+        .into_inner()
+        .unwrap_or_else(|p| p.into_inner());
+    let mut workers: Vec<_> = scheduler.workers().cloned().collect();
+    workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
+    let unit_costs = scheduler.unit_costs().to_vec();
+    Ok(FarmReport {
+        film: scheduler.into_film(),
+        render_time,
+        workers,
+        unit_costs,
+        tile_bytes,
+    })
+}
+
+/// A random 128-bit token (from the OS), as hex.
+fn random_token() -> String {
+    let mut bytes = [0u8; 16];
+    if let Ok(mut f) = std::fs::File::open("/dev/urandom") {
+        use std::io::Read;
+        let _ = f.read_exact(&mut bytes);
+    }
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let mixed = hypertexture::random::hash(&[
+        u64::from_le_bytes(bytes[..8].try_into().unwrap_or_default()),
+        u64::from_le_bytes(bytes[8..].try_into().unwrap_or_default()),
+        t,
+        u64::from(std::process::id()),
+    ]);
+    format!(
+        "{mixed:016x}{:016x}",
+        hypertexture::random::hash(&[mixed, t])
+    )
+}
+
+/// The `worker` binary beside this executable, if there is one.
+pub fn worker_binary() -> Option<PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let path = exe.with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
+    path.is_file().then_some(path)
+}
+
+/// Reads a PEM file for TLS.
+pub fn read_pem(path: &Path) -> Result<Vec<u8>, FarmError> {
+    std::fs::read(path).map_err(|e| FarmError::Tls(format!("{}: {e}", path.display())))
+}

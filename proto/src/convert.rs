@@ -1,0 +1,209 @@
+//! Conversions between wire (prost) types and the program's own types, both ways.
+
+use hypertexture::Sample;
+use hypertexture::interleave::{PixelSet, WorkUnit};
+
+use crate::pb;
+
+/// Why a wire message could not be turned into a program type.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum WireError {
+    /// A required field is absent.
+    #[error("missing field {0}")]
+    Missing(&'static str),
+    /// A unit names a set or rows outside the image.
+    #[error("invalid unit: {0}")]
+    InvalidUnit(String),
+    /// A tile has the wrong number of values.
+    #[error("tile has {got} values, expected {expected} ({pixels} pixels × {channels})")]
+    TileLength {
+        /// Values received.
+        got: usize,
+        /// Values expected.
+        expected: usize,
+        /// Pixels in the unit.
+        pixels: usize,
+        /// Values per pixel.
+        channels: usize,
+    },
+    /// A tile value is NaN or infinite.
+    #[error("tile value {index} is not finite ({value})")]
+    NotFinite {
+        /// Index of the value.
+        index: usize,
+        /// The value.
+        value: f32,
+    },
+}
+
+/// A unit on the wire.
+pub fn unit_to_wire(unit: &WorkUnit) -> pb::Unit {
+    pb::Unit {
+        interleave: unit.set.interleave,
+        set_index: unit.set.index,
+        first_row: unit.first_row,
+        row_count: unit.row_count,
+    }
+}
+
+/// A unit from the wire, checked against an image of `width × height`.
+pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUnit, WireError> {
+    let b = unit.interleave;
+    if !(1..=64).contains(&b) || !b.is_power_of_two() {
+        return Err(WireError::InvalidUnit(format!("interleave {b}")));
+    }
+    if unit.set_index >= b * b {
+        return Err(WireError::InvalidUnit(format!(
+            "set {} of {}",
+            unit.set_index,
+            b * b
+        )));
+    }
+    let set = PixelSet {
+        interleave: b,
+        index: unit.set_index,
+    };
+    let rows = set.rows(height);
+    if unit.row_count == 0
+        || u64::from(unit.first_row) + u64::from(unit.row_count) > u64::from(rows)
+    {
+        return Err(WireError::InvalidUnit(format!(
+            "rows {}+{} of a set with {rows} rows",
+            unit.first_row, unit.row_count
+        )));
+    }
+    if set.columns(width) == 0 {
+        return Err(WireError::InvalidUnit(format!(
+            "set {} is empty at width {width}",
+            unit.set_index
+        )));
+    }
+    Ok(WorkUnit {
+        set,
+        first_row: unit.first_row,
+        row_count: unit.row_count,
+    })
+}
+
+/// The samples of a tile as a flat list of floats (9 per pixel).
+pub fn samples_to_wire(samples: &[Sample]) -> Vec<f32> {
+    samples.iter().flat_map(Sample::to_array).collect()
+}
+
+/// The samples of a tile from the wire: exactly `pixels` samples, all finite.
+pub fn samples_from_wire(values: &[f32], pixels: usize) -> Result<Vec<Sample>, WireError> {
+    let expected = pixels * Sample::CHANNELS;
+    if values.len() != expected {
+        return Err(WireError::TileLength {
+            got: values.len(),
+            expected,
+            pixels,
+            channels: Sample::CHANNELS,
+        });
+    }
+    if let Some((index, &value)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(WireError::NotFinite { index, value });
+    }
+    Ok(values
+        .chunks_exact(Sample::CHANNELS)
+        .map(|c| {
+            let mut a = [0.0; Sample::CHANNELS];
+            a.copy_from_slice(c);
+            Sample::from_array(a)
+        })
+        .collect())
+}
+
+/// The content hash of a job: FNV-1a over the scene text, then the size.
+/// Stable across machines and builds (workers cache scenes by it).
+pub fn scene_hash(text: &str, width: u32, height: u32) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in text
+        .as_bytes()
+        .iter()
+        .chain(&width.to_le_bytes())
+        .chain(&height.to_le_bytes())
+    {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hypertexture::interleave::work_units;
+
+    #[test]
+    fn units_round_trip_and_are_checked() {
+        for unit in work_units(37, 29, 8, 10) {
+            assert_eq!(unit_from_wire(&unit_to_wire(&unit), 37, 29), Ok(unit));
+        }
+        let bad = [
+            pb::Unit {
+                interleave: 3,
+                set_index: 0,
+                first_row: 0,
+                row_count: 1,
+            },
+            pb::Unit {
+                interleave: 8,
+                set_index: 64,
+                first_row: 0,
+                row_count: 1,
+            },
+            pb::Unit {
+                interleave: 8,
+                set_index: 0,
+                first_row: 4,
+                row_count: 2,
+            },
+            pb::Unit {
+                interleave: 8,
+                set_index: 0,
+                first_row: 0,
+                row_count: 0,
+            },
+            pb::Unit {
+                interleave: 8,
+                set_index: 0,
+                first_row: u32::MAX,
+                row_count: u32::MAX,
+            },
+        ];
+        for u in bad {
+            assert!(unit_from_wire(&u, 37, 40).is_err(), "{u:?}");
+        }
+    }
+
+    #[test]
+    fn tiles_round_trip_and_reject_garbage() {
+        let samples: Vec<Sample> = (0..3)
+            .map(|i| Sample::from_array([i as f32; Sample::CHANNELS]))
+            .collect();
+        let wire = samples_to_wire(&samples);
+        assert_eq!(samples_from_wire(&wire, 3).unwrap(), samples);
+        assert!(matches!(
+            samples_from_wire(&wire, 4),
+            Err(WireError::TileLength { .. })
+        ));
+        let mut nan = wire.clone();
+        nan[5] = f32::NAN;
+        assert!(matches!(
+            samples_from_wire(&nan, 3),
+            Err(WireError::NotFinite { index: 5, .. })
+        ));
+        let mut inf = wire;
+        inf[0] = f32::INFINITY;
+        assert!(samples_from_wire(&inf, 3).is_err());
+    }
+
+    #[test]
+    fn hash_depends_on_text_and_size() {
+        let h = scene_hash("Scene()", 10, 10);
+        assert_eq!(h, scene_hash("Scene()", 10, 10));
+        assert_ne!(h, scene_hash("Scene( )", 10, 10));
+        assert_ne!(h, scene_hash("Scene()", 10, 11));
+    }
+}

@@ -1,0 +1,531 @@
+//! The worker: a stateless renderer that dials the coordinator and pulls work.
+//!
+//! Each assignment carries the whole scene (a few KB) and its content hash; the
+//! worker builds the scene once per hash, renders the unit's pixels with all its
+//! threads and submits the tile. A background task heartbeats so the coordinator
+//! knows it is alive. When the coordinator goes away the worker reconnects with
+//! exponential backoff; when asked to stop (SIGTERM) it finishes the current
+//! unit, says goodbye and returns.
+
+pub mod cli;
+pub mod logging;
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use hypertexture::interleave::WorkUnit;
+use hypertexture::{Overrides, Scene};
+use hypertexture_proto::pb::farm_client::FarmClient;
+use hypertexture_proto::pb::{self, get_work_result::Outcome};
+use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
+use tokio::sync::watch;
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::{Code, Status};
+
+/// Everything a worker needs to know.
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    /// The coordinator's URL.
+    pub coordinator: String,
+    /// Render threads.
+    pub threads: usize,
+    /// The farm's shared secret, if it has one.
+    pub token: Option<String>,
+    /// Name shown in the coordinator's logs.
+    pub name: String,
+    /// PEM CA certificate for TLS.
+    pub ca: Option<Vec<u8>>,
+    /// Return when the frame is finished instead of waiting for the next one.
+    pub exit_when_done: bool,
+}
+
+/// Why a worker gave up. Network trouble is not here: it is retried forever.
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    /// The coordinator URL cannot be used.
+    #[error("invalid coordinator address {url}: {message}")]
+    Address {
+        /// The URL given.
+        url: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The CA certificate file cannot be read.
+    #[error("{path}: cannot read the CA certificate: {source}")]
+    Ca {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// The coordinator refused this worker for good (wrong token, other protocol version).
+    #[error("the coordinator refused this worker: {0}")]
+    Refused(String),
+    /// The render threads could not be started.
+    #[error("cannot start {threads} render threads: {message}")]
+    Threads {
+        /// How many.
+        threads: usize,
+        /// Why not.
+        message: String,
+    },
+}
+
+/// What a worker did before it returned.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct WorkerReport {
+    /// Units rendered and accepted.
+    pub units: u64,
+}
+
+/// Resolves when the process is asked to stop (SIGTERM or Ctrl-C).
+pub async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = tokio::signal::ctrl_c() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+/// The process's CPU time (user + system) in microseconds, from the OS.
+pub fn process_cpu_micros() -> u64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: getrusage only writes into the zeroed struct we pass.
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) } != 0 {
+            return 0;
+        }
+        let micros = |t: libc::timeval| t.tv_sec as u64 * 1_000_000 + t.tv_usec as u64;
+        micros(usage.ru_utime) + micros(usage.ru_stime)
+    }
+    #[cfg(not(unix))]
+    {
+        0
+    }
+}
+
+type Client = FarmClient<tonic::service::interceptor::InterceptedService<Channel, Auth>>;
+
+/// Adds `authorization: Bearer <token>` to every call.
+#[derive(Clone)]
+pub struct Auth(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Auth {
+    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert(hypertexture_proto::AUTHORIZATION, value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// Exponential backoff between reconnection attempts: 100 ms doubling to 5 s.
+struct Backoff(Duration);
+
+impl Backoff {
+    const FIRST: Duration = Duration::from_millis(100);
+    const MAX: Duration = Duration::from_secs(5);
+
+    fn next(&mut self) -> Duration {
+        let now = self.0;
+        self.0 = (self.0 * 2).min(Self::MAX);
+        now
+    }
+
+    fn reset(&mut self) {
+        self.0 = Self::FIRST;
+    }
+}
+
+/// Sleeps for `d` unless asked to stop first; returns whether to stop.
+async fn sleep_or_stop(d: Duration, stop: &mut watch::Receiver<bool>) -> bool {
+    if *stop.borrow() {
+        return true;
+    }
+    tokio::select! {
+        _ = tokio::time::sleep(d) => *stop.borrow(),
+        r = stop.changed() => r.is_err() || *stop.borrow(),
+    }
+}
+
+/// Why the connected loop ended.
+enum Leave {
+    /// Asked to stop, or the frame is done: return.
+    Done,
+    /// Lost the coordinator (or it forgot us): connect and register again.
+    Reconnect,
+}
+
+/// The worker: connect, register, pull and render units until told to stop.
+pub async fn run(
+    config: WorkerConfig,
+    mut stop: watch::Receiver<bool>,
+) -> Result<WorkerReport, WorkerError> {
+    let endpoint = endpoint(&config)?;
+    let auth = Auth(match &config.token {
+        Some(t) => Some(
+            format!("Bearer {t}")
+                .parse()
+                .map_err(|_| WorkerError::Address {
+                    url: config.coordinator.clone(),
+                    message: "the token must be printable ASCII".into(),
+                })?,
+        ),
+        None => None,
+    });
+    let pool = Arc::new(
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(|i| format!("render-{i}"))
+            .build()
+            .map_err(|e| WorkerError::Threads {
+                threads: config.threads,
+                message: e.to_string(),
+            })?,
+    );
+    let mut report = WorkerReport::default();
+    let mut scenes = SceneCache::default();
+    let mut backoff = Backoff(Backoff::FIRST);
+    loop {
+        if *stop.borrow() {
+            return Ok(report);
+        }
+        let channel = match endpoint.connect().await {
+            Ok(c) => c,
+            Err(e) => {
+                let wait = backoff.next();
+                tracing::warn!(
+                    "cannot reach {}: {}; retrying in {wait:?}",
+                    config.coordinator,
+                    error_chain(&e)
+                );
+                if sleep_or_stop(wait, &mut stop).await {
+                    return Ok(report);
+                }
+                continue;
+            }
+        };
+        let mut client = FarmClient::with_interceptor(channel, auth.clone())
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES);
+        let registered = client
+            .register(pb::RegisterParams {
+                protocol_version: PROTOCOL_VERSION,
+                name: config.name.clone(),
+                threads: config.threads as u32,
+            })
+            .await;
+        let registered = match registered {
+            Ok(r) => r.into_inner(),
+            Err(status) if is_refusal(&status) => {
+                return Err(WorkerError::Refused(status.message().to_string()));
+            }
+            Err(status) => {
+                let wait = backoff.next();
+                tracing::warn!(
+                    "cannot register with {}: {}; retrying in {wait:?}",
+                    config.coordinator,
+                    status.message()
+                );
+                if sleep_or_stop(wait, &mut stop).await {
+                    return Ok(report);
+                }
+                continue;
+            }
+        };
+        backoff.reset();
+        tracing::info!(
+            "registered with {} as {} ({} threads)",
+            config.coordinator,
+            registered.worker_id,
+            config.threads
+        );
+        let heartbeat = tokio::spawn(heartbeat(
+            client.clone(),
+            registered.worker_id.clone(),
+            Duration::from_millis(u64::from(registered.heartbeat_ms.max(50))),
+        ));
+        let left = serve(
+            &config,
+            &mut client,
+            &registered.worker_id,
+            &pool,
+            &mut scenes,
+            &mut report,
+            &mut stop,
+        )
+        .await;
+        heartbeat.abort();
+        match left {
+            Ok(Leave::Done) => {
+                let _ = client
+                    .goodbye(pb::GoodbyeParams {
+                        worker_id: registered.worker_id.clone(),
+                        process_cpu_micros: process_cpu_micros(),
+                    })
+                    .await;
+                tracing::info!("leaving after {} units", report.units);
+                return Ok(report);
+            }
+            Ok(Leave::Reconnect) => {
+                let wait = backoff.next();
+                if sleep_or_stop(wait, &mut stop).await {
+                    return Ok(report);
+                }
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+/// Pulls and renders units over one connection.
+async fn serve(
+    config: &WorkerConfig,
+    client: &mut Client,
+    worker_id: &str,
+    pool: &Arc<rayon::ThreadPool>,
+    scenes: &mut SceneCache,
+    report: &mut WorkerReport,
+    stop: &mut watch::Receiver<bool>,
+) -> Result<Leave, WorkerError> {
+    loop {
+        if *stop.borrow() {
+            return Ok(Leave::Done);
+        }
+        let outcome = match client
+            .get_work(pb::GetWorkParams {
+                worker_id: worker_id.to_string(),
+            })
+            .await
+        {
+            Ok(r) => r.into_inner().outcome,
+            Err(status) => return lost(config, status),
+        };
+        match outcome {
+            Some(Outcome::Assignment(assignment)) => {
+                let Some((unit, samples, cpu)) = render_assignment(&assignment, pool, scenes).await
+                else {
+                    // A malformed assignment: not ours to fix; ask for other work.
+                    if sleep_or_stop(Duration::from_millis(500), stop).await {
+                        return Ok(Leave::Done);
+                    }
+                    continue;
+                };
+                let submitted = client
+                    .submit_tile(pb::SubmitTileParams {
+                        worker_id: worker_id.to_string(),
+                        assignment_id: assignment.assignment_id,
+                        unit: Some(convert::unit_to_wire(&unit)),
+                        samples,
+                        render_cpu_micros: cpu,
+                    })
+                    .await;
+                match submitted {
+                    Ok(r) => {
+                        if r.into_inner().accepted {
+                            report.units += 1;
+                        }
+                    }
+                    Err(status)
+                        if status.code() == Code::InvalidArgument
+                            || status.code() == Code::FailedPrecondition =>
+                    {
+                        tracing::warn!("tile refused: {}", status.message());
+                    }
+                    Err(status) => return lost(config, status),
+                }
+            }
+            Some(Outcome::RetryAfterMs(ms)) => {
+                if sleep_or_stop(Duration::from_millis(u64::from(ms).clamp(10, 5000)), stop).await {
+                    return Ok(Leave::Done);
+                }
+            }
+            Some(Outcome::Finished(_)) => {
+                if config.exit_when_done {
+                    return Ok(Leave::Done);
+                }
+                if sleep_or_stop(Duration::from_secs(1), stop).await {
+                    return Ok(Leave::Done);
+                }
+            }
+            None => {
+                tracing::warn!("the coordinator sent an empty answer");
+                if sleep_or_stop(Duration::from_millis(500), stop).await {
+                    return Ok(Leave::Done);
+                }
+            }
+        }
+    }
+}
+
+/// What to do after a failed call: give up on refusal, otherwise reconnect.
+fn lost(config: &WorkerConfig, status: Status) -> Result<Leave, WorkerError> {
+    if is_refusal(&status) {
+        return Err(WorkerError::Refused(status.message().to_string()));
+    }
+    if status.code() == Code::NotFound {
+        tracing::info!("the coordinator does not know this worker any more: registering again");
+    } else {
+        tracing::warn!("lost {}: {}", config.coordinator, status.message());
+    }
+    Ok(Leave::Reconnect)
+}
+
+/// Refusals that retrying cannot fix.
+fn is_refusal(status: &Status) -> bool {
+    matches!(
+        status.code(),
+        Code::Unauthenticated | Code::PermissionDenied | Code::FailedPrecondition
+    )
+}
+
+/// Renders an assignment on the pool (off the async threads, so heartbeats go on).
+async fn render_assignment(
+    assignment: &pb::Assignment,
+    pool: &Arc<rayon::ThreadPool>,
+    scenes: &mut SceneCache,
+) -> Option<(WorkUnit, Vec<f32>, u64)> {
+    let job = assignment.job.as_ref()?;
+    let scene = match scenes.get(job) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::error!("cannot use the assigned scene {}: {e}", job.scene_name);
+            return None;
+        }
+    };
+    let unit = match assignment
+        .unit
+        .as_ref()
+        .ok_or(convert::WireError::Missing("unit"))
+        .and_then(|u| convert::unit_from_wire(u, scene.width(), scene.height()))
+    {
+        Ok(u) => u,
+        Err(e) => {
+            tracing::error!("assignment {}: {e}", assignment.assignment_id);
+            return None;
+        }
+    };
+    let pool = Arc::clone(pool);
+    let frame = job.frame;
+    tokio::task::spawn_blocking(move || {
+        let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
+        let before = process_cpu_micros();
+        let samples = pool.install(|| hypertexture::render::render_pixels(&scene, frame, &pixels));
+        let cpu = process_cpu_micros().saturating_sub(before);
+        (unit, convert::samples_to_wire(&samples), cpu)
+    })
+    .await
+    .ok()
+}
+
+/// Scenes built from assignments, by content hash (a worker holds a few at most).
+#[derive(Default)]
+struct SceneCache(HashMap<u64, Arc<Scene>>);
+
+impl SceneCache {
+    const CAPACITY: usize = 4;
+
+    fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, String> {
+        let hash = convert::scene_hash(&job.scene_text, job.width, job.height);
+        if hash != job.scene_hash {
+            return Err(format!(
+                "content hash mismatch ({hash:016x} ≠ {:016x})",
+                job.scene_hash
+            ));
+        }
+        if let Some(scene) = self.0.get(&hash) {
+            return Ok(Arc::clone(scene));
+        }
+        let scene = Scene::from_text(
+            &job.scene_text,
+            &job.scene_name,
+            Overrides {
+                width: Some(job.width),
+                height: Some(job.height),
+            },
+        )
+        .map_err(|e| e.to_string())?;
+        if self.0.len() >= Self::CAPACITY {
+            self.0.clear();
+        }
+        let scene = Arc::new(scene);
+        self.0.insert(hash, Arc::clone(&scene));
+        Ok(scene)
+    }
+}
+
+/// Beats every `every` until aborted. Failures are left to the work loop to notice.
+async fn heartbeat(mut client: Client, worker_id: String, every: Duration) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let _ = client
+            .heartbeat(pb::HeartbeatParams {
+                worker_id: worker_id.clone(),
+            })
+            .await;
+    }
+}
+
+/// The endpoint for the coordinator URL, with TLS when it is https.
+fn endpoint(config: &WorkerConfig) -> Result<Endpoint, WorkerError> {
+    let bad = |message: String| WorkerError::Address {
+        url: config.coordinator.clone(),
+        message,
+    };
+    let mut endpoint = Endpoint::from_shared(config.coordinator.clone())
+        .map_err(|e| bad(e.to_string()))?
+        .connect_timeout(Duration::from_secs(5))
+        .timeout(Duration::from_secs(60))
+        .tcp_nodelay(true);
+    let uri = endpoint.uri().clone();
+    match (uri.scheme_str(), &config.ca) {
+        (Some("http"), None) => {}
+        (Some("http"), Some(_)) => return Err(bad("--ca needs an https:// address".into())),
+        (Some("https"), Some(ca)) => {
+            let tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));
+            endpoint = endpoint.tls_config(tls).map_err(|e| bad(e.to_string()))?;
+        }
+        (Some("https"), None) => {
+            return Err(bad(
+                "https:// needs --ca FILE to verify the coordinator".into()
+            ));
+        }
+        _ => return Err(bad("expected http://HOST:PORT or https://HOST:PORT".into())),
+    }
+    if uri.host().is_none() {
+        return Err(bad("no host".into()));
+    }
+    Ok(endpoint)
+}
+
+/// An error with its causes, on one line.
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        s.push_str(": ");
+        s.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    s
+}
