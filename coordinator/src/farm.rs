@@ -302,9 +302,9 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     if !loopback && config.token.is_none() {
         return Err(FarmError::TokenRequired(config.listen));
     }
-    // Local workers always authenticate, even on loopback: other users of the
-    // machine cannot join with a token they never saw.
-    let token = config.token.clone().or_else(|| Some(random_token()));
+    // On loopback without a token anyone on this machine may join (as the user's
+    // own `worker` processes do); beyond loopback a token is required (above).
+    let token = config.token.clone();
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .map_err(|source| FarmError::Bind {
@@ -356,7 +356,7 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
-    let server_task = tokio::spawn(server.add_service(service).serve_with_incoming_shutdown(
+    let mut server_task = tokio::spawn(server.add_service(service).serve_with_incoming_shutdown(
         // No Nagle: a tile's reply must not wait for a delayed ACK.
         tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
         async {
@@ -462,50 +462,29 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     // Local workers see `finished` on their next call and exit; give them a moment.
     locals.stop(Duration::from_secs(10)).await;
     let _ = stop_server.send(());
-    if let Ok(Ok(Err(e))) = tokio::time::timeout(Duration::from_secs(3), server_task).await {
-        tracing::warn!("server: {e}");
+    // Graceful shutdown waits for open connections: daemon workers keep theirs
+    // (they wait for the next frame), so give them a moment, then stop serving.
+    match tokio::time::timeout(Duration::from_secs(1), &mut server_task).await {
+        Ok(Ok(Err(e))) => tracing::warn!("server: {e}"),
+        Ok(_) => {}
+        Err(_) => server_task.abort(),
     }
     outcome?;
 
-    let shared = Arc::try_unwrap(shared)
-        .map_err(|_| FarmError::Server("the server is still running".into()))?;
-    let tile_bytes = shared.tile_bytes.into_inner();
-    let scheduler = shared
-        .scheduler
-        .into_inner()
-        .unwrap_or_else(|p| p.into_inner());
+    let tile_bytes = shared.tile_bytes.load(std::sync::atomic::Ordering::Relaxed);
+    let scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
     let mut workers: Vec<_> = scheduler.workers().cloned().collect();
     workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
     let unit_costs = scheduler.unit_costs().to_vec();
+    let film = scheduler.film().clone();
+    drop(scheduler);
     Ok(FarmReport {
-        film: scheduler.into_film(),
+        film,
         render_time,
         workers,
         unit_costs,
         tile_bytes,
     })
-}
-
-/// A random 128-bit token (from the OS), as hex.
-fn random_token() -> String {
-    let mut bytes = [0u8; 16];
-    if let Ok(mut f) = std::fs::File::open("/dev/urandom") {
-        use std::io::Read;
-        let _ = f.read_exact(&mut bytes);
-    }
-    let t = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
-    let mixed = hypertexture::random::hash(&[
-        u64::from_le_bytes(bytes[..8].try_into().unwrap_or_default()),
-        u64::from_le_bytes(bytes[8..].try_into().unwrap_or_default()),
-        t,
-        u64::from(std::process::id()),
-    ]);
-    format!(
-        "{mixed:016x}{:016x}",
-        hypertexture::random::hash(&[mixed, t])
-    )
 }
 
 /// The `worker` binary beside this executable, if there is one.

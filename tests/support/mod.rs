@@ -37,3 +37,146 @@ pub fn decode_png(path: &Path) -> image::RgbaImage {
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
         .to_rgba8()
 }
+
+/// The worker binary (built beside the coordinator by `cargo test --workspace`).
+pub fn worker_bin() -> PathBuf {
+    let path = Path::new(env!("CARGO_BIN_EXE_coordinator"))
+        .with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
+    if !path.exists() {
+        let status = Command::new(env!("CARGO"))
+            .args(["build", "-p", "worker"])
+            .current_dir(root())
+            .status()
+            .expect("cargo runs");
+        assert!(status.success(), "building the worker binary");
+    }
+    path
+}
+
+/// A coordinator started in the background with its stderr captured line by line.
+pub struct Running {
+    pub child: std::process::Child,
+    pub lines: std::sync::mpsc::Receiver<String>,
+    pub log: Vec<String>,
+}
+
+impl Running {
+    /// Starts the coordinator with `args` (its log at info level).
+    pub fn coordinator(args: &[&str]) -> Running {
+        Running::spawn(Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args))
+    }
+
+    /// Starts a worker with `args`.
+    pub fn worker(args: &[&str]) -> Running {
+        Running::spawn(
+            Command::new(worker_bin())
+                .args(args)
+                .env_remove("HYPERTEXTURE_TOKEN"),
+        )
+    }
+
+    fn spawn(cmd: &mut Command) -> Running {
+        use std::io::BufRead;
+        let mut child = cmd
+            .env("RUST_LOG", "info")
+            .env("NO_COLOR", "1")
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("the binary starts");
+        let stderr = child.stderr.take().expect("piped");
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stderr)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Running {
+            child,
+            lines,
+            log: Vec::new(),
+        }
+    }
+
+    /// Waits (at most `secs`) for a log line containing `needle`; returns it.
+    pub fn wait_for(&mut self, needle: &str, secs: u64) -> String {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(line) => {
+                    let found = line.contains(needle);
+                    self.log.push(line.clone());
+                    if found {
+                        return line;
+                    }
+                }
+                Err(_) => panic!(
+                    "no line with {needle:?} within {secs} s; log so far:\n{}",
+                    self.log.join("\n")
+                ),
+            }
+        }
+    }
+
+    /// The port from the coordinator's "farm listening on ADDR" line.
+    pub fn port(&mut self) -> u16 {
+        let line = self.wait_for("farm listening on", 30);
+        let addr = line
+            .split("farm listening on ")
+            .nth(1)
+            .and_then(|r| r.split(':').nth(1))
+            .expect("address");
+        addr.trim_end_matches(|c: char| !c.is_ascii_digit())
+            .parse()
+            .expect("port")
+    }
+
+    /// Waits (at most `secs`) for the process to exit; returns its status and full log.
+    pub fn finish(mut self, secs: u64) -> (std::process::ExitStatus, Vec<String>) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        loop {
+            while let Ok(line) = self.lines.try_recv() {
+                self.log.push(line);
+            }
+            if let Some(status) = self.child.try_wait().expect("wait") {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+                while let Ok(line) = self.lines.try_recv() {
+                    self.log.push(line);
+                }
+                return (status, std::mem::take(&mut self.log));
+            }
+            if std::time::Instant::now() > deadline {
+                let _ = self.child.kill();
+                panic!(
+                    "still running after {secs} s; log:\n{}",
+                    self.log.join("\n")
+                );
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+
+    /// Sends a signal (SIGKILL = 9, SIGTERM = 15).
+    pub fn signal(&self, signal: i32) {
+        let status = Command::new("kill")
+            .arg(format!("-{signal}"))
+            .arg(self.child.id().to_string())
+            .status()
+            .expect("kill runs");
+        assert!(status.success());
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

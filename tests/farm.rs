@@ -1,0 +1,297 @@
+//! The farm with real processes on loopback: exact images from any number of
+//! workers, workers killed or joining mid-frame, tokens, time-outs, bad tiles.
+
+mod support;
+
+use std::path::Path;
+
+use support::*;
+
+/// Renders `scene` at `size` in-process to `out` (PNG or EXR by extension).
+fn in_process(scene_name: &str, size: u32, out: &Path) {
+    let size = size.to_string();
+    let o = coordinator(&[
+        "--scene",
+        scene(scene_name).to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        &size,
+        "--height",
+        &size,
+        "--in-process",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+#[test]
+fn any_number_of_workers_gives_the_in_process_bytes() {
+    let dir = scratch("farm-counts");
+    for ext in ["png", "exr"] {
+        let reference = dir.join(format!("reference.{ext}"));
+        in_process("tribble", 40, &reference);
+        for workers in ["1", "2", "4"] {
+            let out = dir.join(format!("farm-{workers}.{ext}"));
+            let o = coordinator(&[
+                "--scene",
+                scene("tribble").to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--width",
+                "40",
+                "--height",
+                "40",
+                "--local-workers",
+                workers,
+                "--quiet",
+            ]);
+            assert!(
+                o.status.success(),
+                "{workers} workers: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            same_bytes(&reference, &out);
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
+    let dir = scratch("farm-kill");
+    let reference = dir.join("reference.png");
+    in_process("fur", 160, &reference);
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("fur").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "160",
+        "--height",
+        "160",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "1",
+        "--worker-timeout",
+        "30",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let mut doomed =
+        Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "doomed"]);
+    doomed.wait_for("registered", 30);
+    coord.wait_for("worker doomed joined", 30);
+    std::thread::sleep(std::time::Duration::from_millis(150));
+    doomed.signal(9);
+    let _ = doomed.finish(10);
+    // A worker that joins mid-frame receives the rest, including the lost units.
+    let mut late = Running::worker(&["--coordinator", &url, "--threads", "2", "--name", "late"]);
+    let (status, log) = coord.finish(120);
+    assert!(status.success(), "coordinator failed:\n{}", log.join("\n"));
+    same_bytes(&reference, &out);
+    let late_line = log
+        .iter()
+        .find(|l| l.contains("worker late:"))
+        .expect("the late worker is reported");
+    assert!(!late_line.contains(": 0 units"), "{late_line}");
+    // SIGTERM: the worker (a daemon waiting for the next frame) says goodbye and exits 0.
+    late.wait_for("registered", 10);
+    late.signal(15);
+    let (status, log) = late.finish(30);
+    assert!(
+        status.success(),
+        "worker after SIGTERM:\n{}",
+        log.join("\n")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_wrong_token_is_refused_and_no_worker_means_a_clean_failure() {
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("fur").to_str().unwrap(),
+        "--out",
+        "/tmp/never-written.png",
+        "--local-workers",
+        "0",
+        "--token",
+        "right-secret",
+        "--worker-timeout",
+        "2",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let intruder = Running::worker(&["--coordinator", &url, "--token", "wrong-secret"]);
+    let (status, log) = intruder.finish(30);
+    assert!(!status.success());
+    assert!(
+        log.iter()
+            .any(|l| l.contains("refused") && l.contains("token")),
+        "{}",
+        log.join("\n")
+    );
+    let anonymous = Running::worker(&["--coordinator", &url]);
+    let (status, _) = anonymous.finish(30);
+    assert!(!status.success(), "a worker with no token is refused too");
+    let (status, log) = coord.finish(60);
+    assert!(!status.success(), "the coordinator gives up");
+    let log = log.join("\n");
+    assert!(log.contains("missing or wrong token"), "{log}");
+    assert!(log.contains("error: no worker has been connected"), "{log}");
+    assert!(!log.contains("panicked"), "{log}");
+}
+
+#[test]
+fn listening_beyond_loopback_needs_a_token() {
+    let o = coordinator(&[
+        "--scene",
+        scene("fur").to_str().unwrap(),
+        "--out",
+        "/tmp/never.png",
+        "--listen",
+        "0.0.0.0:0",
+        "--local-workers",
+        "0",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("needs a shared token"));
+}
+
+/// A hand-written client sends malformed tiles; none is used, and the image that
+/// real workers then finish is still exactly the in-process one.
+#[test]
+fn malformed_tiles_are_rejected_without_touching_the_image() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+    use tonic::Code;
+
+    let dir = scratch("farm-malformed");
+    let reference = dir.join("reference.png");
+    in_process("noisy_sphere", 32, &reference);
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "1",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let mut client = FarmClient::connect(url.clone())
+            .await
+            .unwrap()
+            .max_encoding_message_size(64 * 1024 * 1024);
+        let refused = client
+            .register(pb::RegisterParams {
+                protocol_version: 999,
+                name: "old".into(),
+                threads: 1,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), Code::FailedPrecondition);
+        assert!(
+            refused.message().contains("999")
+                && refused
+                    .message()
+                    .contains(&hypertexture_proto::PROTOCOL_VERSION.to_string())
+        );
+        let id = client
+            .register(pb::RegisterParams {
+                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+                name: "evil".into(),
+                threads: 1,
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id;
+        let work = client
+            .get_work(pb::GetWorkParams {
+                worker_id: id.clone(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let Some(Outcome::Assignment(a)) = work.outcome else {
+            panic!("expected an assignment")
+        };
+        let unit = a.unit.unwrap();
+        let pixels = {
+            let u = hypertexture_proto::convert::unit_from_wire(&unit, 32, 32).unwrap();
+            u.pixel_count(32)
+        };
+        let tile = |samples: Vec<f32>, assignment_id: u64| pb::SubmitTileParams {
+            worker_id: id.clone(),
+            assignment_id,
+            unit: Some(unit),
+            samples,
+            render_cpu_micros: 0,
+        };
+        let n = pixels * hypertexture::Sample::CHANNELS;
+        let mut nan = vec![7.0; n];
+        nan[1] = f32::NAN;
+        let mut inf = vec![7.0; n];
+        inf[n - 1] = f32::INFINITY;
+        for (what, params, code) in [
+            (
+                "short",
+                tile(vec![7.0; n - 1], a.assignment_id),
+                Code::InvalidArgument,
+            ),
+            ("NaN", tile(nan, a.assignment_id), Code::InvalidArgument),
+            (
+                "infinite",
+                tile(inf, a.assignment_id),
+                Code::InvalidArgument,
+            ),
+            (
+                "never assigned",
+                tile(vec![7.0; n], 424_242),
+                Code::InvalidArgument,
+            ),
+            (
+                "oversized",
+                tile(vec![7.0; 5_000_000], a.assignment_id),
+                Code::OutOfRange,
+            ),
+        ] {
+            let status = client.submit_tile(params).await.unwrap_err();
+            let ok = status.code() == code
+                || (what == "oversized" && status.code() == Code::ResourceExhausted);
+            assert!(ok, "{what}: {status:?}");
+        }
+        // The evil client vanishes; its lease runs out and real workers take over.
+    });
+    let _worker = Running::worker(&["--coordinator", &url, "--threads", "2"]);
+    let (status, log) = coord.finish(60);
+    assert!(status.success(), "{}", log.join("\n"));
+    assert!(
+        log.iter().any(|l| l.contains("refused a tile")),
+        "{}",
+        log.join("\n")
+    );
+    same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1,0 +1,102 @@
+//! Speedup without wall time: the farm must not burn more CPU than the serial
+//! render (total CPU of coordinator + workers, from the OS, ≤ 1.10 × the CPU of
+//! `--in-process --threads 1`), and every worker must render a share.
+//!
+//! Its own test binary: `RUSAGE_CHILDREN` counts every child this process has
+//! waited for, so no other test may run children beside it.
+
+mod support;
+
+use support::*;
+
+/// CPU seconds (user + system) of all waited-for children so far.
+fn children_cpu() -> f64 {
+    // SAFETY: getrusage writes only into the zeroed struct we pass.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    assert_eq!(
+        unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) },
+        0
+    );
+    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
+    secs(usage.ru_utime) + secs(usage.ru_stime)
+}
+
+#[test]
+fn the_farm_costs_no_more_cpu_than_the_serial_render() {
+    let dir = scratch("speedup");
+    let fur = scene("fur");
+    let common = [
+        "--scene",
+        fur.to_str().unwrap(),
+        "--width",
+        "256",
+        "--height",
+        "256",
+    ];
+    let _ = worker_bin();
+
+    let before = children_cpu();
+    let out = dir.join("serial.png");
+    let o = coordinator(
+        &[
+            &common[..],
+            &[
+                "--out",
+                out.to_str().unwrap(),
+                "--in-process",
+                "--threads",
+                "1",
+                "--quiet",
+            ],
+        ]
+        .concat(),
+    );
+    assert!(o.status.success());
+    let serial = children_cpu() - before;
+
+    let before = children_cpu();
+    let out = dir.join("farm.png");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(
+            [
+                &common[..],
+                &[
+                    "--out",
+                    out.to_str().unwrap(),
+                    "--local-workers",
+                    "2",
+                    "--threads",
+                    "1",
+                ],
+            ]
+            .concat(),
+        )
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    let farm = children_cpu() - before;
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+
+    println!(
+        "serial CPU {serial:.3} s, farm CPU (coordinator + 2 workers) {farm:.3} s, ratio {:.3}",
+        farm / serial
+    );
+    assert!(
+        farm <= 1.10 * serial,
+        "farm CPU {farm:.3} s > 1.10 × serial {serial:.3} s\n{log}"
+    );
+    let shares: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("worker local-") && l.contains(" units,"))
+        .collect();
+    assert_eq!(shares.len(), 2, "{log}");
+    for line in shares {
+        assert!(
+            !line.contains(": 0 units"),
+            "a worker rendered nothing: {line}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
