@@ -9,13 +9,17 @@ use clap::Parser;
 
 use crate::{Config, FarmOptions};
 
-/// Render a hypertexture scene to PNG or OpenEXR.
+/// Render a hypertexture scene to PNG or OpenEXR, on a farm of workers (by
+/// default local worker processes, one per core) or in-process.
 #[derive(Debug, Parser)]
-#[command(version, about, long_about = None)]
+#[command(version, about, long_about = None, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct Cli {
+    /// Other tasks than rendering.
+    #[command(subcommand)]
+    pub command: Option<Command>,
     /// Scene file (RON), e.g. scenes/fur.ron.
-    #[arg(long, value_name = "FILE")]
-    pub scene: PathBuf,
+    #[arg(long, value_name = "FILE", required = true)]
+    pub scene: Option<PathBuf>,
     /// Output image; the extension chooses the format (.png or .exr).
     /// Default: the scene's name with .png, in the current directory.
     #[arg(long, value_name = "FILE")]
@@ -73,12 +77,66 @@ pub struct Cli {
     pub quiet: bool,
 }
 
+/// Subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Measure the farm's speedup on this machine and simulate larger farms.
+    Bench(BenchArgs),
+}
+
+/// Arguments of `coordinator bench`.
+#[derive(Debug, clap::Args)]
+pub struct BenchArgs {
+    /// Scene to measure.
+    #[arg(long, value_name = "FILE", default_value = "scenes/fur.ron")]
+    pub scene: PathBuf,
+    /// A deliberately unbalanced scene for the simulation (all density in one corner).
+    #[arg(long, value_name = "FILE", default_value = "scenes/bench/corner.ron")]
+    pub unbalanced: PathBuf,
+    /// Image width (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub width: Option<u32>,
+    /// Image height (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub height: Option<u32>,
+    /// Local worker process counts to measure.
+    #[arg(
+        long,
+        value_name = "N,N,…",
+        value_delimiter = ',',
+        default_value = "1,2,4"
+    )]
+    pub workers: Vec<usize>,
+    /// Farm sizes to simulate.
+    #[arg(
+        long,
+        value_name = "N,N,…",
+        value_delimiter = ',',
+        default_value = "8,16,64,256"
+    )]
+    pub simulate: Vec<usize>,
+}
+
+impl BenchArgs {
+    /// The library configuration of the benchmark.
+    pub fn into_config(self) -> crate::bench::BenchConfig {
+        crate::bench::BenchConfig {
+            scene: self.scene,
+            unbalanced: self.unbalanced,
+            width: self.width,
+            height: self.height,
+            workers: self.workers.into_iter().filter(|&n| n > 0).collect(),
+            simulate: self.simulate.into_iter().filter(|&n| n > 0).collect(),
+        }
+    }
+}
+
 impl Cli {
-    /// The library configuration these arguments ask for.
+    /// The library configuration these arguments ask for (a render: no subcommand).
     pub fn into_config(self) -> Config {
+        let scene = self.scene.unwrap_or_default();
         let out = self.out.unwrap_or_else(|| {
-            let stem = self
-                .scene
+            let stem = scene
                 .file_stem()
                 .map_or_else(|| "render".into(), |s| s.to_os_string());
             PathBuf::from(stem).with_extension("png")
@@ -95,7 +153,7 @@ impl Cli {
             interleave: self.interleave,
         });
         Config {
-            scene: self.scene,
+            scene,
             out,
             width: self.width,
             height: self.height,

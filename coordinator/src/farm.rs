@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use hypertexture::Film;
-use hypertexture::interleave::{DEFAULT_MAX_UNIT_PIXELS, work_units};
+use hypertexture::interleave::farm_units;
 use hypertexture_proto::pb::farm_server::{Farm, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
 use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
@@ -316,12 +316,7 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         source,
     })?;
 
-    let units = work_units(
-        job.width,
-        job.height,
-        config.interleave,
-        DEFAULT_MAX_UNIT_PIXELS,
-    );
+    let units = farm_units(job.width, job.height, config.interleave);
     let unit_count = units.len();
     let (finished_tx, mut finished_rx) = watch::channel(false);
     let heartbeat = (config.lease / 4).max(Duration::from_millis(50));

@@ -2,6 +2,7 @@
 //!
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
+pub mod bench;
 pub mod cli;
 pub mod farm;
 pub mod local;

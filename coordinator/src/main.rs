@@ -3,12 +3,21 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use coordinator::cli::Cli;
+use coordinator::cli::{Cli, Command};
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    coordinator::logging::init(cli.quiet);
-    match coordinator::run(cli.into_config()) {
+    let mut cli = Cli::parse();
+    let result = match cli.command.take() {
+        Some(Command::Bench(args)) => {
+            coordinator::logging::init(true);
+            coordinator::bench::run(&args.into_config())
+        }
+        None => {
+            coordinator::logging::init(cli.quiet);
+            coordinator::run(cli.into_config()).map(|_| ())
+        }
+    };
+    match result {
         Ok(_) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");

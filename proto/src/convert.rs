@@ -43,6 +43,7 @@ pub fn unit_to_wire(unit: &WorkUnit) -> pb::Unit {
         set_index: unit.set.index,
         first_row: unit.first_row,
         row_count: unit.row_count,
+        row_stride: unit.row_stride,
     }
 }
 
@@ -64,12 +65,16 @@ pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUn
         index: unit.set_index,
     };
     let rows = set.rows(height);
+    let last = u64::from(unit.first_row)
+        + u64::from(unit.row_count.saturating_sub(1)) * u64::from(unit.row_stride);
     if unit.row_count == 0
-        || u64::from(unit.first_row) + u64::from(unit.row_count) > u64::from(rows)
+        || unit.row_stride == 0
+        || unit.first_row >= unit.row_stride
+        || last >= u64::from(rows)
     {
         return Err(WireError::InvalidUnit(format!(
-            "rows {}+{} of a set with {rows} rows",
-            unit.first_row, unit.row_count
+            "set rows {} + i·{} (i < {}) of a set with {rows} rows",
+            unit.first_row, unit.row_stride, unit.row_count
         )));
     }
     if set.columns(width) == 0 {
@@ -82,6 +87,7 @@ pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUn
         set,
         first_row: unit.first_row,
         row_count: unit.row_count,
+        row_stride: unit.row_stride,
     })
 }
 
@@ -140,37 +146,22 @@ mod tests {
         for unit in work_units(37, 29, 8, 10) {
             assert_eq!(unit_from_wire(&unit_to_wire(&unit), 37, 29), Ok(unit));
         }
+        let unit = |interleave, set_index, first_row, row_count, row_stride| pb::Unit {
+            interleave,
+            set_index,
+            first_row,
+            row_count,
+            row_stride,
+        };
         let bad = [
-            pb::Unit {
-                interleave: 3,
-                set_index: 0,
-                first_row: 0,
-                row_count: 1,
-            },
-            pb::Unit {
-                interleave: 8,
-                set_index: 64,
-                first_row: 0,
-                row_count: 1,
-            },
-            pb::Unit {
-                interleave: 8,
-                set_index: 0,
-                first_row: 4,
-                row_count: 2,
-            },
-            pb::Unit {
-                interleave: 8,
-                set_index: 0,
-                first_row: 0,
-                row_count: 0,
-            },
-            pb::Unit {
-                interleave: 8,
-                set_index: 0,
-                first_row: u32::MAX,
-                row_count: u32::MAX,
-            },
+            unit(3, 0, 0, 1, 1),
+            unit(8, 64, 0, 1, 1),
+            unit(8, 0, 4, 2, 1),
+            unit(8, 0, 0, 0, 1),
+            unit(8, 0, 0, 1, 0),
+            unit(8, 0, 2, 1, 2),
+            unit(8, 0, 0, 4, 2),
+            unit(8, 0, u32::MAX, u32::MAX, u32::MAX),
         ];
         for u in bad {
             assert!(unit_from_wire(&u, 37, 40).is_err(), "{u:?}");

@@ -59,15 +59,18 @@ impl PixelSet {
     }
 }
 
-/// A unit of work: the rows `first_row..first_row + row_count` of one pixel set.
+/// A unit of work: the rows `first_row + i·row_stride` (i < `row_count`) of one
+/// pixel set, where set row r is image row `offset.y + r·B`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct WorkUnit {
     /// The set.
     pub set: PixelSet,
-    /// First row of the set (row r is image row `offset.y + r·B`).
+    /// First set row.
     pub first_row: u32,
     /// Number of set rows.
     pub row_count: u32,
+    /// Distance between the unit's set rows (1: a contiguous band).
+    pub row_stride: u32,
 }
 
 impl WorkUnit {
@@ -76,8 +79,11 @@ impl WorkUnit {
         let (ox, oy) = self.set.offset();
         let b = self.set.interleave;
         let columns = self.set.columns(width);
-        (self.first_row..self.first_row + self.row_count)
-            .flat_map(move |r| (0..columns).map(move |c| (ox + c * b, oy + r * b)))
+        let (first, stride) = (self.first_row, self.row_stride);
+        (0..self.row_count).flat_map(move |i| {
+            let r = first + i * stride;
+            (0..columns).map(move |c| (ox + c * b, oy + r * b))
+        })
     }
 
     /// Number of pixels in the unit (the length of its tile).
@@ -107,14 +113,31 @@ pub fn bayer_rank(interleave: u32, x: u32, y: u32) -> u32 {
     rank
 }
 
-/// The work units of a `width × height` image, in coarse-to-fine order: sets by
-/// Bayer rank, each cut into bands of at most `max_unit_pixels` pixels (at least
-/// one row). `interleave` must be a power of two from 1 to 64.
-pub fn work_units(width: u32, height: u32, interleave: u32, max_unit_pixels: u32) -> Vec<WorkUnit> {
-    assert!(
-        interleave.is_power_of_two() && interleave <= 64,
-        "interleave must be a power of two ≤ 64"
-    );
+/// The farm's units, sized by guided self-scheduling: the first three quarters of
+/// the sets (in coarse-to-fine order) in units of about 1/256 of the image (1024
+/// to [`DEFAULT_MAX_UNIT_PIXELS`] pixels), the last quarter 4× finer. Large units keep
+/// the per-unit cost low; the small ones at the end keep every worker busy until
+/// the last tile, however many workers there are.
+pub fn farm_units(width: u32, height: u32, interleave: u32) -> Vec<WorkUnit> {
+    let pixels = u64::from(width) * u64::from(height);
+    let coarse = (pixels / 256).clamp(1024, u64::from(DEFAULT_MAX_UNIT_PIXELS)) as u32;
+    let fine = coarse / 4;
+    let sets = interleave * interleave;
+    let tail_from = sets - sets / 4;
+    let mut units = Vec::new();
+    for (rank, set) in sets_in_order(interleave).into_iter().enumerate() {
+        let max = if (rank as u32) < tail_from {
+            coarse
+        } else {
+            fine
+        };
+        units.extend(set_units(set, width, height, max));
+    }
+    units
+}
+
+/// The B² sets in coarse-to-fine (Bayer) order.
+fn sets_in_order(interleave: u32) -> Vec<PixelSet> {
     let mut sets: Vec<PixelSet> = (0..interleave * interleave)
         .map(|index| PixelSet { interleave, index })
         .collect();
@@ -122,25 +145,44 @@ pub fn work_units(width: u32, height: u32, interleave: u32, max_unit_pixels: u32
         let (x, y) = s.offset();
         bayer_rank(interleave, x, y)
     });
-    let mut units = Vec::new();
-    for set in sets {
-        let (columns, rows) = (set.columns(width), set.rows(height));
-        if columns == 0 || rows == 0 {
-            continue;
-        }
-        let band = (max_unit_pixels / columns).max(1);
-        let mut first_row = 0;
-        while first_row < rows {
-            let row_count = band.min(rows - first_row);
-            units.push(WorkUnit {
-                set,
-                first_row,
-                row_count,
-            });
-            first_row += row_count;
-        }
-    }
-    units
+    sets
+}
+
+/// A set cut into K units of at most `max_unit_pixels` pixels (at least one row),
+/// unit k taking set rows k, k + K, k + 2K, …
+fn set_units(
+    set: PixelSet,
+    width: u32,
+    height: u32,
+    max_unit_pixels: u32,
+) -> impl Iterator<Item = WorkUnit> {
+    let (columns, rows) = (set.columns(width), set.rows(height));
+    let k = if columns == 0 || rows == 0 {
+        0
+    } else {
+        rows.div_ceil((max_unit_pixels / columns).clamp(1, rows))
+    };
+    (0..k).map(move |first_row| WorkUnit {
+        set,
+        first_row,
+        row_count: (rows - first_row).div_ceil(k),
+        row_stride: k,
+    })
+}
+
+/// The work units of a `width × height` image, in coarse-to-fine order: sets by
+/// Bayer rank, each cut into K units of at most `max_unit_pixels` pixels (at
+/// least one row), unit k taking set rows k, k + K, k + 2K, …
+/// `interleave` must be a power of two from 1 to 64.
+pub fn work_units(width: u32, height: u32, interleave: u32, max_unit_pixels: u32) -> Vec<WorkUnit> {
+    assert!(
+        interleave.is_power_of_two() && interleave <= 64,
+        "interleave must be a power of two ≤ 64"
+    );
+    sets_in_order(interleave)
+        .into_iter()
+        .flat_map(|set| set_units(set, width, height, max_unit_pixels))
+        .collect()
 }
 
 #[cfg(test)]
@@ -167,6 +209,7 @@ mod tests {
             let mut seen = vec![0u8; (w * h) as usize];
             for unit in work_units(w, h, b, max) {
                 assert!(unit.pixel_count(w) <= max.max(unit.set.columns(w)) as usize);
+                assert!(unit.row_count >= 1 && unit.first_row < unit.row_stride);
                 let pixels: Vec<_> = unit.pixels(w).collect();
                 assert_eq!(pixels.len(), unit.pixel_count(w));
                 for (x, y) in pixels {
@@ -201,5 +244,23 @@ mod tests {
         assert_eq!(units.len(), 64);
         assert_eq!(units[0].set.offset(), (0, 0));
         assert_eq!(units[1].set.offset(), (4, 4));
+    }
+
+    #[test]
+    fn farm_units_cover_the_image_and_get_finer_at_the_end() {
+        for (w, h, b) in [(512, 512, 8), (37, 23, 8), (64, 48, 4), (1, 1, 8)] {
+            let units = farm_units(w, h, b);
+            let mut seen = vec![0u8; (w * h) as usize];
+            for unit in &units {
+                for (x, y) in unit.pixels(w) {
+                    seen[(y * w + x) as usize] += 1;
+                }
+            }
+            assert!(seen.iter().all(|&n| n == 1), "{w}×{h}");
+        }
+        let units = farm_units(512, 512, 8);
+        assert_eq!(units[0].pixel_count(512), 1024);
+        assert_eq!(units.last().unwrap().pixel_count(512), 256);
+        assert_eq!(units.len(), 48 * 4 + 16 * 16);
     }
 }

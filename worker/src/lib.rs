@@ -296,7 +296,34 @@ pub async fn run(
     }
 }
 
-/// Pulls and renders units over one connection.
+/// What the work loop got when it asked for work.
+enum Asked {
+    Assignment(pb::Assignment),
+    Wait(Duration),
+    Finished,
+}
+
+/// Asks for the next unit.
+async fn ask(client: &mut Client, worker_id: &str) -> Result<Asked, Status> {
+    let outcome = client
+        .get_work(pb::GetWorkParams {
+            worker_id: worker_id.to_string(),
+        })
+        .await?
+        .into_inner()
+        .outcome;
+    Ok(match outcome {
+        Some(Outcome::Assignment(a)) => Asked::Assignment(a),
+        Some(Outcome::RetryAfterMs(ms)) => {
+            Asked::Wait(Duration::from_millis(u64::from(ms).clamp(10, 5000)))
+        }
+        Some(Outcome::Finished(_)) => Asked::Finished,
+        None => Asked::Wait(Duration::from_millis(500)),
+    })
+}
+
+/// Pulls and renders units over one connection. While a unit renders, the next
+/// one is already requested (prefetch), so the round trip costs no render time.
 async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
@@ -306,74 +333,112 @@ async fn serve(
     report: &mut WorkerReport,
     stop: &mut watch::Receiver<bool>,
 ) -> Result<Leave, WorkerError> {
+    let mut prefetched: Option<pb::Assignment> = None;
+    // The previous tile, on its way while the next unit renders.
+    let mut sending: Option<tokio::task::JoinHandle<Result<bool, Status>>> = None;
     loop {
         if *stop.borrow() {
-            return Ok(Leave::Done);
+            // Deliver the last tile; a prefetched unit goes back with the goodbye.
+            return delivered(config, sending.take(), report)
+                .await
+                .map(|()| Leave::Done);
         }
-        let outcome = match client
-            .get_work(pb::GetWorkParams {
-                worker_id: worker_id.to_string(),
-            })
-            .await
-        {
-            Ok(r) => r.into_inner().outcome,
-            Err(status) => return lost(config, status),
-        };
-        match outcome {
-            Some(Outcome::Assignment(assignment)) => {
-                let Some((unit, samples, cpu)) = render_assignment(&assignment, pool, scenes).await
-                else {
-                    // A malformed assignment: not ours to fix; ask for other work.
-                    if sleep_or_stop(Duration::from_millis(500), stop).await {
+        let assignment = match prefetched.take() {
+            Some(a) => a,
+            None => match ask(client, worker_id).await {
+                Ok(Asked::Assignment(a)) => a,
+                Ok(Asked::Wait(d)) => {
+                    if sleep_or_stop(d, stop).await {
                         return Ok(Leave::Done);
                     }
                     continue;
-                };
-                let submitted = client
-                    .submit_tile(pb::SubmitTileParams {
-                        worker_id: worker_id.to_string(),
-                        assignment_id: assignment.assignment_id,
-                        unit: Some(convert::unit_to_wire(&unit)),
-                        samples,
-                        render_cpu_micros: cpu,
-                    })
-                    .await;
-                match submitted {
-                    Ok(r) => {
-                        if r.into_inner().accepted {
-                            report.units += 1;
-                        }
+                }
+                Ok(Asked::Finished) => {
+                    if config.exit_when_done || sleep_or_stop(Duration::from_secs(1), stop).await {
+                        return Ok(Leave::Done);
                     }
-                    Err(status)
-                        if status.code() == Code::InvalidArgument
-                            || status.code() == Code::FailedPrecondition =>
-                    {
-                        tracing::warn!("tile refused: {}", status.message());
-                    }
-                    Err(status) => return lost(config, status),
+                    continue;
                 }
+                Err(status) => return lost(config, status),
+            },
+        };
+        let Some(rendering) = start_render(&assignment, pool, scenes) else {
+            // A malformed assignment: not ours to fix; ask for other work.
+            if sleep_or_stop(Duration::from_millis(500), stop).await {
+                return Ok(Leave::Done);
             }
-            Some(Outcome::RetryAfterMs(ms)) => {
-                if sleep_or_stop(Duration::from_millis(u64::from(ms).clamp(10, 5000)), stop).await {
-                    return Ok(Leave::Done);
-                }
-            }
-            Some(Outcome::Finished(_)) => {
-                if config.exit_when_done {
-                    return Ok(Leave::Done);
-                }
-                if sleep_or_stop(Duration::from_secs(1), stop).await {
-                    return Ok(Leave::Done);
-                }
-            }
-            None => {
-                tracing::warn!("the coordinator sent an empty answer");
-                if sleep_or_stop(Duration::from_millis(500), stop).await {
-                    return Ok(Leave::Done);
-                }
+            continue;
+        };
+        delivered(config, sending.take(), report).await?;
+        let mut lost_while_rendering = None;
+        if !*stop.borrow() {
+            match ask(client, worker_id).await {
+                Ok(Asked::Assignment(a)) => prefetched = Some(a),
+                Ok(Asked::Wait(_) | Asked::Finished) => {}
+                Err(status) => lost_while_rendering = Some(status),
             }
         }
+        let Ok((unit, samples, cpu)) = rendering.await else {
+            tracing::error!("a render task failed");
+            continue;
+        };
+        let mut sender = client.clone();
+        let tile = pb::SubmitTileParams {
+            worker_id: worker_id.to_string(),
+            assignment_id: assignment.assignment_id,
+            unit: Some(convert::unit_to_wire(&unit)),
+            samples,
+            render_cpu_micros: cpu,
+        };
+        sending = Some(tokio::spawn(async move {
+            sender
+                .submit_tile(tile)
+                .await
+                .map(|r| r.into_inner().accepted)
+        }));
+        if let Some(status) = lost_while_rendering {
+            let _ = delivered(config, sending.take(), report).await;
+            return lost(config, status);
+        }
     }
+}
+
+/// Waits for a tile in flight. A refused tile is logged (the unit was taken back
+/// or is malformed: not fatal); a lost connection surfaces as `Reconnect` on the
+/// next call, so only refusals of the worker itself are returned as errors.
+async fn delivered(
+    config: &WorkerConfig,
+    sending: Option<tokio::task::JoinHandle<Result<bool, Status>>>,
+    report: &mut WorkerReport,
+) -> Result<(), WorkerError> {
+    let Some(task) = sending else {
+        return Ok(());
+    };
+    match task.await {
+        Ok(Ok(accepted)) => {
+            if accepted {
+                report.units += 1;
+            }
+        }
+        Ok(Err(status))
+            if status.code() == Code::InvalidArgument
+                || status.code() == Code::FailedPrecondition =>
+        {
+            tracing::warn!("tile refused: {}", status.message());
+        }
+        Ok(Err(status)) => {
+            if is_refusal(&status) {
+                return Err(WorkerError::Refused(status.message().to_string()));
+            }
+            tracing::warn!(
+                "a tile was not delivered to {}: {}",
+                config.coordinator,
+                status.message()
+            );
+        }
+        Err(e) => tracing::error!("the tile sender failed: {e}"),
+    }
+    Ok(())
 }
 
 /// What to do after a failed call: give up on refusal, otherwise reconnect.
@@ -397,12 +462,13 @@ fn is_refusal(status: &Status) -> bool {
     )
 }
 
-/// Renders an assignment on the pool (off the async threads, so heartbeats go on).
-async fn render_assignment(
+/// Starts rendering an assignment on the pool, off the async threads (so
+/// heartbeats and the prefetch go on); `None` for a malformed assignment.
+fn start_render(
     assignment: &pb::Assignment,
     pool: &Arc<rayon::ThreadPool>,
     scenes: &mut SceneCache,
-) -> Option<(WorkUnit, Vec<f32>, u64)> {
+) -> Option<tokio::task::JoinHandle<(WorkUnit, Vec<f32>, u64)>> {
     let job = assignment.job.as_ref()?;
     let scene = match scenes.get(job) {
         Ok(s) => s,
@@ -425,15 +491,13 @@ async fn render_assignment(
     };
     let pool = Arc::clone(pool);
     let frame = job.frame;
-    tokio::task::spawn_blocking(move || {
+    Some(tokio::task::spawn_blocking(move || {
         let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
         let before = process_cpu_micros();
         let samples = pool.install(|| hypertexture::render::render_pixels(&scene, frame, &pixels));
         let cpu = process_cpu_micros().saturating_sub(before);
         (unit, convert::samples_to_wire(&samples), cpu)
-    })
-    .await
-    .ok()
+    }))
 }
 
 /// Scenes built from assignments, by content hash (a worker holds a few at most).

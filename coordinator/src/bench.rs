@@ -1,0 +1,298 @@
+//! `coordinator bench`: measured speedup of the farm on this machine, and a
+//! simulation of larger farms from measured per-pixel and per-unit costs.
+
+use std::collections::BinaryHeap;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use hypertexture::interleave::{DEFAULT_INTERLEAVE, farm_units};
+use hypertexture::{Film, Overrides, Scene};
+
+use crate::{CoordinatorError, farm};
+
+/// What to measure.
+#[derive(Clone, Debug)]
+pub struct BenchConfig {
+    /// The scene.
+    pub scene: PathBuf,
+    /// The deliberately unbalanced scene for the simulation.
+    pub unbalanced: PathBuf,
+    /// Image size.
+    pub width: Option<u32>,
+    /// Image size.
+    pub height: Option<u32>,
+    /// Local worker counts to measure.
+    pub workers: Vec<usize>,
+    /// Simulated farm sizes.
+    pub simulate: Vec<usize>,
+}
+
+/// CPU seconds (user + system) of this process, or of its waited-for children.
+fn cpu_seconds(who: libc::c_int) -> f64 {
+    // SAFETY: getrusage only writes into the zeroed struct we pass.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(who, &mut usage) } != 0 {
+        return 0.0;
+    }
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
+    s(usage.ru_utime) + s(usage.ru_stime)
+}
+
+fn load(
+    path: &std::path::Path,
+    width: Option<u32>,
+    height: Option<u32>,
+) -> Result<(String, Scene), CoordinatorError> {
+    let text = hypertexture::scene::read_text(path)?;
+    let scene = Scene::from_text(
+        &text,
+        &path.display().to_string(),
+        Overrides { width, height },
+    )?;
+    Ok((text, scene))
+}
+
+fn same(a: &Film, b: &Film) -> bool {
+    a.pixels()
+        .iter()
+        .zip(b.pixels())
+        .all(|(p, q)| p.to_array().map(f32::to_bits) == q.to_array().map(f32::to_bits))
+}
+
+/// Runs the benchmark and prints the tables on stdout.
+pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
+    let (text, scene) = load(&config.scene, config.width, config.height)?;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    println!(
+        "# coordinator bench: {} at {}×{}, {cores} cores",
+        config.scene.display(),
+        scene.width(),
+        scene.height()
+    );
+    println!();
+    println!(
+        "| configuration | wall (s) | speedup | efficiency | coordinator CPU | tile bytes | imbalance (max/mean unit cost per pixel) | exact |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---|");
+
+    let (serial_film, serial) = crate::render_in_process(&scene, 0, 1, false)?;
+    let serial = serial.as_secs_f64();
+    println!("| in-process, 1 thread | {serial:.3} | 1.00 | 100% | – | – | – | reference |");
+    let (film, all) = crate::render_in_process(&scene, 0, cores, false)?;
+    let all = all.as_secs_f64();
+    println!(
+        "| in-process, {cores} threads | {all:.3} | {:.2} | {:.0}% | – | – | – | {} |",
+        serial / all,
+        100.0 * serial / all / cores as f64,
+        if same(&film, &serial_film) {
+            "yes"
+        } else {
+            "NO"
+        }
+    );
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(CoordinatorError::Runtime)?;
+    let mut per_unit_network = 0.0f64;
+    for &n in &config.workers {
+        let job = farm::FrameJob {
+            scene_text: text.clone(),
+            scene_name: config.scene.display().to_string(),
+            width: scene.width(),
+            height: scene.height(),
+            frame: 0,
+        };
+        let farm_config = farm::FarmConfig {
+            listen: "127.0.0.1:0".parse().expect("a valid address"),
+            token: None,
+            lease: Duration::from_secs(10),
+            worker_timeout: Duration::from_secs(60),
+            local_workers: n,
+            local_threads: 1,
+            preview_every: None,
+            preview_path: None,
+            tls: None,
+            interleave: DEFAULT_INTERLEAVE,
+            progress: false,
+        };
+        let (self0, children0) = (
+            cpu_seconds(libc::RUSAGE_SELF),
+            cpu_seconds(libc::RUSAGE_CHILDREN),
+        );
+        let start = Instant::now();
+        let report = runtime.block_on(farm::render(job, farm_config))?;
+        let total = start.elapsed().as_secs_f64();
+        // As for the in-process rows: the render itself, first unit out to last tile in.
+        let wall = report.render_time.as_secs_f64();
+        let own = cpu_seconds(libc::RUSAGE_SELF) - self0;
+        let workers = cpu_seconds(libc::RUSAGE_CHILDREN) - children0;
+        // Units differ in size (guided self-scheduling): compare cost per pixel.
+        let sizes = farm_units(scene.width(), scene.height(), DEFAULT_INTERLEAVE);
+        let costs: Vec<f64> = report.unit_costs.iter().map(|&c| c as f64).collect();
+        let per_pixel: Vec<f64> = costs
+            .iter()
+            .zip(&sizes)
+            .map(|(c, u)| c / u.pixel_count(scene.width()).max(1) as f64)
+            .collect();
+        let mean = per_pixel.iter().sum::<f64>() / per_pixel.len().max(1) as f64;
+        let max = per_pixel.iter().cloned().fold(0.0, f64::max);
+        if n == 1 {
+            let rendering: f64 = costs.iter().sum::<f64>() / 1e6;
+            per_unit_network = ((report.render_time.as_secs_f64() - rendering)
+                / costs.len().max(1) as f64)
+                .max(0.0);
+        }
+        let speedup = serial / wall;
+        println!(
+            "| {n} worker process{} (loopback gRPC) | {wall:.3} ({total:.2} with start-up) | {speedup:.2} | {:.0}% | {:.2}% | {} | {:.2} | {} |",
+            if n == 1 { "" } else { "es" },
+            100.0 * speedup / n.min(cores) as f64,
+            100.0 * own / (own + workers).max(1e-9),
+            report.tile_bytes,
+            if mean > 0.0 { max / mean } else { 0.0 },
+            if same(&report.film, &serial_film) {
+                "yes"
+            } else {
+                "NO"
+            }
+        );
+    }
+    println!();
+    println!(
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used. Time a worker spends per unit not rendering (measured, 1 worker): {:.2} ms.",
+        per_unit_network * 1e3
+    );
+
+    println!();
+    println!(
+        "## Simulated farms (pull schedule vs contiguous blocks), from measured per-pixel costs"
+    );
+    println!();
+    println!(
+        "| scene | workers | units | pull speedup | pull efficiency | blocks speedup | blocks efficiency |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for (name, path) in [
+        ("fur", &config.scene),
+        ("unbalanced (corner)", &config.unbalanced),
+    ] {
+        let (_, s) = load(path, config.width, config.height)?;
+        let costs = pixel_costs(&s);
+        for &w in &config.simulate {
+            let sim = simulate(&costs, s.width(), s.height(), w, per_unit_network);
+            println!(
+                "| {name} | {w} | {} | {:.1} | {:.1}% | {:.1} | {:.1}% |",
+                sim.units,
+                sim.pull_speedup,
+                100.0 * sim.pull_speedup / w as f64,
+                sim.blocks_speedup,
+                100.0 * sim.blocks_speedup / w as f64
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Seconds each pixel takes on one thread, row-major.
+pub fn pixel_costs(scene: &Scene) -> Vec<f64> {
+    let mut costs = Vec::with_capacity(scene.width() as usize * scene.height() as usize);
+    for y in 0..scene.height() {
+        for x in 0..scene.width() {
+            let t = Instant::now();
+            std::hint::black_box(hypertexture::render::render_pixel(scene, x, y, 0));
+            costs.push(t.elapsed().as_secs_f64());
+        }
+    }
+    costs
+}
+
+/// The outcome of one simulated farm.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Simulation {
+    /// Units the image was cut into.
+    pub units: usize,
+    /// Serial time / makespan of the pull schedule.
+    pub pull_speedup: f64,
+    /// Serial time / makespan of W static contiguous row blocks.
+    pub blocks_speedup: f64,
+}
+
+/// Simulates `workers` workers: pulling the farm's units in coarse-to-fine order
+/// (each unit costing its pixels plus `per_unit`, the measured time a worker is
+/// not rendering per unit), against
+/// W equal contiguous bands of rows assigned statically.
+pub fn simulate(
+    costs: &[f64],
+    width: u32,
+    height: u32,
+    workers: usize,
+    per_unit: f64,
+) -> Simulation {
+    let serial: f64 = costs.iter().sum();
+    // The farm's own units.
+    let units = farm_units(width, height, DEFAULT_INTERLEAVE);
+    // Greedy list scheduling: the next unit goes to the worker free first.
+    let mut free: BinaryHeap<std::cmp::Reverse<u64>> =
+        (0..workers).map(|_| std::cmp::Reverse(0)).collect();
+    let to_ns = |s: f64| (s * 1e9) as u64;
+    let mut makespan = 0;
+    for unit in &units {
+        let cost: f64 = unit
+            .pixels(width)
+            .map(|(x, y)| costs[(y * width + x) as usize])
+            .sum::<f64>()
+            + per_unit;
+        let std::cmp::Reverse(start) = free.pop().unwrap_or(std::cmp::Reverse(0));
+        let end = start + to_ns(cost);
+        makespan = makespan.max(end);
+        free.push(std::cmp::Reverse(end));
+    }
+    let pull = serial / (makespan as f64 / 1e9);
+    // Contiguous blocks: worker i gets rows [i·h/W, (i+1)·h/W).
+    let rows: Vec<f64> = costs
+        .chunks(width as usize)
+        .map(|r| r.iter().sum())
+        .collect();
+    let mut worst: f64 = 0.0;
+    for i in 0..workers {
+        let (a, b) = (
+            i * height as usize / workers,
+            (i + 1) * height as usize / workers,
+        );
+        worst = worst.max(rows[a..b].iter().sum::<f64>() + per_unit);
+    }
+    Simulation {
+        units: units.len(),
+        pull_speedup: pull,
+        blocks_speedup: serial / worst,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_cost_simulates_linear_speedup_both_ways() {
+        let costs = vec![1e-5; 64 * 64];
+        let sim = simulate(&costs, 64, 64, 8, 0.0);
+        assert!((sim.pull_speedup - 8.0).abs() < 0.01, "{sim:?}");
+        assert!((sim.blocks_speedup - 8.0).abs() < 0.01, "{sim:?}");
+    }
+
+    #[test]
+    fn a_costly_corner_ruins_blocks_but_not_the_interleave() {
+        let mut costs = vec![1e-6; 64 * 64];
+        for y in 0..16 {
+            for x in 0..16 {
+                costs[y * 64 + x] = 1e-4;
+            }
+        }
+        let sim = simulate(&costs, 64, 64, 4, 0.0);
+        assert!(sim.pull_speedup > 3.8, "{sim:?}");
+        assert!(sim.blocks_speedup < 1.5, "{sim:?}");
+    }
+}
