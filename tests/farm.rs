@@ -242,13 +242,15 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             let u = hypertexture_proto::convert::unit_from_wire(&unit, 32, 32).unwrap();
             u.pixel_count(32)
         };
-        let tile = |samples: Vec<f32>, assignment_id: u64| pb::SubmitTileParams {
+        let tile = |samples: Vec<u8>, assignment_id: u64| pb::SubmitTileParams {
             worker_id: id.clone(),
             assignment_id,
             unit: Some(unit),
             samples,
             render_cpu_micros: 0,
         };
+        let floats =
+            |values: &[f32]| -> Vec<u8> { values.iter().flat_map(|v| v.to_le_bytes()).collect() };
         let n = pixels * hypertexture::Sample::CHANNELS;
         let mut nan = vec![7.0; n];
         nan[1] = f32::NAN;
@@ -257,23 +259,32 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         for (what, params, code) in [
             (
                 "short",
-                tile(vec![7.0; n - 1], a.assignment_id),
+                tile(floats(&vec![7.0; n - 1]), a.assignment_id),
                 Code::InvalidArgument,
             ),
-            ("NaN", tile(nan, a.assignment_id), Code::InvalidArgument),
+            (
+                "ragged",
+                tile(vec![0; n * 4 + 3], a.assignment_id),
+                Code::InvalidArgument,
+            ),
+            (
+                "NaN",
+                tile(floats(&nan), a.assignment_id),
+                Code::InvalidArgument,
+            ),
             (
                 "infinite",
-                tile(inf, a.assignment_id),
+                tile(floats(&inf), a.assignment_id),
                 Code::InvalidArgument,
             ),
             (
                 "never assigned",
-                tile(vec![7.0; n], 424_242),
+                tile(floats(&vec![7.0; n]), 424_242),
                 Code::InvalidArgument,
             ),
             (
                 "oversized",
-                tile(vec![7.0; 5_000_000], a.assignment_id),
+                tile(vec![0; 20_000_000], a.assignment_id),
                 Code::OutOfRange,
             ),
         ] {
@@ -293,5 +304,115 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         log.join("\n")
     );
     same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A free port on loopback (bound, then released).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+#[test]
+fn workers_wait_for_a_late_coordinator_and_outlive_a_dead_one() {
+    let dir = scratch("farm-rejoin");
+    let reference = dir.join("reference.png");
+    in_process("fur", 96, &reference);
+    let port = free_port();
+    let url = format!("http://127.0.0.1:{port}");
+    let listen = format!("127.0.0.1:{port}");
+    // The worker starts first: nobody answers, it retries with backoff.
+    let mut worker =
+        Running::worker(&["--coordinator", &url, "--threads", "2", "--name", "patient"]);
+    worker.wait_for("cannot reach", 30);
+    let args = |out: &Path| {
+        vec![
+            "--scene".to_string(),
+            scene("fur").to_str().unwrap().to_string(),
+            "--out".into(),
+            out.to_str().unwrap().to_string(),
+            "--width".into(),
+            "96".into(),
+            "--height".into(),
+            "96".into(),
+            "--local-workers".into(),
+            "0".into(),
+            "--listen".into(),
+            listen.clone(),
+        ]
+    };
+    // A coordinator comes, then dies mid-render (SIGKILL).
+    let first_out = dir.join("first.png");
+    let first_args = args(&first_out);
+    let mut first =
+        Running::coordinator(&first_args.iter().map(String::as_str).collect::<Vec<_>>());
+    first.wait_for("worker patient joined", 30);
+    first.signal(9);
+    let _ = first.finish(10);
+    // The worker survives and joins the next coordinator on the same address.
+    let out = dir.join("second.png");
+    let second_args = args(&out);
+    let second = Running::coordinator(&second_args.iter().map(String::as_str).collect::<Vec<_>>());
+    let (status, log) = second.finish(120);
+    assert!(status.success(), "{}", log.join("\n"));
+    assert!(
+        log.iter().any(|l| l.contains("worker patient joined")),
+        "{}",
+        log.join("\n")
+    );
+    same_bytes(&reference, &out);
+    worker.signal(15);
+    let (status, log) = worker.finish(30);
+    assert!(
+        status.success(),
+        "the worker never crashed:\n{}",
+        log.join("\n")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn tls_farm_gives_the_same_bytes() {
+    let dir = scratch("farm-tls");
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec!["localhost".to_string()])
+        .unwrap()
+        .self_signed(&key)
+        .unwrap();
+    let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, key.serialize_pem()).unwrap();
+    let reference = dir.join("reference.exr");
+    in_process("fire_ball", 32, &reference);
+    let out = dir.join("tls.exr");
+    let o = coordinator(&[
+        "--scene",
+        scene("fire_ball").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "2",
+        "--tls-cert",
+        cert_path.to_str().unwrap(),
+        "--tls-key",
+        key_path.to_str().unwrap(),
+    ]);
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("https://"), "{log}");
+    same_bytes(&reference, &out);
+    // A plaintext worker cannot talk to a TLS farm; a worker without --ca cannot verify it.
+    let o = std::process::Command::new(worker_bin())
+        .args(["--coordinator", "https://localhost:1"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
     std::fs::remove_dir_all(&dir).unwrap();
 }

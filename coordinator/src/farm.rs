@@ -264,10 +264,9 @@ impl Farm for Service {
             }
             accepted
         };
-        self.0.tile_bytes.fetch_add(
-            (p.samples.len() * 4) as u64,
-            std::sync::atomic::Ordering::Relaxed,
-        );
+        self.0
+            .tile_bytes
+            .fetch_add(p.samples.len() as u64, std::sync::atomic::Ordering::Relaxed);
         Ok(Response::new(pb::SubmitTileResult { accepted }))
     }
 

@@ -212,7 +212,7 @@ impl Scheduler {
         worker_id: &str,
         assignment_id: u64,
         unit: Option<&pb::Unit>,
-        values: &[f32],
+        values: &[u8],
         render_cpu_micros: u64,
         now: Instant,
     ) -> Result<bool, Refusal> {
@@ -384,8 +384,9 @@ mod tests {
     use super::*;
     use hypertexture::interleave::work_units;
 
-    fn tile(unit: &WorkUnit, width: u32, value: f32) -> Vec<f32> {
-        vec![value; unit.pixel_count(width) * Sample::CHANNELS]
+    fn tile(unit: &WorkUnit, width: u32, value: f32) -> Vec<u8> {
+        let samples = vec![Sample::from_array([value; Sample::CHANNELS]); unit.pixel_count(width)];
+        convert::samples_to_wire(&samples)
     }
 
     fn assign(s: &mut Scheduler, w: &str, now: Instant) -> (u64, WorkUnit) {
@@ -458,9 +459,9 @@ mod tests {
         let mut short = good.clone();
         short.pop();
         let mut nan = good.clone();
-        nan[3] = f32::NAN;
+        nan[12..16].copy_from_slice(&f32::NAN.to_le_bytes());
         let mut inf = good.clone();
-        inf[0] = f32::INFINITY;
+        inf[..4].copy_from_slice(&f32::INFINITY.to_le_bytes());
         for bad in [&short, &nan, &inf] {
             assert!(matches!(
                 s.submit(&a, id, Some(&wire), bad, 0, now),

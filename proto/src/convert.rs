@@ -14,17 +14,17 @@ pub enum WireError {
     /// A unit names a set or rows outside the image.
     #[error("invalid unit: {0}")]
     InvalidUnit(String),
-    /// A tile has the wrong number of values.
-    #[error("tile has {got} values, expected {expected} ({pixels} pixels × {channels})")]
+    /// A tile has the wrong length.
+    #[error("tile has {got} bytes, expected {expected} ({pixels} pixels × {bytes_per_pixel})")]
     TileLength {
-        /// Values received.
+        /// Bytes received.
         got: usize,
-        /// Values expected.
+        /// Bytes expected.
         expected: usize,
         /// Pixels in the unit.
         pixels: usize,
-        /// Values per pixel.
-        channels: usize,
+        /// Bytes per pixel.
+        bytes_per_pixel: usize,
     },
     /// A tile value is NaN or infinite.
     #[error("tile value {index} is not finite ({value})")]
@@ -91,33 +91,51 @@ pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUn
     })
 }
 
-/// The samples of a tile as a flat list of floats (9 per pixel).
-pub fn samples_to_wire(samples: &[Sample]) -> Vec<f32> {
-    samples.iter().flat_map(Sample::to_array).collect()
+/// Bytes per sample on the wire: 9 little-endian f32.
+pub const SAMPLE_BYTES: usize = Sample::CHANNELS * 4;
+
+/// The samples of a tile as little-endian bytes (36 per pixel).
+pub fn samples_to_wire(samples: &[Sample]) -> Vec<u8> {
+    let mut bytes = Vec::with_capacity(samples.len() * SAMPLE_BYTES);
+    for s in samples {
+        for v in s.to_array() {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    bytes
 }
 
 /// The samples of a tile from the wire: exactly `pixels` samples, all finite.
-pub fn samples_from_wire(values: &[f32], pixels: usize) -> Result<Vec<Sample>, WireError> {
-    let expected = pixels * Sample::CHANNELS;
-    if values.len() != expected {
+pub fn samples_from_wire(bytes: &[u8], pixels: usize) -> Result<Vec<Sample>, WireError> {
+    let expected = pixels * SAMPLE_BYTES;
+    if bytes.len() != expected {
         return Err(WireError::TileLength {
-            got: values.len(),
+            got: bytes.len(),
             expected,
             pixels,
-            channels: Sample::CHANNELS,
+            bytes_per_pixel: SAMPLE_BYTES,
         });
     }
-    if let Some((index, &value)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(WireError::NotFinite { index, value });
+    let mut samples = Vec::with_capacity(pixels);
+    for (p, chunk) in bytes.chunks_exact(SAMPLE_BYTES).enumerate() {
+        let mut a = [0.0f32; Sample::CHANNELS];
+        for (c, v) in a.iter_mut().enumerate() {
+            *v = f32::from_le_bytes([
+                chunk[4 * c],
+                chunk[4 * c + 1],
+                chunk[4 * c + 2],
+                chunk[4 * c + 3],
+            ]);
+            if !v.is_finite() {
+                return Err(WireError::NotFinite {
+                    index: p * Sample::CHANNELS + c,
+                    value: *v,
+                });
+            }
+        }
+        samples.push(Sample::from_array(a));
     }
-    Ok(values
-        .chunks_exact(Sample::CHANNELS)
-        .map(|c| {
-            let mut a = [0.0; Sample::CHANNELS];
-            a.copy_from_slice(c);
-            Sample::from_array(a)
-        })
-        .collect())
+    Ok(samples)
 }
 
 /// The content hash of a job: FNV-1a over the scene text, then the size.
@@ -180,14 +198,18 @@ mod tests {
             Err(WireError::TileLength { .. })
         ));
         let mut nan = wire.clone();
-        nan[5] = f32::NAN;
+        nan[20..24].copy_from_slice(&f32::NAN.to_le_bytes());
         assert!(matches!(
             samples_from_wire(&nan, 3),
             Err(WireError::NotFinite { index: 5, .. })
         ));
-        let mut inf = wire;
-        inf[0] = f32::INFINITY;
+        let mut inf = wire.clone();
+        inf[..4].copy_from_slice(&f32::INFINITY.to_le_bytes());
         assert!(samples_from_wire(&inf, 3).is_err());
+        assert!(matches!(
+            samples_from_wire(&wire[..wire.len() - 1], 3),
+            Err(WireError::TileLength { .. })
+        ));
     }
 
     #[test]

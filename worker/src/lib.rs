@@ -468,7 +468,7 @@ fn start_render(
     assignment: &pb::Assignment,
     pool: &Arc<rayon::ThreadPool>,
     scenes: &mut SceneCache,
-) -> Option<tokio::task::JoinHandle<(WorkUnit, Vec<f32>, u64)>> {
+) -> Option<tokio::task::JoinHandle<(WorkUnit, Vec<u8>, u64)>> {
     let job = assignment.job.as_ref()?;
     let scene = match scenes.get(job) {
         Ok(s) => s,
