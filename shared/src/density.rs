@@ -7,9 +7,10 @@
 
 use glam::Vec3;
 
-use crate::noise::{Noise, clamped_octaves};
+use crate::noise::{LANES, Lanes, Noise, VNOISE_OFFSET, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
 use crate::shaping::{Bias, Gain};
+use crate::simd::Isa;
 use crate::soft::{Falloff, SoftBox, SoftSphere, SoftTorus, boolean};
 
 /// Where and when the field is evaluated: the noise tables and the drift of the
@@ -144,6 +145,17 @@ impl Density {
             Density::Box(b) => b.project(x),
             Density::Torus(t) => t.project(x),
             _ => x,
+        }
+    }
+
+    /// [`Density::project`] at each point.
+    #[inline]
+    fn project_lanes(&self, x: &Points) -> Points {
+        match self {
+            Density::Sphere(s) => x.map(|p| s.project(p)),
+            Density::Box(b) => x.map(|p| b.project(p)),
+            Density::Torus(t) => x.map(|p| t.project(p)),
+            _ => *x,
         }
     }
 
@@ -386,5 +398,415 @@ impl Fur {
         };
         let s = 0.5 * (1.0 + field.noise(self.frequency, object.project(x)));
         self.gain.apply(self.bias.apply(s)) * d
+    }
+}
+
+/// [`LANES`] points, one coordinate per array: the batch the vectorised paths
+/// evaluate (several samples along a ray, or the gradient's neighbours).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Points {
+    /// x of each point.
+    pub x: Lanes,
+    /// y of each point.
+    pub y: Lanes,
+    /// z of each point.
+    pub z: Lanes,
+}
+
+impl Points {
+    /// Point `l`.
+    #[inline(always)]
+    pub fn get(&self, l: usize) -> Vec3 {
+        Vec3::new(self.x[l], self.y[l], self.z[l])
+    }
+
+    /// Sets point `l`.
+    #[inline(always)]
+    pub fn set(&mut self, l: usize, p: Vec3) {
+        self.x[l] = p.x;
+        self.y[l] = p.y;
+        self.z[l] = p.z;
+    }
+
+    /// The points `f(point)`, lane by lane.
+    #[inline(always)]
+    fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, f(self.get(l)));
+        }
+        out
+    }
+}
+
+/// `f(point)` lane by lane.
+#[inline(always)]
+fn each(x: &Points, f: impl Fn(Vec3) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = f(x.get(l));
+    }
+    out
+}
+
+/// `f(a, b)` lane by lane.
+#[inline(always)]
+fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        out[l] = f(a[l], b[l]);
+    }
+    out
+}
+
+impl Field<'_> {
+    /// `noise` at the points, through the scene's instruction-set path.
+    #[inline]
+    fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
+        isa.noise(self.noise, &p.x, &p.y, &p.z)
+    }
+
+    /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
+    #[inline]
+    fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
+        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
+    }
+}
+
+impl Density {
+    /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
+    /// the noise and the powers computed a batch at a time on `isa`.
+    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        if isa == Isa::Scalar {
+            let mut out = [0.0; LANES];
+            for (l, o) in out.iter_mut().enumerate() {
+                *o = self.eval(x.get(l), field);
+            }
+            return out;
+        }
+        match self {
+            Density::Sphere(s) => each(x, |p| s.density(p)),
+            Density::Box(b) => each(x, |p| b.density(p)),
+            Density::Torus(t) => each(x, |p| t.density(p)),
+            Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
+            }),
+            Density::Intersection(v) => {
+                let mut a = [1.0; LANES];
+                for d in v {
+                    if a.iter().all(|&a| a == 0.0) {
+                        break;
+                    }
+                    let b = d.eval_lanes(x, field, isa);
+                    // A lane that reached 0 stopped there (`eval` breaks out).
+                    a = zip(&a, &b, |a, b| {
+                        if a == 0.0 {
+                            a
+                        } else {
+                            boolean::intersection(a, b)
+                        }
+                    });
+                }
+                a
+            }
+            Density::Difference(a, b) => {
+                let a = a.eval_lanes(x, field, isa);
+                if a.iter().all(|&a| a == 0.0) {
+                    return [0.0; LANES];
+                }
+                let b = b.eval_lanes(x, field, isa);
+                zip(&a, &b, |a, b| {
+                    if a == 0.0 {
+                        0.0
+                    } else {
+                        boolean::difference(a, b)
+                    }
+                })
+            }
+            Density::Complement(a) => a.eval_lanes(x, field, isa).map(boolean::complement),
+            Density::Max(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_lanes(x, field, isa), f32::max)
+            }),
+            Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
+                zip(&a, &d.eval_lanes(x, field, isa), f32::min)
+            }),
+            Density::Hypertexture(h) => h.eval_lanes(x, field, isa),
+        }
+    }
+}
+
+impl Hypertexture {
+    /// [`Hypertexture::eval`] at [`LANES`] points (see [`Density::eval_lanes`]).
+    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let mut p = *x;
+        for w in &self.warps {
+            p = w.apply_lanes(&p, field, isa);
+        }
+        let mut v = self.object.eval_lanes(&p, field, isa);
+        for m in &self.modulation {
+            if v.iter().all(|&v| v == 0.0) {
+                break;
+            }
+            let next = match m {
+                Modulation::Bias(b) => b.apply_lanes(&v, isa),
+                Modulation::Gain(g) => g.apply_lanes(&v, isa),
+                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field, isa),
+            };
+            // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
+            v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
+        }
+        v
+    }
+}
+
+impl Warp {
+    /// [`Warp::apply`] at each point.
+    #[inline]
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        let scale_about = |centre: Vec3, s: &Lanes| {
+            let mut out = Points::default();
+            for (l, &s) in s.iter().enumerate() {
+                out.set(l, centre + (x.get(l) - centre) * s);
+            }
+            out
+        };
+        match *self {
+            Warp::NoisyRadius {
+                frequency,
+                amplitude,
+                centre,
+            } => {
+                let n = field.noise_at(frequency, x, isa);
+                scale_about(centre, &n.map(|n| 1.0 + amplitude * n))
+            }
+            Warp::FractalRadius {
+                frequency,
+                octaves,
+                amplitude,
+                centre,
+            } => {
+                let mut sum = [0.0; LANES];
+                let mut f = frequency;
+                for _ in 0..octaves {
+                    let n = field.noise_at(f, x, isa);
+                    sum = zip(&sum, &n, |s, n| s + n / f);
+                    f *= 2.0;
+                }
+                scale_about(centre, &sum.map(|s| 1.0 + amplitude * s))
+            }
+            Warp::Dripping {
+                frequency,
+                amplitude,
+                stretch,
+                centre,
+            } => {
+                if x.y.iter().all(|&y| y >= centre.y) {
+                    return *x;
+                }
+                let q = x.map(|x| {
+                    let q = x - field.offset;
+                    Vec3::new(q.x, q.y * stretch, q.z) * frequency
+                });
+                let n = field.noise_lanes(&q, isa);
+                let mut out = *x;
+                for (l, &n) in n.iter().enumerate() {
+                    let p = x.get(l);
+                    if p.y < centre.y {
+                        let pull = 1.0 - amplitude * n.max(0.0);
+                        out.set(l, Vec3::new(p.x, centre.y + (p.y - centre.y) * pull, p.z));
+                    }
+                }
+                out
+            }
+            Warp::TurbulentRadius {
+                frequency,
+                amplitude,
+                octaves,
+                centre,
+            } => {
+                let q = x.map(|p| (p - field.offset) * frequency);
+                let mut sum = [0.0; LANES];
+                let mut scale = 1.0f32;
+                for _ in 0..octaves {
+                    let n = field.noise_lanes(&q.map(|p| p * scale), isa);
+                    sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
+                    scale *= 2.0;
+                }
+                scale_about(centre, &sum.map(|t| 1.0 + amplitude * t))
+            }
+        }
+    }
+}
+
+impl Fur {
+    /// [`Fur::apply`] at each point.
+    #[inline]
+    fn apply_lanes(
+        &self,
+        d: &Lanes,
+        x: &Points,
+        object: &Density,
+        field: &Field,
+        isa: Isa,
+    ) -> Lanes {
+        let x = if self.curliness > 0.0 {
+            let q = x.map(|x| x - field.offset);
+            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
+            let b = field.noise_lanes(&q, isa);
+            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET), isa);
+            let curl = self.curl_gain.apply_lanes(&d.map(|d| 1.0 - d), isa);
+            let mut out = Points::default();
+            for l in 0..LANES {
+                let v = Vec3::new(a[l], b[l], c[l]);
+                out.set(l, x.get(l) + v * (curl[l] * self.curliness));
+            }
+            out
+        } else {
+            *x
+        };
+        let s = field
+            .noise_at(self.frequency, &object.project_lanes(&x), isa)
+            .map(|n| 0.5 * (1.0 + n));
+        let shaped = self.gain.apply_lanes(&self.bias.apply_lanes(&s, isa), isa);
+        zip(&shaped, d, |f, d| f * d)
+    }
+}
+
+/// An axis-aligned box `(min, max)`.
+pub type Aabb = (Vec3, Vec3);
+
+/// A bound on |noise| that holds for every seed: the knots' weights sum to 1
+/// (ω(t) + ω(1 − t) = 1 on each axis) and each knot contributes at most
+/// |Γ·(u, v, w)| ≤ √3; widened by 1% for rounding.
+pub const NOISE_BOUND: f32 = 1.75;
+
+fn hull(a: Aabb, b: Aabb) -> Aabb {
+    (a.0.min(b.0), a.1.max(b.1))
+}
+
+/// The points x whose scaling about `centre` by some factor in `[lo, hi]` lands
+/// in `b` (lo > 0): each coordinate is linear in 1/s, so the ends bound it.
+fn unscale(b: Aabb, centre: Vec3, lo: f32, hi: f32, axes: Vec3) -> Option<Aabb> {
+    if !(lo > 0.0 && hi.is_finite()) {
+        return None;
+    }
+    let scaled = |s: f32| {
+        let k = Vec3::ONE + axes * (1.0 / s - 1.0);
+        let (p, q) = (centre + (b.0 - centre) * k, centre + (b.1 - centre) * k);
+        (p.min(q), p.max(q))
+    };
+    Some(hull(scaled(lo), scaled(hi)))
+}
+
+impl Density {
+    /// A box outside which the density is 0 for certain, or `None` when it may
+    /// be non-zero anywhere (a complement). The marcher skips samples outside it.
+    pub fn support(&self) -> Option<Aabb> {
+        let all = |v: &[Density], join: fn(Aabb, Aabb) -> Aabb| {
+            v.iter()
+                .map(Density::support)
+                .try_fold(None, |acc: Option<Aabb>, s| {
+                    let s = s?;
+                    Some(Some(acc.map_or(s, |a| join(a, s))))
+                })
+                .flatten()
+        };
+        let meet_known = |v: &[Density]| {
+            v.iter()
+                .filter_map(Density::support)
+                .reduce(|a, b| (a.0.max(b.0), a.1.min(b.1)))
+        };
+        match self {
+            Density::Sphere(s) => Some((
+                s.centre - Vec3::splat(s.falloff.outer()),
+                s.centre + Vec3::splat(s.falloff.outer()),
+            )),
+            Density::Box(b) => {
+                let h = Vec3::new(
+                    b.falloff[0].outer(),
+                    b.falloff[1].outer(),
+                    b.falloff[2].outer(),
+                );
+                Some((b.centre - h, b.centre + h))
+            }
+            Density::Torus(t) => {
+                let a = t.axis;
+                let r = t.falloff.outer();
+                let across = (Vec3::ONE - a * a).max(Vec3::ZERO);
+                let across = Vec3::new(across.x.sqrt(), across.y.sqrt(), across.z.sqrt());
+                let reach = across * t.major_radius + Vec3::splat(r);
+                Some((t.centre - reach, t.centre + reach))
+            }
+            Density::Union(v) | Density::Max(v) => all(v, hull),
+            Density::Intersection(v) | Density::Min(v) => meet_known(v),
+            Density::Difference(a, _) => a.support(),
+            Density::Complement(_) => None,
+            Density::Hypertexture(h) => h.support(),
+        }
+    }
+}
+
+impl Hypertexture {
+    /// [`Density::support`]: the object's, pulled back through the warps.
+    pub fn support(&self) -> Option<Aabb> {
+        let mut b = self.object.support()?;
+        for w in self.warps.iter().rev() {
+            b = w.preimage(b)?;
+        }
+        Some(b)
+    }
+}
+
+impl Warp {
+    /// A box holding every x that this warp moves into `b`.
+    fn preimage(&self, b: Aabb) -> Option<Aabb> {
+        let m = NOISE_BOUND;
+        match *self {
+            Warp::NoisyRadius {
+                amplitude, centre, ..
+            } => {
+                let a = amplitude.abs() * m;
+                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+            }
+            Warp::FractalRadius {
+                frequency,
+                octaves,
+                amplitude,
+                centre,
+            } => {
+                let mut sum = 0.0;
+                let mut f = frequency;
+                for _ in 0..octaves {
+                    sum += m / f;
+                    f *= 2.0;
+                }
+                let a = amplitude.abs() * sum;
+                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+            }
+            Warp::TurbulentRadius {
+                amplitude,
+                octaves,
+                centre,
+                ..
+            } => {
+                let mut t = 0.0;
+                let mut scale = 1.0;
+                for _ in 0..octaves {
+                    t += m / scale;
+                    scale *= 2.0;
+                }
+                let a = amplitude * t;
+                unscale(b, centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0), Vec3::ONE)
+            }
+            Warp::Dripping {
+                amplitude, centre, ..
+            } => {
+                // Below the centre y is scaled by a pull in [1 − a·M, 1]
+                // (a ≥ 0) or [1, 1 − a·M]; above, x is unchanged.
+                let pull = 1.0 - amplitude * m;
+                let stretched = unscale(b, centre, pull.min(1.0), pull.max(1.0), Vec3::Y)?;
+                Some(hull(b, stretched))
+            }
+        }
     }
 }

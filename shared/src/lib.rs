@@ -13,6 +13,7 @@
 pub mod camera;
 pub mod curve;
 pub mod density;
+pub mod fastmath;
 pub mod film;
 pub mod interleave;
 pub mod march;
@@ -21,6 +22,7 @@ pub mod random;
 pub mod render;
 pub mod scene;
 pub mod shaping;
+pub mod simd;
 pub mod soft;
 
 pub use film::{Film, Sample};

@@ -13,8 +13,10 @@
 use glam::Vec3;
 
 use crate::camera::Ray;
-use crate::density::Field;
+use crate::density::{Field, Points};
+use crate::fastmath;
 use crate::film::Sample;
+use crate::noise::{LANES, Lanes};
 use crate::scene::{ColourIndex, Light, Scene};
 use crate::shaping::clamp01;
 
@@ -63,11 +65,29 @@ struct Basis {
     /// Entry and exit parameters.
     t0: f32,
     t1: f32,
+    /// Samples before this index lie outside the support of the density
+    /// (where it is 0 for certain) and need not be evaluated.
+    first: u32,
+    /// Samples past this parameter lie outside the support too.
+    last: f32,
 }
 
 impl Basis {
-    fn new(ray: Ray, step: f32, t0: f32, t1: f32) -> Basis {
+    fn new(ray: Ray, step: f32, t0: f32, t1: f32, support: Option<(Vec3, Vec3)>) -> Basis {
         let (dv, dw) = perpendiculars(ray.direction, step);
+        // Empty-space skipping: only the samples inside the (widened) support are
+        // evaluated; the others are 0, exactly what evaluating them would give.
+        let (first, last) = match support {
+            None => (0, t1),
+            Some((min, max)) => match slab(&ray, min, max) {
+                None => (u32::MAX, t0 - 1.0),
+                Some((a, b)) => {
+                    let skip = ((a - t0) / step).floor() - 1.0;
+                    let first = if skip > 0.0 { skip as u32 } else { 0 };
+                    (first, b)
+                }
+            },
+        };
         Basis {
             ray,
             du: ray.direction * step,
@@ -75,7 +95,95 @@ impl Basis {
             dw,
             t0,
             t1,
+            first,
+            last,
         }
+    }
+
+    /// The parameter of sample k.
+    #[inline(always)]
+    fn t(&self, k: u32, step: f32) -> f32 {
+        self.t0 + k as f32 * step
+    }
+}
+
+/// The densities of [`LANES`] consecutive samples of one segment, evaluated
+/// together, and the gradient neighbours of those that need them.
+struct Chunk {
+    /// Whether any samples are held.
+    full: bool,
+    /// Index of the first sample held.
+    start: u32,
+    /// f at samples `start + l`.
+    f: Lanes,
+    /// f(x + Δx_ν), f(x + Δx_ω) of samples `start + l`, where `has_gradient`.
+    neighbours: [(f32, f32); LANES],
+    has_gradient: u32,
+}
+
+impl Chunk {
+    fn empty() -> Chunk {
+        Chunk {
+            full: false,
+            start: 0,
+            f: [0.0; LANES],
+            neighbours: [(0.0, 0.0); LANES],
+            has_gradient: 0,
+        }
+    }
+
+    /// f at sample k of `basis`, evaluating the next [`LANES`] samples when k is
+    /// not held.
+    #[inline]
+    fn density(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> f32 {
+        let held = k.wrapping_sub(self.start);
+        if self.full && (held as usize) < LANES {
+            return self.f[held as usize];
+        }
+        let mut x = Points::default();
+        for l in 0..LANES {
+            x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
+        }
+        self.full = true;
+        self.start = k;
+        self.f = scene.density.eval_lanes(&x, field, scene.isa);
+        self.has_gradient = 0;
+        self.f[0]
+    }
+
+    /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and up to three
+    /// more held samples after it in the soft region, evaluated together.
+    #[inline]
+    fn neighbours(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
+        let j = (k - self.start) as usize;
+        if self.has_gradient & (1 << j) == 0 {
+            let mut x = Points::default();
+            let mut which = [usize::MAX; LANES / 2];
+            let mut n = 0;
+            for l in j..LANES {
+                if n == LANES / 2 {
+                    break;
+                }
+                let f = self.f[l];
+                if l == j || (f > 0.0 && f < 1.0) {
+                    let p = basis.ray.at(basis.t(self.start + l as u32, scene.step));
+                    x.set(2 * n, p + basis.dv);
+                    x.set(2 * n + 1, p + basis.dw);
+                    which[n] = l;
+                    n += 1;
+                }
+            }
+            // Unused lanes repeat the first point (valid, and discarded).
+            for l in 2 * n..LANES {
+                x.set(l, x.get(l % 2));
+            }
+            let v = scene.density.eval_lanes(&x, field, scene.isa);
+            for (i, &l) in which[..n].iter().enumerate() {
+                self.neighbours[l] = (v[2 * i], v[2 * i + 1]);
+                self.has_gradient |= 1 << l;
+            }
+        }
+        self.neighbours[j]
     }
 }
 
@@ -92,7 +200,8 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
 
-    let mut basis = Basis::new(ray, step, t0, t1);
+    let mut basis = Basis::new(ray, step, t0, t1, scene.support);
+    let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
     let mut path = 0.0f32;
     let mut colour = Vec3::ZERO;
@@ -111,17 +220,29 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
     let mut k: u32 = 0;
 
     loop {
-        let t = basis.t0 + k as f32 * step;
-        if t > basis.t1 || budget == 0 {
+        if k < basis.first {
+            // Samples k .. first are empty: they would cost budget and leave
+            // f(x − Δx_μ) = 0, and nothing else.
+            let skipped = u64::from(basis.first.min(u32::MAX - 1) - k);
+            if skipped >= budget || basis.t(basis.first, step) > basis.t1 {
+                break;
+            }
+            budget -= skipped;
+            k = basis.first;
+            previous = Some(0.0);
+        }
+        let t = basis.t(k, step);
+        if t > basis.t1 || budget == 0 || t > basis.last {
             break;
         }
         budget -= 1;
         let x = basis.ray.at(t);
-        let f = f_at(x);
+        let f = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
         if f > 0.0 && f < 1.0 {
-            normal = gradient_normal(&f_at, x, f, previous, &basis);
+            let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+            normal = gradient_normal(&f_at, x, f, previous, fv, fw, &basis);
         }
 
         if f > 0.0 {
@@ -150,7 +271,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
             let base = Vec3::from_array(scene.colour_map.eval(key));
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
             let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
-            let alpha_k = 1.0 - libm::powf(1.0 - rho, scene.opacity_exponent);
+            let alpha_k = 1.0 - fastmath::pow01(1.0 - rho, scene.opacity_exponent);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;
@@ -164,7 +285,10 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
             let n2 = refraction.eval1(f);
             if (n2 - n1).abs() > 1e-6 {
                 medium_index = Some(n2);
-                let n = normal.or_else(|| gradient_normal(&f_at, x, f, previous, &basis));
+                let n = normal.or_else(|| {
+                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+                    gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
+                });
                 if let Some(n) = n {
                     let bent = refract(basis.ray.direction, n, n1 / n2);
                     let ray = Ray {
@@ -173,7 +297,8 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                     };
                     if let Some((_, exit)) = slab(&ray, min, max) {
                         path += t;
-                        basis = Basis::new(ray, step, 0.0, exit);
+                        basis = Basis::new(ray, step, 0.0, exit, scene.support);
+                        chunk = Chunk::empty();
                         previous = None;
                         k = 1;
                         continue;
@@ -204,18 +329,20 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 /// The unit outward normal at x from the paper's finite differences
 /// `[f(x) - f(x - Δx_μ), f(x + Δx_ν) - f(x), f(x + Δx_ω) - f(x)]`, converted to
 /// xyz by the matrix whose rows are the ray basis, negated (density grows inwards).
+/// `fv = f(x + Δx_ν)` and `fw = f(x + Δx_ω)` come evaluated with their
+/// neighbours'; `f(x − Δx_μ)` is the previous sample when there is one.
 #[inline]
 fn gradient_normal(
     f_at: &impl Fn(Vec3) -> f32,
     x: Vec3,
     f: f32,
     previous: Option<f32>,
+    fv: f32,
+    fw: f32,
     basis: &Basis,
 ) -> Option<Vec3> {
     let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
-    let g = basis.du * (f - behind)
-        + basis.dv * (f_at(x + basis.dv) - f)
-        + basis.dw * (f_at(x + basis.dw) - f);
+    let g = basis.du * (f - behind) + basis.dv * (fv - f) + basis.dw * (fw - f);
     let len2 = g.length_squared();
     (len2 > 1e-30).then(|| -g / len2.sqrt())
 }
@@ -243,7 +370,7 @@ fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3) -> Vec3 {
             let h = (l - dir).normalize_or_zero();
             let nh = n.dot(h);
             if nh > 0.0 {
-                response += scene.specular * libm::powf(nh, scene.shininess);
+                response += scene.specular * fastmath::pow01(nh, scene.shininess);
             }
         }
         light += colour * response;

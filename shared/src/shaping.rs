@@ -1,8 +1,11 @@
 //! The paper's shaping base functions, `bias` and `gain` (section 2.3).
 //!
-//! Both map the unit interval onto itself. Powers go through `libm` (a port of
-//! musl's libm in plain Rust) rather than the platform's libm, so that every
-//! machine of the farm computes the same bits.
+//! Both map the unit interval onto itself. Powers go through
+//! [`fastmath::pow01`](crate::fastmath::pow01): basic IEEE operations only, so that
+//! every machine of the farm, and every SIMD path, computes the same bits.
+
+use crate::noise::{LANES, Lanes};
+use crate::simd::Isa;
 
 /// `bias_b(t) = t^(ln b / ln 0.5)`: pushes values in the unit interval up (b > 0.5)
 /// or down (b < 0.5) while keeping `bias_b(0) = 0`, `bias_b(1/2) = b`,
@@ -43,7 +46,19 @@ impl Bias {
             // 0^e is 0 for every e > 0; spelt out so that b = 1 (e = 0) keeps bias(0) = 0.
             return 0.0;
         }
-        libm::powf(t, self.exponent)
+        crate::fastmath::pow01(t, self.exponent)
+    }
+
+    /// [`Bias::apply`] lane by lane on `isa` (the same bits).
+    #[inline]
+    pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
+        let t = t.map(clamp01);
+        let p = isa.pow01(&t, self.exponent);
+        let mut out = [0.0; LANES];
+        for l in 0..LANES {
+            out[l] = if t[l] == 0.0 { 0.0 } else { p[l] };
+        }
+        out
     }
 }
 
@@ -71,6 +86,23 @@ impl Gain {
         } else {
             1.0 - self.bias.apply(2.0 - 2.0 * t) / 2.0
         }
+    }
+
+    /// [`Gain::apply`] lane by lane on `isa` (the same bits).
+    #[inline]
+    pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
+        let t = t.map(clamp01);
+        let arg = t.map(|t| if t < 0.5 { 2.0 * t } else { 2.0 - 2.0 * t });
+        let b = self.bias.apply_lanes(&arg, isa);
+        let mut out = [0.0; LANES];
+        for l in 0..LANES {
+            out[l] = if t[l] < 0.5 {
+                b[l] / 2.0
+            } else {
+                1.0 - b[l] / 2.0
+            };
+        }
+        out
     }
 }
 

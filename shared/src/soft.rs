@@ -38,7 +38,7 @@ impl Falloff {
     }
 
     /// D for a squared distance `d2` from the core.
-    #[inline]
+    #[inline(always)]
     pub fn density(&self, d2: f32) -> f32 {
         if d2 <= self.inner2 {
             1.0
@@ -71,13 +71,13 @@ pub struct SoftSphere {
 
 impl SoftSphere {
     /// D(x).
-    #[inline]
+    #[inline(always)]
     pub fn density(&self, x: Vec3) -> f32 {
         self.falloff.density((x - self.centre).length_squared())
     }
 
     /// x projected perpendicularly onto the inner (D = 1) surface.
-    #[inline]
+    #[inline(always)]
     pub fn project(&self, x: Vec3) -> Vec3 {
         self.centre + direction_or(x - self.centre, Vec3::Y) * self.falloff.inner
     }
@@ -95,7 +95,7 @@ pub struct SoftBox {
 
 impl SoftBox {
     /// D(x) = D_x · D_y · D_z.
-    #[inline]
+    #[inline(always)]
     pub fn density(&self, x: Vec3) -> f32 {
         let q = x - self.centre;
         let dx = self.falloff[0].density(q.x * q.x);
@@ -152,7 +152,7 @@ pub struct SoftTorus {
 
 impl SoftTorus {
     /// The point of the core circle nearest to x.
-    #[inline]
+    #[inline(always)]
     fn core_point(&self, x: Vec3) -> Vec3 {
         let q = x - self.centre;
         let radial = q - self.axis * q.dot(self.axis);
@@ -160,7 +160,7 @@ impl SoftTorus {
     }
 
     /// D(x), from the squared distance to the core circle.
-    #[inline]
+    #[inline(always)]
     pub fn density(&self, x: Vec3) -> f32 {
         let q = x - self.centre;
         let h = q.dot(self.axis);
@@ -169,7 +169,7 @@ impl SoftTorus {
     }
 
     /// x projected perpendicularly onto the inner (D = 1) surface of the tube.
-    #[inline]
+    #[inline(always)]
     pub fn project(&self, x: Vec3) -> Vec3 {
         let core = self.core_point(x);
         core + direction_or(x - core, self.axis) * self.falloff.inner
@@ -177,7 +177,7 @@ impl SoftTorus {
 }
 
 /// `v` normalised, or `fallback` where `v` is too short to have a direction.
-#[inline]
+#[inline(always)]
 fn direction_or(v: Vec3, fallback: Vec3) -> Vec3 {
     let len2 = v.length_squared();
     if len2 > 1e-20 {

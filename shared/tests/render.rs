@@ -140,3 +140,45 @@ fn known_answer_hard_sphere_under_a_known_light() {
     assert_eq!(corner.rgba, [0.0, 0.0, 1.0, 1.0]);
     assert_eq!(corner.depth, 0.0);
 }
+
+const GALLERY: [&str; 10] = [
+    "noisy_sphere",
+    "noisy_sphere_high_frequency",
+    "noisy_sphere_high_amplitude",
+    "fractal_sphere",
+    "dripping_sphere",
+    "eroded_cube",
+    "blue_glass",
+    "fire_ball",
+    "fur",
+    "tribble",
+];
+
+/// Every instruction-set path this CPU has (scalar, SSE4.1, AVX2) renders every
+/// gallery scene to the same bits: what lets mixed CPUs share one image.
+#[test]
+fn every_simd_path_renders_the_same_bits() {
+    use hypertexture::simd::Isa;
+    let paths = Isa::available();
+    eprintln!("paths on this CPU: {paths:?}");
+    for name in GALLERY {
+        let mut s = scene(name, 40);
+        assert!(s.set_isa(Isa::Scalar));
+        let reference = bits(&render_with(&s, 2));
+        for &isa in &paths[1..] {
+            assert!(s.set_isa(isa));
+            assert_eq!(reference, bits(&render_with(&s, 2)), "{name} on {isa:?}");
+        }
+    }
+}
+
+/// Skipping the space where the density is 0 for certain changes no bit.
+#[test]
+fn empty_space_skipping_changes_nothing() {
+    for name in GALLERY {
+        let mut s = scene(name, 40);
+        let skipped = bits(&render_with(&s, 2));
+        s.set_empty_space_skipping(false);
+        assert_eq!(skipped, bits(&render_with(&s, 2)), "{name}");
+    }
+}

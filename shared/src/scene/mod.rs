@@ -15,6 +15,7 @@ use crate::camera::Camera;
 use crate::curve::Curve;
 use crate::density::Density;
 use crate::noise::{Noise, clamped_octaves};
+use crate::simd::Isa;
 use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, ObjectDesc, SceneDesc};
 
 /// The largest scene file we read. The paper's whole database was under 5 KB.
@@ -181,6 +182,11 @@ pub struct Scene {
     pub(crate) specular: f32,
     pub(crate) shininess: f32,
     pub(crate) flow: Vec3,
+    /// Where the density can be non-zero (widened by two steps, so the sample
+    /// after the last non-zero one is inside too), or `None`: anywhere.
+    pub(crate) support: Option<(Vec3, Vec3)>,
+    /// The instruction-set path of the batch kernels (every path gives the same bits).
+    pub(crate) isa: Isa,
 }
 
 impl Scene {
@@ -252,6 +258,8 @@ impl Scene {
                 octaves: clamped_octaves(frequency.0, step, octaves.0),
             },
         };
+        let density = Density::build(&object, step);
+        let support = Scene::widened_support(&density, step, (min, max));
         Scene {
             width: desc.image.width,
             height: desc.image.height,
@@ -260,7 +268,7 @@ impl Scene {
             step,
             opacity_exponent: desc.march.opacity.0 * step,
             threshold: desc.march.threshold.0,
-            density: Density::build(&object, step),
+            density,
             noise: Noise::new(desc.seed),
             colour_map: Curve::colours(&desc.colour_map),
             colour_index,
@@ -273,7 +281,46 @@ impl Scene {
             specular: desc.shading.specular.0,
             shininess: desc.shading.shininess.0,
             flow: desc.flow.0,
+            support,
+            isa: Isa::detect(),
         }
+    }
+
+    /// The instruction-set path the batch kernels run on ([`Isa::detect`] by default).
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Turns empty-space skipping off (every sample is evaluated) or back on.
+    /// The image is the same either way: only samples where the density is 0
+    /// for certain are skipped.
+    pub fn set_empty_space_skipping(&mut self, on: bool) {
+        self.support = if on {
+            Scene::widened_support(&self.density, self.step, self.bounds)
+        } else {
+            None
+        };
+    }
+
+    fn widened_support(
+        density: &Density,
+        step: f32,
+        (min, max): (Vec3, Vec3),
+    ) -> Option<(Vec3, Vec3)> {
+        density.support().map(|(lo, hi)| {
+            let margin = Vec3::splat(2.0 * step) + (max - min).abs() * 1e-4;
+            (lo - margin, hi + margin)
+        })
+    }
+
+    /// Runs the batch kernels on `isa` instead; false (and no change) when this
+    /// CPU cannot. Images are the same bits on every path.
+    pub fn set_isa(&mut self, isa: Isa) -> bool {
+        if !isa.is_available() {
+            return false;
+        }
+        self.isa = isa;
+        true
     }
 
     /// Image width in pixels.
