@@ -154,7 +154,11 @@ impl Density {
         match self {
             Density::Sphere(s) => x.map(|p| s.project(p)),
             Density::Box(b) => x.map(|p| b.project(p)),
-            Density::Torus(t) => x.map(|p| t.project(p)),
+            Density::Torus(t) => {
+                let mut p = *x;
+                t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
+                p
+            }
             _ => *x,
         }
     }
@@ -487,7 +491,7 @@ impl Density {
         match self {
             Density::Sphere(s) => each(x, |p| s.density(p)),
             Density::Box(b) => each(x, |p| b.density(p)),
-            Density::Torus(t) => each(x, |p| t.density(p)),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
                 zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
             }),

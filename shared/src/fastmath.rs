@@ -43,8 +43,9 @@ pub fn log2(x: f32) -> f32 {
 /// 2^y for finite y; underflows to 0 below −126 and saturates at 2^127·(2 − ε).
 #[inline(always)]
 pub fn exp2(y: f32) -> f32 {
-    let y = y.clamp(-126.0, 127.0);
-    let k = (y + 0.5).floor();
+    // max/min (not clamp) so that NaN becomes −126 rather than staying NaN.
+    let y = y.max(-126.0).min(127.0);
+    let k = crate::noise::floor(y + 0.5);
     let f = y - k; // [−0.5, 0.5]
     // 2^f = e^(f ln 2): Taylor to degree 7 (remainder < 6·10⁻⁹ on [−½, ½]).
     const C1: f32 = std::f32::consts::LN_2;
@@ -55,11 +56,10 @@ pub fn exp2(y: f32) -> f32 {
     const C6: f32 = 0.000_154_035_3; // ln⁶2 / 720
     const C7: f32 = 0.000_015_252_734; // ln⁷2 / 5040
     let p = 1.0 + f * (C1 + f * (C2 + f * (C3 + f * (C4 + f * (C5 + f * (C6 + f * C7))))));
-    let k = k as i32;
-    if k <= -126 {
-        return 0.0;
-    }
-    p * f32::from_bits(((k + 127) as u32) << 23)
+    let k = crate::noise::lattice(k);
+    // 2^k built from its exponent bits; 0 at the bottom of the range.
+    let scale = f32::from_bits(((k.max(-126) + 127) as u32) << 23);
+    if k <= -126 { 0.0 } else { p * scale }
 }
 
 /// x^e for x in [0, 1] and e ≥ 0 (0^e = 0 for e > 0, x^0 = 1 for x > 0): the

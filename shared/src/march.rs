@@ -116,6 +116,8 @@ struct Chunk {
     start: u32,
     /// f at samples `start + l`.
     f: Lanes,
+    /// The opacity α_k = 1 − (1 − ρ)^(c·step) of samples `start + l`.
+    alpha: Lanes,
     /// f(x + Δx_ν), f(x + Δx_ω) of samples `start + l`, where `has_gradient`.
     neighbours: [(f32, f32); LANES],
     has_gradient: u32,
@@ -127,18 +129,19 @@ impl Chunk {
             full: false,
             start: 0,
             f: [0.0; LANES],
+            alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
             has_gradient: 0,
         }
     }
 
-    /// f at sample k of `basis`, evaluating the next [`LANES`] samples when k is
-    /// not held.
+    /// f and α_k at sample k of `basis`, evaluating the next [`LANES`] samples
+    /// when k is not held.
     #[inline]
-    fn density(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> f32 {
+    fn density(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
         let held = k.wrapping_sub(self.start);
         if self.full && (held as usize) < LANES {
-            return self.f[held as usize];
+            return (self.f[held as usize], self.alpha[held as usize]);
         }
         let mut x = Points::default();
         for l in 0..LANES {
@@ -147,8 +150,16 @@ impl Chunk {
         self.full = true;
         self.start = k;
         self.f = scene.density.eval_lanes(&x, field, scene.isa);
+        let transmit = self.f.map(|f| {
+            let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
+            1.0 - rho
+        });
+        self.alpha = scene
+            .isa
+            .pow01(&transmit, scene.opacity_exponent)
+            .map(|t| 1.0 - t);
         self.has_gradient = 0;
-        self.f[0]
+        (self.f[0], self.alpha[0])
     }
 
     /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and up to three
@@ -237,7 +248,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
         }
         budget -= 1;
         let x = basis.ray.at(t);
-        let f = chunk.density(k, &basis, scene, field);
+        let (f, alpha_k) = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
         if f > 0.0 && f < 1.0 {
@@ -270,8 +281,6 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
             };
             let base = Vec3::from_array(scene.colour_map.eval(key));
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
-            let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
-            let alpha_k = 1.0 - fastmath::pow01(1.0 - rho, scene.opacity_exponent);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;

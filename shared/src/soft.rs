@@ -8,6 +8,8 @@
 
 use glam::Vec3;
 
+use crate::noise::{LANES, Lanes};
+
 /// The paper's quadratic falloff, with the squared radii precomputed.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Falloff {
@@ -47,6 +49,15 @@ impl Falloff {
         } else {
             (self.outer2 - d2) * self.inv_width
         }
+    }
+
+    /// [`Falloff::density`] as selects rather than branches, so that lane loops
+    /// vectorise; the same value for every input, NaN included.
+    #[inline(always)]
+    pub fn density_select(&self, d2: f32) -> f32 {
+        let soft = (self.outer2 - d2) * self.inv_width;
+        let d = if d2 >= self.outer2 { 0.0 } else { soft };
+        if d2 <= self.inner2 { 1.0 } else { d }
     }
 
     /// The inner (D = 1) radius.
@@ -173,6 +184,62 @@ impl SoftTorus {
     pub fn project(&self, x: Vec3) -> Vec3 {
         let core = self.core_point(x);
         core + direction_or(x - core, self.axis) * self.falloff.inner
+    }
+}
+
+impl SoftTorus {
+    /// [`SoftTorus::density`] at each of the lanes' points, written
+    /// lane-parallel with exactly the scalar operations (so the same bits).
+    #[inline(always)]
+    pub fn density_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        let (c, a) = (self.centre, self.axis);
+        let mut out = [0.0; LANES];
+        for l in 0..LANES {
+            let (qx, qy, qz) = (x[l] - c.x, y[l] - c.y, z[l] - c.z);
+            let h = qx * a.x + qy * a.y + qz * a.z;
+            let (rx, ry, rz) = (qx - a.x * h, qy - a.y * h, qz - a.z * h);
+            let radial = (rx * rx + ry * ry + rz * rz).sqrt() - self.major_radius;
+            out[l] = self.falloff.density_select(radial * radial + h * h);
+        }
+        out
+    }
+
+    /// [`SoftTorus::project`] at each of the lanes' points (the same bits).
+    #[inline(always)]
+    pub fn project_lanes(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes) {
+        let (c, a) = (self.centre, self.axis);
+        let fallback = a.any_orthonormal_vector();
+        let inner = self.falloff.inner;
+        for l in 0..LANES {
+            let (px, py, pz) = (x[l], y[l], z[l]);
+            // The nearest point of the core circle.
+            let (qx, qy, qz) = (px - c.x, py - c.y, pz - c.z);
+            let h = qx * a.x + qy * a.y + qz * a.z;
+            let (rx, ry, rz) = (qx - a.x * h, qy - a.y * h, qz - a.z * h);
+            let len2 = rx * rx + ry * ry + rz * rz;
+            let len = len2.sqrt();
+            let long = len2 > 1e-20;
+            let (dx, dy, dz) = if long {
+                (rx / len, ry / len, rz / len)
+            } else {
+                (fallback.x, fallback.y, fallback.z)
+            };
+            let r = self.major_radius;
+            let (kx, ky, kz) = (c.x + dx * r, c.y + dy * r, c.z + dz * r);
+            // Out from it to the inner surface.
+            let (vx, vy, vz) = (px - kx, py - ky, pz - kz);
+            let len2 = vx * vx + vy * vy + vz * vz;
+            let len = len2.sqrt();
+            let long = len2 > 1e-20;
+            let (ex, ey, ez) = if long {
+                (vx / len, vy / len, vz / len)
+            } else {
+                (a.x, a.y, a.z)
+            };
+            x[l] = kx + ex * inner;
+            y[l] = ky + ey * inner;
+            z[l] = kz + ez * inner;
+        }
     }
 }
 
