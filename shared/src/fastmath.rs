@@ -44,6 +44,7 @@ pub fn log2(x: f32) -> f32 {
 #[inline(always)]
 pub fn exp2(y: f32) -> f32 {
     // max/min (not clamp) so that NaN becomes −126 rather than staying NaN.
+    #[allow(clippy::manual_clamp)]
     let y = y.max(-126.0).min(127.0);
     let k = crate::noise::floor(y + 0.5);
     let f = y - k; // [−0.5, 0.5]
