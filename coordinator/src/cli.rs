@@ -72,9 +72,35 @@ pub struct Cli {
     /// Frame number (animated scenes drift their noise by frame · flow).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
+    /// Samples per pixel: jittered positions, step phases and (with the scene's
+    /// shutter) times within each pixel, averaged (overrides the scene's `sampling.spp`).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub spp: Option<u32>,
+    /// Marching step: `interactive` (the scene's interactive_step, 4× its step by
+    /// default) or `high` (the scene's step, the default).
+    #[arg(long, value_name = "PRESET")]
+    pub quality: Option<QualityArg>,
     /// No progress bar and no log lines; errors are still printed.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+/// `--quality` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum QualityArg {
+    /// Large step: fast exploration.
+    Interactive,
+    /// Small step: the scene's own.
+    High,
+}
+
+impl From<QualityArg> for hypertexture::Quality {
+    fn from(q: QualityArg) -> Self {
+        match q {
+            QualityArg::Interactive => hypertexture::Quality::Interactive,
+            QualityArg::High => hypertexture::Quality::High,
+        }
+    }
 }
 
 /// Subcommands.
@@ -159,6 +185,8 @@ impl Cli {
             height: self.height,
             threads: self.threads,
             frame: self.frame,
+            spp: self.spp,
+            quality: self.quality.map(Into::into),
             progress: !self.quiet,
             farm,
         }

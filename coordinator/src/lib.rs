@@ -33,6 +33,10 @@ pub struct Config {
     pub threads: Option<NonZeroUsize>,
     /// Frame number.
     pub frame: u32,
+    /// Samples per pixel (overrides the scene's).
+    pub spp: Option<u32>,
+    /// Marching step preset (default: the scene's step, i.e. high quality).
+    pub quality: Option<hypertexture::Quality>,
     /// Show a progress bar when stderr is a terminal.
     pub progress: bool,
     /// Render on the farm with these options; `None`: in-process.
@@ -70,6 +74,8 @@ impl Config {
             height: None,
             threads: None,
             frame: 0,
+            spp: None,
+            quality: None,
             progress: false,
             farm: None,
         }
@@ -121,6 +127,8 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
         Overrides {
             width: config.width,
             height: config.height,
+            spp: config.spp,
+            quality: config.quality,
         },
     )?;
     let (film, render_time, how) = match &config.farm {
@@ -192,6 +200,8 @@ pub fn render_on_farm(
         width: scene.width(),
         height: scene.height(),
         frame: config.frame,
+        spp: config.spp,
+        quality: config.quality,
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,

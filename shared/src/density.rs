@@ -7,6 +7,7 @@
 
 use glam::Vec3;
 
+use crate::distortion::Distortion;
 use crate::noise::{Noise, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
 use crate::shaping::{Bias, Gain};
@@ -92,11 +93,10 @@ impl Density {
                 Box::new(Density::build(b, step)),
             ),
             ObjectDesc::Complement(a) => Density::Complement(Box::new(Density::build(a, step))),
-            ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(Hypertexture::build(
-                Density::build(&h.object, step),
-                &h.modulation,
-                step,
-            ))),
+            ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(
+                Hypertexture::build(Density::build(&h.object, step), &h.modulation, step)
+                    .with_distortion(h.distortion.as_ref().map(Distortion::build)),
+            )),
         }
     }
 
@@ -166,6 +166,8 @@ pub struct Hypertexture {
     warps: Vec<Warp>,
     /// Value DMFs, applied to the density in order.
     modulation: Vec<Modulation>,
+    /// Gilet & Dischler's distortion (formula 3), applied after the warps.
+    distortion: Option<Distortion>,
 }
 
 impl Hypertexture {
@@ -238,7 +240,23 @@ impl Hypertexture {
             object,
             warps,
             modulation,
+            distortion: None,
         }
+    }
+
+    /// The same chain with Gilet & Dischler's distortion after the warps.
+    pub fn with_distortion(self, distortion: Option<Distortion>) -> Hypertexture {
+        Hypertexture { distortion, ..self }
+    }
+
+    /// The distortion, if any.
+    pub fn distortion(&self) -> Option<&Distortion> {
+        self.distortion.as_ref()
+    }
+
+    /// The object D the DMFs modulate.
+    pub fn object(&self) -> &Density {
+        &self.object
     }
 
     /// H at x.
@@ -247,6 +265,9 @@ impl Hypertexture {
         let mut p = x;
         for w in &self.warps {
             p = w.apply(p, field);
+        }
+        if let Some(d) = &self.distortion {
+            p = d.apply(p, &self.object, field);
         }
         let d = self.object.eval(p, field);
         let mut v = d;

@@ -15,7 +15,7 @@ use glam::Vec3;
 use crate::camera::Ray;
 use crate::density::Field;
 use crate::film::Sample;
-use crate::scene::{ColourIndex, Light, Scene};
+use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
 
 /// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
@@ -81,6 +81,12 @@ impl Basis {
 
 /// Marches one ray through the scene and returns what the pixel records.
 pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
+    trace_with_phase(scene, ray, field, 0.0)
+}
+
+/// [`trace`] with the samples shifted by `phase` steps (in [0, 1)) along the ray:
+/// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
+pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
@@ -111,7 +117,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
     let mut k: u32 = 0;
 
     loop {
-        let t = basis.t0 + k as f32 * step;
+        let t = basis.t0 + (k as f32 + phase) * step;
         if t > basis.t1 || budget == 0 {
             break;
         }
@@ -121,7 +127,10 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 
         let mut normal = None;
         if f > 0.0 && f < 1.0 {
-            normal = gradient_normal(&f_at, x, f, previous, &basis);
+            normal = match scene.gradient {
+                Gradient::Forward => gradient_normal(&f_at, x, f, previous, &basis),
+                Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
+            };
         }
 
         if f > 0.0 {
@@ -148,7 +157,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                 }
             };
             let base = Vec3::from_array(scene.colour_map.eval(key));
-            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
+            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
             let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
             let alpha_k = 1.0 - libm::powf(1.0 - rho, scene.opacity_exponent);
             let weight = alpha_k * (1.0 - alpha);
@@ -223,21 +232,27 @@ fn gradient_normal(
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
 /// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light.
 #[inline]
-fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3) -> Vec3 {
+fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
     let mut light = scene.ambient;
     for source in &scene.lights {
-        let (l, colour) = match *source {
-            Light::Directional { direction, colour } => (direction, colour),
+        let (l, colour, distance) = match *source {
+            Light::Directional { direction, colour } => (direction, colour, f32::INFINITY),
             Light::Point { position, colour } => {
                 let to = position - x;
                 let d2 = to.length_squared().max(1e-4);
-                (to / d2.sqrt(), colour / d2)
+                let d = d2.sqrt();
+                (to / d, colour / d2, d)
             }
         };
         let lambert = n.dot(l);
         if lambert <= 0.0 {
             continue;
         }
+        let colour = if scene.shadows {
+            colour * crate::lighting::transmittance(scene, field, x, l, distance)
+        } else {
+            colour
+        };
         let mut response = scene.diffuse * lambert;
         if scene.specular > 0.0 {
             let h = (l - dir).normalize_or_zero();

@@ -117,7 +117,7 @@ fn huge_resolution_is_refused() {
         "good.ron",
         Overrides {
             width: Some(0),
-            height: None,
+            ..Overrides::default()
         },
     )
     .map(|_| ())
