@@ -33,13 +33,22 @@ pub fn step_opacity(scene: &Scene, f: f32) -> f32 {
     1.0 - libm::powf(1.0 - rho, scene.opacity_exponent)
 }
 
-/// The fraction of light that reaches x from direction `to_light` (unit) over
-/// `distance` (infinite for a directional light): the product of `1 − α` over a
-/// secondary ray marched from one step beyond x to where it leaves the bounds or
-/// reaches the light. Stops once less than `1 − threshold` gets through.
-pub fn transmittance(scene: &Scene, field: &Field, x: Vec3, to_light: Vec3, distance: f32) -> f32 {
+/// The fraction of light that reaches x (of unit outward normal n) from direction
+/// `to_light` (unit) over `distance` (infinite for a directional light): the
+/// product of `1 − α` over a secondary ray marched to where it leaves the bounds
+/// or reaches the light. The ray starts two steps out along the normal, so that
+/// the material of the sample itself (an opaque iso-surface is hit up to a step
+/// deep) does not shadow it. Stops once less than `1 − threshold` gets through.
+pub fn transmittance(
+    scene: &Scene,
+    field: &Field,
+    x: Vec3,
+    n: Vec3,
+    to_light: Vec3,
+    distance: f32,
+) -> f32 {
     let ray = Ray {
-        origin: x,
+        origin: x + n * (2.0 * scene.step),
         direction: to_light,
     };
     let (min, max) = scene.bounds;
@@ -101,6 +110,7 @@ mod tests {
             &s,
             &field,
             Vec3::new(0.0, -1.5, 0.0),
+            Vec3::ZERO,
             Vec3::Y,
             f32::INFINITY,
         );
@@ -110,12 +120,20 @@ mod tests {
             &s,
             &field,
             Vec3::new(1.5, -1.5, 0.0),
+            Vec3::ZERO,
             Vec3::Y,
             f32::INFINITY,
         );
         assert_eq!(beside, 1.0);
         // A point light between the point and the sphere casts no shadow.
-        let short = transmittance(&s, &field, Vec3::new(0.0, -1.9, 0.0), Vec3::Y, 0.5);
+        let short = transmittance(
+            &s,
+            &field,
+            Vec3::new(0.0, -1.9, 0.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            0.5,
+        );
         assert_eq!(short, 1.0);
     }
 }

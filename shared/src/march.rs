@@ -249,7 +249,7 @@ fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
             continue;
         }
         let colour = if scene.shadows {
-            colour * crate::lighting::transmittance(scene, field, x, l, distance)
+            colour * crate::lighting::transmittance(scene, field, x, n, l, distance)
         } else {
             colour
         };
