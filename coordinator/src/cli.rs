@@ -108,6 +108,21 @@ impl From<QualityArg> for hypertexture::Quality {
 pub enum Command {
     /// Measure the farm's speedup on this machine and simulate larger farms.
     Bench(BenchArgs),
+    /// Print a greyscale PNG as a 2D shape transfer function, `Grid(rows: [...])`,
+    /// to paste into a scene's distortion (left to right: noise; top to bottom:
+    /// density 0 to 1; white = 1).
+    Grid(GridArgs),
+}
+
+/// Arguments of `coordinator grid`.
+#[derive(Debug, clap::Args)]
+pub struct GridArgs {
+    /// The greyscale PNG.
+    #[arg(long, value_name = "FILE")]
+    pub png: PathBuf,
+    /// Most values a side (2 to 64); larger images are box-filtered down.
+    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(2..=64))]
+    pub side: u32,
 }
 
 /// Arguments of `coordinator bench`.

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod cli;
 pub mod farm;
+pub mod grid;
 pub mod local;
 pub mod logging;
 pub mod output;
@@ -94,6 +95,14 @@ pub enum CoordinatorError {
     /// The farm failed.
     #[error(transparent)]
     Farm(#[from] farm::FarmError),
+    /// A transfer-function image could not be read.
+    #[error("{path}: cannot use the image as a transfer function: {message}")]
+    TransferImage {
+        /// The image file.
+        path: PathBuf,
+        /// What was wrong.
+        message: String,
+    },
     /// The async runtime could not be started.
     #[error("cannot start the async runtime: {0}")]
     Runtime(std::io::Error),
