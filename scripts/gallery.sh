@@ -9,3 +9,8 @@ for scene in scenes/*.ron; do
     name=$(basename "$scene" .ron)
     ./target/release/coordinator --scene "$scene" --out "$out/$name.png" --width 256 --height 256
 done
+# Gilet & Dischler's scenes, prefixed gilet_.
+for scene in scenes/gilet/*.ron; do
+    name=$(basename "$scene" .ron)
+    ./target/release/coordinator --scene "$scene" --out "$out/gilet_$name.png" --width 256 --height 256
+done

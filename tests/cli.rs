@@ -103,6 +103,9 @@ fn bad_flags_and_outputs_fail_cleanly() {
         vec!["--scene", fur, "--width", "-3"],
         vec!["--scene", fur, "--width", "100000"],
         vec!["--scene", fur, "--frobnicate"],
+        vec!["--scene", fur, "--spp", "0"],
+        vec!["--scene", fur, "--spp", "5000"],
+        vec!["--scene", fur, "--quality", "ultra"],
         vec!["--out", "x.png"],
     ] {
         let out = coordinator(&args);

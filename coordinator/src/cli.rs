@@ -72,9 +72,35 @@ pub struct Cli {
     /// Frame number (animated scenes drift their noise by frame · flow).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
+    /// Samples per pixel: jittered positions, step phases and (with the scene's
+    /// shutter) times within each pixel, averaged (overrides the scene's `sampling.spp`).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub spp: Option<u32>,
+    /// Marching step: `interactive` (the scene's interactive_step, 4× its step by
+    /// default) or `high` (the scene's step, the default).
+    #[arg(long, value_name = "PRESET")]
+    pub quality: Option<QualityArg>,
     /// No progress bar and no log lines; errors are still printed.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+/// `--quality` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum QualityArg {
+    /// Large step: fast exploration.
+    Interactive,
+    /// Small step: the scene's own.
+    High,
+}
+
+impl From<QualityArg> for hypertexture::Quality {
+    fn from(q: QualityArg) -> Self {
+        match q {
+            QualityArg::Interactive => hypertexture::Quality::Interactive,
+            QualityArg::High => hypertexture::Quality::High,
+        }
+    }
 }
 
 /// Subcommands.
@@ -82,6 +108,21 @@ pub struct Cli {
 pub enum Command {
     /// Measure the farm's speedup on this machine and simulate larger farms.
     Bench(BenchArgs),
+    /// Print a greyscale PNG as a 2D shape transfer function, `Grid(rows: [...])`,
+    /// to paste into a scene's distortion (left to right: noise; top to bottom:
+    /// density 0 to 1; white = 1).
+    Grid(GridArgs),
+}
+
+/// Arguments of `coordinator grid`.
+#[derive(Debug, clap::Args)]
+pub struct GridArgs {
+    /// The greyscale PNG.
+    #[arg(long, value_name = "FILE")]
+    pub png: PathBuf,
+    /// Most values a side (2 to 64); larger images are box-filtered down.
+    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(2..=64))]
+    pub side: u32,
 }
 
 /// Arguments of `coordinator bench`.
@@ -159,6 +200,8 @@ impl Cli {
             height: self.height,
             threads: self.threads,
             frame: self.frame,
+            spp: self.spp,
+            quality: self.quality.map(Into::into),
             progress: !self.quiet,
             farm,
         }

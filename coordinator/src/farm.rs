@@ -95,6 +95,10 @@ pub struct FrameJob {
     pub height: u32,
     /// Frame number.
     pub frame: u32,
+    /// Samples per pixel override (`--spp`).
+    pub spp: Option<u32>,
+    /// Quality preset (`--quality`).
+    pub quality: Option<hypertexture::Quality>,
 }
 
 /// What the farm reports when the frame is done.
@@ -322,12 +326,20 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     let shared = Arc::new(Shared {
         scheduler: Mutex::new(Scheduler::new(units, job.width, job.height, config.lease)),
         job: pb::Job {
-            scene_hash: convert::scene_hash(&job.scene_text, job.width, job.height),
+            scene_hash: convert::scene_hash(
+                &job.scene_text,
+                job.width,
+                job.height,
+                job.spp.unwrap_or(0),
+                convert::quality_to_wire(job.quality) as i32,
+            ),
             scene_text: job.scene_text.clone(),
             scene_name: job.scene_name.clone(),
             width: job.width,
             height: job.height,
             frame: job.frame,
+            spp: job.spp.unwrap_or(0),
+            quality: convert::quality_to_wire(job.quality) as i32,
         },
         token: token.clone(),
         heartbeat,

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod cli;
 pub mod farm;
+pub mod grid;
 pub mod local;
 pub mod logging;
 pub mod output;
@@ -33,6 +34,10 @@ pub struct Config {
     pub threads: Option<NonZeroUsize>,
     /// Frame number.
     pub frame: u32,
+    /// Samples per pixel (overrides the scene's).
+    pub spp: Option<u32>,
+    /// Marching step preset (default: the scene's step, i.e. high quality).
+    pub quality: Option<hypertexture::Quality>,
     /// Show a progress bar when stderr is a terminal.
     pub progress: bool,
     /// Render on the farm with these options; `None`: in-process.
@@ -70,6 +75,8 @@ impl Config {
             height: None,
             threads: None,
             frame: 0,
+            spp: None,
+            quality: None,
             progress: false,
             farm: None,
         }
@@ -88,6 +95,14 @@ pub enum CoordinatorError {
     /// The farm failed.
     #[error(transparent)]
     Farm(#[from] farm::FarmError),
+    /// A transfer-function image could not be read.
+    #[error("{path}: cannot use the image as a transfer function: {message}")]
+    TransferImage {
+        /// The image file.
+        path: PathBuf,
+        /// What was wrong.
+        message: String,
+    },
     /// The async runtime could not be started.
     #[error("cannot start the async runtime: {0}")]
     Runtime(std::io::Error),
@@ -121,6 +136,8 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
         Overrides {
             width: config.width,
             height: config.height,
+            spp: config.spp,
+            quality: config.quality,
         },
     )?;
     let (film, render_time, how) = match &config.farm {
@@ -192,6 +209,8 @@ pub fn render_on_farm(
         width: scene.width(),
         height: scene.height(),
         frame: config.frame,
+        spp: config.spp,
+        quality: config.quality,
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,

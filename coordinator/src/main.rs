@@ -12,6 +12,10 @@ fn main() -> ExitCode {
             coordinator::logging::init(true);
             coordinator::bench::run(&args.into_config())
         }
+        Some(Command::Grid(args)) => coordinator::grid::png_to_grid(&args.png, args.side as usize)
+            .map(|grid| {
+                println!("{grid}");
+            }),
         None => {
             coordinator::logging::init(cli.quiet);
             coordinator::run(cli.into_config()).map(|_| ())

@@ -1,7 +1,7 @@
 //! Conversions between wire (prost) types and the program's own types, both ways.
 
-use hypertexture::Sample;
 use hypertexture::interleave::{PixelSet, WorkUnit};
+use hypertexture::{Quality, Sample};
 
 use crate::pb;
 
@@ -26,6 +26,9 @@ pub enum WireError {
         /// Bytes per pixel.
         bytes_per_pixel: usize,
     },
+    /// A job names a quality this build does not know.
+    #[error("unknown quality {0}")]
+    UnknownQuality(i32),
     /// A tile value is NaN or infinite.
     #[error("tile value {index} is not finite ({value})")]
     NotFinite {
@@ -138,20 +141,47 @@ pub fn samples_from_wire(bytes: &[u8], pixels: usize) -> Result<Vec<Sample>, Wir
     Ok(samples)
 }
 
-/// The content hash of a job: FNV-1a over the scene text, then the size.
+/// The content hash of a job: FNV-1a over the scene text, then the size, the
+/// samples per pixel and the quality (everything that changes the pixels).
 /// Stable across machines and builds (workers cache scenes by it).
-pub fn scene_hash(text: &str, width: u32, height: u32) -> u64 {
+pub fn scene_hash(text: &str, width: u32, height: u32, spp: u32, quality: i32) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for &b in text
         .as_bytes()
         .iter()
         .chain(&width.to_le_bytes())
         .chain(&height.to_le_bytes())
+        .chain(&spp.to_le_bytes())
+        .chain(&quality.to_le_bytes())
     {
         h ^= u64::from(b);
         h = h.wrapping_mul(0x0000_0100_0000_01b3);
     }
     h
+}
+
+/// A quality preset on the wire.
+pub fn quality_to_wire(quality: Option<Quality>) -> pb::Quality {
+    match quality {
+        None => pb::Quality::Unspecified,
+        Some(Quality::Interactive) => pb::Quality::Interactive,
+        Some(Quality::High) => pb::Quality::High,
+    }
+}
+
+/// A quality preset from the wire (`quality` is the raw enum value).
+pub fn quality_from_wire(quality: i32) -> Result<Option<Quality>, WireError> {
+    match pb::Quality::try_from(quality) {
+        Ok(pb::Quality::Unspecified) => Ok(None),
+        Ok(pb::Quality::Interactive) => Ok(Some(Quality::Interactive)),
+        Ok(pb::Quality::High) => Ok(Some(Quality::High)),
+        Err(_) => Err(WireError::UnknownQuality(quality)),
+    }
+}
+
+/// Samples per pixel from the wire: 0 means the scene's own.
+pub fn spp_from_wire(spp: u32) -> Option<u32> {
+    (spp != 0).then_some(spp)
 }
 
 #[cfg(test)]
@@ -213,10 +243,22 @@ mod tests {
     }
 
     #[test]
-    fn hash_depends_on_text_and_size() {
-        let h = scene_hash("Scene()", 10, 10);
-        assert_eq!(h, scene_hash("Scene()", 10, 10));
-        assert_ne!(h, scene_hash("Scene( )", 10, 10));
-        assert_ne!(h, scene_hash("Scene()", 10, 11));
+    fn hash_depends_on_text_size_and_sampling() {
+        let h = scene_hash("Scene()", 10, 10, 0, 0);
+        assert_eq!(h, scene_hash("Scene()", 10, 10, 0, 0));
+        assert_ne!(h, scene_hash("Scene( )", 10, 10, 0, 0));
+        assert_ne!(h, scene_hash("Scene()", 10, 11, 0, 0));
+        assert_ne!(h, scene_hash("Scene()", 10, 10, 4, 0));
+        assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 1));
+    }
+
+    #[test]
+    fn quality_round_trips() {
+        for q in [None, Some(Quality::Interactive), Some(Quality::High)] {
+            assert_eq!(quality_from_wire(quality_to_wire(q) as i32), Ok(q));
+        }
+        assert_eq!(quality_from_wire(7), Err(WireError::UnknownQuality(7)));
+        assert_eq!(spp_from_wire(0), None);
+        assert_eq!(spp_from_wire(4), Some(4));
     }
 }

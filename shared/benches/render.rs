@@ -31,6 +31,7 @@ fn scene(name: &str, size: u32) -> Scene {
         Overrides {
             width: Some(size),
             height: Some(size),
+            ..Overrides::default()
         },
     )
     .expect("gallery scene")

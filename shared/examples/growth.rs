@@ -32,6 +32,7 @@ fn main() {
                 Overrides {
                     width: Some(n),
                     height: Some(n),
+                    ..Overrides::default()
                 },
             )
             .expect("scene");

@@ -54,6 +54,7 @@ impl<const N: usize> Curve<N> {
         let (p1, p2) = (self.values[i], self.values[i + 1]);
         let mut out = [0.0; N];
         match self.interpolation {
+            Interpolation::Step => out = p1,
             Interpolation::Linear => {
                 for c in 0..N {
                     out[c] = p1[c] + (p2[c] - p1[c]) * u;

@@ -7,6 +7,7 @@
 
 use glam::Vec3;
 
+use crate::distortion::Distortion;
 use crate::noise::{LANES, Lanes, Noise, VNOISE_OFFSET, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
 use crate::shaping::{Bias, Gain};
@@ -93,11 +94,10 @@ impl Density {
                 Box::new(Density::build(b, step)),
             ),
             ObjectDesc::Complement(a) => Density::Complement(Box::new(Density::build(a, step))),
-            ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(Hypertexture::build(
-                Density::build(&h.object, step),
-                &h.modulation,
-                step,
-            ))),
+            ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(
+                Hypertexture::build(Density::build(&h.object, step), &h.modulation, step)
+                    .with_distortion(h.distortion.as_ref().map(Distortion::build)),
+            )),
         }
     }
 
@@ -182,6 +182,8 @@ pub struct Hypertexture {
     warps: Vec<Warp>,
     /// Value DMFs, applied to the density in order.
     modulation: Vec<Modulation>,
+    /// Gilet & Dischler's distortion (formula 3), applied after the warps.
+    distortion: Option<Distortion>,
 }
 
 impl Hypertexture {
@@ -254,7 +256,23 @@ impl Hypertexture {
             object,
             warps,
             modulation,
+            distortion: None,
         }
+    }
+
+    /// The same chain with Gilet & Dischler's distortion after the warps.
+    pub fn with_distortion(self, distortion: Option<Distortion>) -> Hypertexture {
+        Hypertexture { distortion, ..self }
+    }
+
+    /// The distortion, if any.
+    pub fn distortion(&self) -> Option<&Distortion> {
+        self.distortion.as_ref()
+    }
+
+    /// The object D the DMFs modulate.
+    pub fn object(&self) -> &Density {
+        &self.object
     }
 
     /// H at x.
@@ -263,6 +281,9 @@ impl Hypertexture {
         let mut p = x;
         for w in &self.warps {
             p = w.apply(p, field);
+        }
+        if let Some(d) = &self.distortion {
+            p = d.apply(p, &self.object, field);
         }
         let d = self.object.eval(p, field);
         let mut v = d;
@@ -546,6 +567,9 @@ impl Hypertexture {
         for w in &self.warps {
             p = w.apply_lanes(&p, field, isa);
         }
+        if let Some(d) = &self.distortion {
+            p = p.map(|q| d.apply(q, &self.object, field));
+        }
         let mut v = self.object.eval_lanes(&p, field, isa);
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
@@ -751,9 +775,15 @@ impl Density {
 }
 
 impl Hypertexture {
-    /// [`Density::support`]: the object's, pulled back through the warps.
+    /// [`Density::support`]: the object's, widened by the distortion's largest
+    /// displacement and pulled back through the warps.
     pub fn support(&self) -> Option<Aabb> {
         let mut b = self.object.support()?;
+        if let Some(d) = &self.distortion {
+            // x is evaluated at x − k·V/|V| with |k| ≤ the largest displacement.
+            let reach = Vec3::splat(d.max_displacement());
+            b = (b.0 - reach, b.1 + reach);
+        }
         for w in self.warps.iter().rev() {
             b = w.preimage(b)?;
         }

@@ -13,17 +13,20 @@
 pub mod camera;
 pub mod curve;
 pub mod density;
+pub mod distortion;
 pub mod fastmath;
 pub mod film;
 pub mod interleave;
+pub mod lighting;
 pub mod march;
 pub mod noise;
 pub mod random;
 pub mod render;
+pub mod sampling;
 pub mod scene;
 pub mod shaping;
 pub mod simd;
 pub mod soft;
 
 pub use film::{Film, Sample};
-pub use scene::{Overrides, Scene, SceneError};
+pub use scene::{Overrides, Quality, Scene, SceneError};

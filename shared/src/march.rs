@@ -17,7 +17,7 @@ use crate::density::{Field, Points};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::noise::{LANES, Lanes};
-use crate::scene::{ColourIndex, Light, Scene};
+use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
 
 /// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
@@ -70,10 +70,18 @@ struct Basis {
     first: u32,
     /// Samples past this parameter lie outside the support too.
     last: f32,
+    /// Sample k lies at `t0 + (k + phase)·step` (jittered supersampling).
+    phase: f32,
 }
 
 impl Basis {
-    fn new(ray: Ray, step: f32, t0: f32, t1: f32, support: Option<(Vec3, Vec3)>) -> Basis {
+    fn new(
+        ray: Ray,
+        step: f32,
+        (t0, t1): (f32, f32),
+        phase: f32,
+        support: Option<(Vec3, Vec3)>,
+    ) -> Basis {
         let (dv, dw) = perpendiculars(ray.direction, step);
         // Empty-space skipping: only the samples inside the (widened) support are
         // evaluated; the others are 0, exactly what evaluating them would give.
@@ -82,7 +90,7 @@ impl Basis {
             Some((min, max)) => match slab(&ray, min, max) {
                 None => (u32::MAX, t0 - 1.0),
                 Some((a, b)) => {
-                    let skip = ((a - t0) / step).floor() - 1.0;
+                    let skip = ((a - t0) / step - phase).floor() - 1.0;
                     let first = if skip > 0.0 { skip as u32 } else { 0 };
                     (first, b)
                 }
@@ -97,13 +105,14 @@ impl Basis {
             t1,
             first,
             last,
+            phase,
         }
     }
 
     /// The parameter of sample k.
     #[inline(always)]
     fn t(&self, k: u32, step: f32) -> f32 {
-        self.t0 + k as f32 * step
+        self.t0 + (k as f32 + self.phase) * step
     }
 }
 
@@ -200,6 +209,12 @@ impl Chunk {
 
 /// Marches one ray through the scene and returns what the pixel records.
 pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
+    trace_with_phase(scene, ray, field, 0.0)
+}
+
+/// [`trace`] with the samples shifted by `phase` steps (in [0, 1)) along the ray:
+/// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
+pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
@@ -211,7 +226,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
 
-    let mut basis = Basis::new(ray, step, t0, t1, scene.support);
+    let mut basis = Basis::new(ray, step, (t0, t1), phase, scene.support);
     let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
     let mut path = 0.0f32;
@@ -252,8 +267,13 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 
         let mut normal = None;
         if f > 0.0 && f < 1.0 {
-            let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
-            normal = gradient_normal(&f_at, x, f, previous, fv, fw, &basis);
+            normal = match scene.gradient {
+                Gradient::Forward => {
+                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+                    gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
+                }
+                Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
+            };
         }
 
         if f > 0.0 {
@@ -280,7 +300,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                 }
             };
             let base = Vec3::from_array(scene.colour_map.eval(key));
-            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
+            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;
@@ -306,7 +326,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                     };
                     if let Some((_, exit)) = slab(&ray, min, max) {
                         path += t;
-                        basis = Basis::new(ray, step, 0.0, exit, scene.support);
+                        basis = Basis::new(ray, step, (0.0, exit), phase, scene.support);
                         chunk = Chunk::empty();
                         previous = None;
                         k = 1;
@@ -359,21 +379,27 @@ fn gradient_normal(
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
 /// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light.
 #[inline]
-fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3) -> Vec3 {
+fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
     let mut light = scene.ambient;
     for source in &scene.lights {
-        let (l, colour) = match *source {
-            Light::Directional { direction, colour } => (direction, colour),
+        let (l, colour, distance) = match *source {
+            Light::Directional { direction, colour } => (direction, colour, f32::INFINITY),
             Light::Point { position, colour } => {
                 let to = position - x;
                 let d2 = to.length_squared().max(1e-4);
-                (to / d2.sqrt(), colour / d2)
+                let d = d2.sqrt();
+                (to / d, colour / d2, d)
             }
         };
         let lambert = n.dot(l);
         if lambert <= 0.0 {
             continue;
         }
+        let colour = if scene.shadows {
+            colour * crate::lighting::transmittance(scene, field, x, n, l, distance)
+        } else {
+            colour
+        };
         let mut response = scene.diffuse * lambert;
         if scene.specular > 0.0 {
             let h = (l - dir).normalize_or_zero();

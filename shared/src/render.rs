@@ -8,14 +8,13 @@
 use rayon::prelude::*;
 
 use crate::film::{Film, Sample};
-use crate::march;
 use crate::scene::Scene;
 
-/// The sample of pixel (x, y) of `frame`: one ray through the pixel centre.
+/// The value of pixel (x, y) of `frame`: one ray through the pixel centre, or the
+/// mean of the scene's jittered samples ([`crate::sampling`]).
 #[inline]
 pub fn render_pixel(scene: &Scene, x: u32, y: u32, frame: u32) -> Sample {
-    let field = scene.field(frame);
-    march::trace(scene, scene.camera.ray(x, y, (0.5, 0.5)), &field)
+    crate::sampling::render_pixel(scene, x, y, frame)
 }
 
 /// Renders the whole image of `frame` on the current rayon pool, calling

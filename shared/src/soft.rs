@@ -19,6 +19,8 @@ pub struct Falloff {
     inner2: f32,
     /// `r0²`, the outer (D = 0) radius squared.
     outer2: f32,
+    /// `r0 = r + s/2`, the outer (D = 0) radius.
+    outer: f32,
     /// `1 / (r0² - r1²)` (0 for a hard object, s = 0).
     inv_width: f32,
 }
@@ -35,6 +37,7 @@ impl Falloff {
             inner,
             inner2,
             outer2,
+            outer,
             inv_width: if width > 0.0 { 1.0 / width } else { 0.0 },
         }
     }
@@ -66,8 +69,9 @@ impl Falloff {
     }
 
     /// The outer (D = 0) radius.
+    #[inline]
     pub fn outer(&self) -> f32 {
-        self.outer2.sqrt()
+        self.outer
     }
 }
 
@@ -240,6 +244,54 @@ impl SoftTorus {
             y[l] = ky + ey * inner;
             z[l] = kz + ez * inner;
         }
+    }
+}
+
+/// The nearest point of each primitive's outer (D = 0) surface: where Gilet &
+/// Dischler's default vector field points (section 4.3).
+pub mod boundary_point {
+    use glam::Vec3;
+
+    use super::{SoftBox, SoftSphere, SoftTorus, direction_or};
+
+    /// On the sphere of radius `r + s/2` about the centre.
+    #[inline]
+    pub fn sphere(s: &SoftSphere, x: Vec3) -> Vec3 {
+        s.centre + direction_or(x - s.centre, Vec3::Y) * s.falloff.outer()
+    }
+
+    /// On the outer box (half sizes `h + s/2`): clamped from outside, pushed out
+    /// through the nearest face from inside.
+    #[inline]
+    pub fn soft_box(b: &SoftBox, x: Vec3) -> Vec3 {
+        let q = x - b.centre;
+        let h = Vec3::new(
+            b.falloff[0].outer(),
+            b.falloff[1].outer(),
+            b.falloff[2].outer(),
+        );
+        let p = if q.abs().cmple(h).all() {
+            let gap = h - q.abs();
+            let mut p = q;
+            if gap.x <= gap.y && gap.x <= gap.z {
+                p.x = h.x.copysign(q.x);
+            } else if gap.y <= gap.z {
+                p.y = h.y.copysign(q.y);
+            } else {
+                p.z = h.z.copysign(q.z);
+            }
+            p
+        } else {
+            q.clamp(-h, h)
+        };
+        b.centre + p
+    }
+
+    /// On the tube of radius `r + s/2` around the core circle.
+    #[inline]
+    pub fn torus(t: &SoftTorus, x: Vec3) -> Vec3 {
+        let core = t.core_point(x);
+        core + direction_or(x - core, t.axis) * t.falloff.outer()
     }
 }
 

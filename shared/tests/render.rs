@@ -11,6 +11,7 @@ fn scene(name: &str, size: u32) -> Scene {
         Overrides {
             width: Some(size),
             height: Some(size),
+            ..Overrides::default()
         },
     )
     .unwrap()
@@ -80,6 +81,7 @@ fn opacity_is_resolution_independent() {
     let size = Overrides {
         width: Some(48),
         height: Some(48),
+        ..Overrides::default()
     };
     let coarse = Scene::from_text(&text, "fur.ron", size).unwrap();
     let fine = Scene::from_text(
@@ -154,15 +156,36 @@ const GALLERY: [&str; 10] = [
     "tribble",
 ];
 
+/// The 1989 gallery at 40×40 and every other scene under scenes/ at 20×20.
+fn every_scene() -> Vec<(String, u32)> {
+    let mut all: Vec<(String, u32)> = GALLERY.iter().map(|n| (n.to_string(), 40)).collect();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    for dir in ["gilet", "pse"] {
+        let Ok(entries) = std::fs::read_dir(root.join(dir)) else {
+            continue;
+        };
+        let mut names: Vec<String> = entries
+            .filter_map(|e| {
+                let name = e.ok()?.file_name().into_string().ok()?;
+                Some(format!("{dir}/{}", name.strip_suffix(".ron")?))
+            })
+            .collect();
+        names.sort();
+        all.extend(names.into_iter().map(|n| (n, 20)));
+    }
+    all
+}
+
 /// Every instruction-set path this CPU has (scalar, SSE4.1, AVX2) renders every
-/// gallery scene to the same bits: what lets mixed CPUs share one image.
+/// scene to the same bits: what lets mixed CPUs share one image.
 #[test]
 fn every_simd_path_renders_the_same_bits() {
     use hypertexture::simd::Isa;
     let paths = Isa::available();
     eprintln!("paths on this CPU: {paths:?}");
-    for name in GALLERY {
-        let mut s = scene(name, 40);
+    for (name, size) in every_scene() {
+        let name = name.as_str();
+        let mut s = scene(name, size);
         assert!(s.set_isa(Isa::Scalar));
         let reference = bits(&render_with(&s, 2));
         for &isa in &paths[1..] {
@@ -175,8 +198,9 @@ fn every_simd_path_renders_the_same_bits() {
 /// Skipping the space where the density is 0 for certain changes no bit.
 #[test]
 fn empty_space_skipping_changes_nothing() {
-    for name in GALLERY {
-        let mut s = scene(name, 40);
+    for (name, size) in every_scene() {
+        let name = name.as_str();
+        let mut s = scene(name, size);
         let skipped = bits(&render_with(&s, 2));
         s.set_empty_space_skipping(false);
         assert_eq!(skipped, bits(&render_with(&s, 2)), "{name}");

@@ -117,7 +117,7 @@ fn huge_resolution_is_refused() {
         "good.ron",
         Overrides {
             width: Some(0),
-            height: None,
+            ..Overrides::default()
         },
     )
     .map(|_| ())
@@ -170,4 +170,42 @@ fn oversized_scene_is_refused() {
         .err()
         .unwrap();
     assert!(matches!(err, SceneError::TooLarge { .. }), "{err}");
+}
+
+#[test]
+fn every_gilet_scene_loads_and_keeps_within_its_bounds() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/gilet");
+    let mut count = 0;
+    for entry in std::fs::read_dir(&dir).expect("scenes/gilet exists") {
+        let path = entry.expect("readable entry").path();
+        if path.extension().is_none_or(|e| e != "ron") {
+            continue;
+        }
+        count += 1;
+        for quality in [
+            hypertexture::Quality::Interactive,
+            hypertexture::Quality::High,
+        ] {
+            let overrides = Overrides {
+                quality: Some(quality),
+                ..Overrides::default()
+            };
+            let scene = Scene::load(&path, overrides).unwrap_or_else(|e| panic!("{e}"));
+            assert!(scene.max_displacement() > 0.0, "{}", path.display());
+        }
+        let high = Scene::load(&path, Overrides::default()).unwrap();
+        let fast = Scene::load(
+            &path,
+            Overrides {
+                quality: Some(hypertexture::Quality::Interactive),
+                ..Overrides::default()
+            },
+        )
+        .unwrap();
+        assert!(fast.step() > high.step(), "{}", path.display());
+    }
+    assert!(
+        count >= 24,
+        "the Gilet & Dischler gallery, found {count} scenes"
+    );
 }

@@ -8,6 +8,8 @@
 
 use serde::Deserialize;
 
+pub use super::distortion::{DistortionDesc, check_distortion};
+
 /// The largest image we accept: 16384 pixels a side and 64 Mi pixels in all.
 pub const MAX_SIDE: u32 = 16_384;
 /// The largest pixel count we accept (a 2 GiB film at 32 bytes a pixel).
@@ -56,6 +58,13 @@ pub struct SceneDesc {
     /// so an animation's texture streams through the object (rising flames).
     #[serde(default)]
     pub flow: V3,
+    /// Gilet & Dischler's distortion of the whole object (after `modulation`'s
+    /// position DMFs).
+    #[serde(default)]
+    pub distortion: Option<DistortionDesc>,
+    /// Samples per pixel and the shutter of motion blur.
+    #[serde(default)]
+    pub sampling: SamplingDesc,
 }
 
 #[derive(Deserialize)]
@@ -100,12 +109,21 @@ struct SceneFields {
     /// so an animation's texture streams through the object (rising flames).
     #[serde(default)]
     flow: V3,
+    /// Gilet & Dischler's distortion of the whole object.
+    #[serde(default)]
+    distortion: Option<DistortionDesc>,
+    /// Samples per pixel and the shutter of motion blur.
+    #[serde(default)]
+    sampling: SamplingDesc,
 }
 
 impl TryFrom<SceneFields> for SceneDesc {
     type Error = String;
     fn try_from(f: SceneFields) -> Result<Self, String> {
         check_chain(&f.object, &f.modulation)?;
+        if let Some(d) = &f.distortion {
+            check_distortion(&f.object, d)?;
+        }
         Ok(SceneDesc {
             image: f.image,
             camera: f.camera,
@@ -121,12 +139,64 @@ impl TryFrom<SceneFields> for SceneDesc {
             shading: f.shading,
             seed: f.seed,
             flow: f.flow,
+            distortion: f.distortion,
+            sampling: f.sampling,
         })
     }
 }
 
 fn default_seed() -> u64 {
     crate::noise::DEFAULT_SEED
+}
+
+/// Supersampling and motion blur.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SamplingDesc {
+    /// Jittered samples per pixel (1: one ray through the pixel centre).
+    #[serde(default = "Spp::one")]
+    pub spp: Spp,
+    /// Motion blur: the fraction of a frame the shutter stays open. Sample times
+    /// spread over `[frame, frame + shutter)`, so the noise drifting with `flow`
+    /// smears. 0 (the default): no blur.
+    #[serde(default)]
+    pub shutter: Fraction,
+}
+
+impl Default for SamplingDesc {
+    fn default() -> Self {
+        SamplingDesc {
+            spp: Spp::one(),
+            shutter: Fraction(0.0),
+        }
+    }
+}
+
+/// The most samples per pixel.
+pub const MAX_SPP: u32 = 1024;
+
+/// Samples per pixel, 1 to [`MAX_SPP`].
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(try_from = "u64")]
+pub struct Spp(pub u32);
+
+impl TryFrom<u64> for Spp {
+    type Error = String;
+    fn try_from(n: u64) -> Result<Self, String> {
+        if (1..=u64::from(MAX_SPP)).contains(&n) {
+            Ok(Spp(n as u32))
+        } else {
+            Err(format!(
+                "expected samples per pixel from 1 to {MAX_SPP}, found {n}"
+            ))
+        }
+    }
+}
+
+impl Spp {
+    fn one() -> Self {
+        Spp(1)
+    }
 }
 
 /// Image size.
@@ -316,6 +386,9 @@ pub struct MarchDesc {
     pub opacity: Positive,
     /// Accumulated opacity at which a ray stops.
     pub threshold: Fraction,
+    /// The larger step of `--quality interactive` (default: 4 × `step`); `step`
+    /// itself is the high quality.
+    pub interactive_step: Option<StepDesc>,
 }
 
 #[derive(Deserialize)]
@@ -326,6 +399,8 @@ struct MarchFields {
     opacity: Positive,
     #[serde(default = "Fraction::threshold")]
     threshold: Fraction,
+    #[serde(default)]
+    interactive_step: Option<StepDesc>,
 }
 
 impl TryFrom<MarchFields> for MarchDesc {
@@ -339,11 +414,20 @@ impl TryFrom<MarchFields> for MarchDesc {
                 "march: step {step} is too small for bounds of diagonal {diagonal} (more than a million samples per ray)"
             ));
         }
+        if let Some(s) = f.interactive_step {
+            let s = s.length(diagonal);
+            if diagonal / s > 1.0e6 {
+                return Err(format!(
+                    "march: interactive_step {s} is too small for bounds of diagonal {diagonal}"
+                ));
+            }
+        }
         Ok(MarchDesc {
             bounds: f.bounds,
             step: f.step,
             opacity: f.opacity,
             threshold: f.threshold,
+            interactive_step: f.interactive_step,
         })
     }
 }
@@ -436,22 +520,31 @@ pub struct HypertextureDesc {
     pub object: Box<ObjectDesc>,
     /// Its DMFs, applied in order.
     pub modulation: Vec<DmfDesc>,
+    /// Gilet & Dischler's distortion, applied after the position DMFs.
+    pub distortion: Option<DistortionDesc>,
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename = "Hypertexture")]
 struct HypertextureFields {
     object: Box<ObjectDesc>,
+    #[serde(default)]
     modulation: Vec<DmfDesc>,
+    #[serde(default)]
+    distortion: Option<DistortionDesc>,
 }
 
 impl TryFrom<HypertextureFields> for HypertextureDesc {
     type Error = String;
     fn try_from(f: HypertextureFields) -> Result<Self, String> {
         check_chain(&f.object, &f.modulation)?;
+        if let Some(d) = &f.distortion {
+            check_distortion(&f.object, d)?;
+        }
         Ok(HypertextureDesc {
             object: f.object,
             modulation: f.modulation,
+            distortion: f.distortion,
         })
     }
 }
@@ -763,6 +856,13 @@ pub struct ShadingDesc {
     /// Phong exponent of the highlight.
     #[serde(default = "Positive::shininess")]
     pub shininess: Positive,
+    /// How the shading normal (the density gradient) is estimated.
+    #[serde(default)]
+    pub gradient: GradientDesc,
+    /// Self-shadowing: a secondary ray marched towards each light attenuates it by
+    /// the transmittance of the volume in between.
+    #[serde(default)]
+    pub shadows: bool,
 }
 
 impl Default for ShadingDesc {
@@ -771,8 +871,22 @@ impl Default for ShadingDesc {
             diffuse: NonNegative(1.0),
             specular: NonNegative(0.0),
             shininess: Positive(20.0),
+            gradient: GradientDesc::Forward,
+            shadows: false,
         }
     }
+}
+
+/// The finite differences that estimate the density gradient.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+pub enum GradientDesc {
+    /// Hypertexture's differences along the ray basis (two extra evaluations,
+    /// reusing the previous sample).
+    #[default]
+    Forward,
+    /// Central differences along x, y and z (six extra evaluations), as Gilet &
+    /// Dischler shade.
+    Central,
 }
 
 /// A curve through control points over [0, 1], e.g. colour over density.
@@ -841,6 +955,9 @@ pub enum Interpolation {
     Linear,
     /// Catmull–Rom spline through the points.
     Spline,
+    /// Constant from each key to the next: a step function (an opacity that
+    /// extracts an iso-surface).
+    Step,
 }
 
 macro_rules! checked_float {

@@ -6,6 +6,7 @@
 //! objects with every constant precomputed. After that nothing can fail.
 
 pub mod desc;
+pub mod distortion;
 
 use std::path::Path;
 
@@ -64,7 +65,24 @@ pub struct Overrides {
     pub width: Option<u32>,
     /// Image height in pixels.
     pub height: Option<u32>,
+    /// Samples per pixel (`--spp`).
+    pub spp: Option<u32>,
+    /// The marching step preset (`--quality`).
+    pub quality: Option<Quality>,
 }
+
+/// The two sampling presets of Gilet & Dischler's Figures 11–12.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Quality {
+    /// Interactive exploration: the scene's `interactive_step` (4 × `step` by default).
+    Interactive,
+    /// High quality: the scene's `step`.
+    #[default]
+    High,
+}
+
+/// How the shading normal is estimated (see [`desc::GradientDesc`]).
+pub use desc::GradientDesc as Gradient;
 
 /// Parses scene text; `path` names it in error messages.
 pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
@@ -187,6 +205,16 @@ pub struct Scene {
     pub(crate) support: Option<(Vec3, Vec3)>,
     /// The instruction-set path of the batch kernels (every path gives the same bits).
     pub(crate) isa: Isa,
+    /// Forward or central differences.
+    pub(crate) gradient: Gradient,
+    /// Secondary rays towards the lights.
+    pub(crate) shadows: bool,
+    /// Samples per pixel.
+    pub(crate) spp: u32,
+    /// Fraction of a frame the shutter is open (motion blur).
+    pub(crate) shutter: f32,
+    /// The scene's seed, also seeding the pixel samples' jitter.
+    pub(crate) seed: u64,
 }
 
 impl Scene {
@@ -206,6 +234,19 @@ impl Scene {
         if let Some(h) = overrides.height {
             desc.image.height = h;
         }
+        if let Some(spp) = overrides.spp {
+            desc.sampling.spp = desc::Spp::try_from(u64::from(spp))
+                .map_err(|e| SceneError::Override(format!("--spp: {e}")))?;
+        }
+        if overrides.quality == Some(Quality::Interactive) {
+            let diagonal = (desc.march.bounds.max.0 - desc.march.bounds.min.0).length();
+            desc.march.step = desc
+                .march
+                .interactive_step
+                .unwrap_or(desc::StepDesc::Length(desc::Positive(
+                    4.0 * desc.march.step.length(diagonal),
+                )));
+        }
         desc::check_resolution(desc.image.width, desc.image.height)
             .map_err(SceneError::Override)?;
         Ok(Scene::build(&desc))
@@ -215,12 +256,13 @@ impl Scene {
     pub fn build(desc: &SceneDesc) -> Scene {
         let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
         let step = desc.march.step.length((max - min).length());
-        let object = if desc.modulation.is_empty() {
+        let object = if desc.modulation.is_empty() && desc.distortion.is_none() {
             desc.object.clone()
         } else {
             ObjectDesc::Hypertexture(desc::HypertextureDesc {
                 object: Box::new(desc.object.clone()),
                 modulation: desc.modulation.clone(),
+                distortion: desc.distortion.clone(),
             })
         };
         let background = match desc.background {
@@ -283,6 +325,11 @@ impl Scene {
             flow: desc.flow.0,
             support,
             isa: Isa::detect(),
+            gradient: desc.shading.gradient,
+            shadows: desc.shading.shadows,
+            spp: desc.sampling.spp.0,
+            shutter: desc.sampling.shutter.0,
+            seed: desc.seed,
         }
     }
 
@@ -338,6 +385,16 @@ impl Scene {
         self.step
     }
 
+    /// Samples per pixel.
+    pub fn spp(&self) -> u32 {
+        self.spp
+    }
+
+    /// How far any distortion can carry density beyond the undistorted objects.
+    pub fn max_displacement(&self) -> f32 {
+        crate::distortion::max_displacement(&self.density)
+    }
+
     /// The hypertexture H(x) for `frame`, in [0, 1].
     pub fn density_at(&self, x: Vec3, frame: u32) -> f32 {
         self.density.eval(x, &self.field(frame))
@@ -349,6 +406,15 @@ impl Scene {
         crate::density::Field {
             noise: &self.noise,
             offset: self.flow * frame as f32,
+        }
+    }
+
+    /// The evaluation context at `time` frames (a frame plus a shutter offset).
+    #[inline]
+    pub(crate) fn field_at(&self, time: f32) -> crate::density::Field<'_> {
+        crate::density::Field {
+            noise: &self.noise,
+            offset: self.flow * time,
         }
     }
 }
