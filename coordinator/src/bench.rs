@@ -47,7 +47,11 @@ fn load(
     let scene = Scene::from_text(
         &text,
         &path.display().to_string(),
-        Overrides { width, height },
+        Overrides {
+            width,
+            height,
+            ..Overrides::default()
+        },
     )?;
     Ok((text, scene))
 }
@@ -104,6 +108,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             width: scene.width(),
             height: scene.height(),
             frame: 0,
+            knobs: Vec::new(),
         };
         let farm_config = farm::FarmConfig {
             listen: "127.0.0.1:0".parse().expect("a valid address"),

@@ -95,6 +95,8 @@ pub struct FrameJob {
     pub height: u32,
     /// Frame number.
     pub frame: u32,
+    /// Knob overrides (`--set`).
+    pub knobs: Vec<(String, f64)>,
 }
 
 /// What the farm reports when the frame is done.
@@ -323,12 +325,13 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     let shared = Arc::new(Shared {
         scheduler: Mutex::new(Scheduler::new(units, job.width, job.height, config.lease)),
         job: pb::Job {
-            scene_hash: convert::scene_hash(&job.scene_text, job.width, job.height),
+            scene_hash: convert::scene_hash(&job.scene_text, job.width, job.height, &job.knobs),
             scene_text: job.scene_text.clone(),
             scene_name: job.scene_name.clone(),
             width: job.width,
             height: job.height,
             frame: job.frame,
+            knobs: convert::knobs_to_wire(&job.knobs),
         },
         token: token.clone(),
         heartbeat,

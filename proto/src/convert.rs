@@ -120,20 +120,47 @@ pub fn samples_from_wire(values: &[f32], pixels: usize) -> Result<Vec<Sample>, W
         .collect())
 }
 
-/// The content hash of a job: FNV-1a over the scene text, then the size.
-/// Stable across machines and builds (workers cache scenes by it).
-pub fn scene_hash(text: &str, width: u32, height: u32) -> u64 {
+/// The content hash of a job: FNV-1a over the scene text, then the size, then
+/// each knob override (name, a 0 byte, the value's bits). Stable across machines
+/// and builds (workers cache scenes by it); without knobs it is the hash of
+/// (text, width, height) alone.
+pub fn scene_hash(text: &str, width: u32, height: u32, knobs: &[(String, f64)]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in text
+    let knob_bytes = knobs.iter().flat_map(|(name, value)| {
+        name.as_bytes()
+            .iter()
+            .copied()
+            .chain([0])
+            .chain(value.to_bits().to_le_bytes())
+    });
+    for b in text
         .as_bytes()
         .iter()
-        .chain(&width.to_le_bytes())
-        .chain(&height.to_le_bytes())
+        .copied()
+        .chain(width.to_le_bytes())
+        .chain(height.to_le_bytes())
+        .chain(knob_bytes)
     {
         h ^= u64::from(b);
         h = h.wrapping_mul(0x0000_0100_0000_01b3);
     }
     h
+}
+
+/// Knob overrides on the wire.
+pub fn knobs_to_wire(knobs: &[(String, f64)]) -> Vec<pb::KnobSetting> {
+    knobs
+        .iter()
+        .map(|(name, value)| pb::KnobSetting {
+            name: name.clone(),
+            value: *value,
+        })
+        .collect()
+}
+
+/// Knob overrides from the wire (checked against the scene when it is built).
+pub fn knobs_from_wire(knobs: &[pb::KnobSetting]) -> Vec<(String, f64)> {
+    knobs.iter().map(|k| (k.name.clone(), k.value)).collect()
 }
 
 #[cfg(test)]
@@ -192,9 +219,17 @@ mod tests {
 
     #[test]
     fn hash_depends_on_text_and_size() {
-        let h = scene_hash("Scene()", 10, 10);
-        assert_eq!(h, scene_hash("Scene()", 10, 10));
-        assert_ne!(h, scene_hash("Scene( )", 10, 10));
-        assert_ne!(h, scene_hash("Scene()", 10, 11));
+        let h = scene_hash("Scene()", 10, 10, &[]);
+        assert_eq!(h, scene_hash("Scene()", 10, 10, &[]));
+        assert_ne!(h, scene_hash("Scene( )", 10, 10, &[]));
+        assert_ne!(h, scene_hash("Scene()", 10, 11, &[]));
+        let knob = |v: f64| vec![("curliness".to_string(), v)];
+        assert_ne!(h, scene_hash("Scene()", 10, 10, &knob(0.5)));
+        assert_ne!(
+            scene_hash("Scene()", 10, 10, &knob(0.5)),
+            scene_hash("Scene()", 10, 10, &knob(0.6))
+        );
+        let wire = knobs_to_wire(&knob(0.5));
+        assert_eq!(knobs_from_wire(&wire), knob(0.5));
     }
 }

@@ -20,6 +20,10 @@ pub struct Field<'a> {
     pub noise: &'a Noise,
     /// Noise is evaluated at `x - offset` (`offset = frame · flow`).
     pub offset: Vec3,
+    /// The frame number (`frame` in expressions).
+    pub frame: u32,
+    /// Frames per second (`t = frame / frame_rate` in expressions).
+    pub frame_rate: f32,
 }
 
 impl Field<'_> {
@@ -58,6 +62,8 @@ pub enum Density {
     Min(Vec<Density>),
     /// An object with its own DMFs.
     Hypertexture(Box<Hypertexture>),
+    /// A density written as an expression (the Pixel Stream Editor), clamped to [0, 1].
+    Expression(Box<crate::pse::Program>),
 }
 
 impl Density {
@@ -132,13 +138,14 @@ impl Density {
             Density::Max(v) => v.iter().fold(0.0, |a, d| a.max(d.eval(x, field))),
             Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval(x, field))),
             Density::Hypertexture(h) => h.eval(x, field),
+            Density::Expression(p) => crate::shaping::clamp01(p.eval_scalar(x, 0.0, field)),
         }
     }
 
     /// x projected perpendicularly onto the inner (D = 1) surface; only primitives
     /// can project (checked at load for every DMF that needs it).
     #[inline]
-    fn project(&self, x: Vec3) -> Vec3 {
+    pub(crate) fn project(&self, x: Vec3) -> Vec3 {
         match self {
             Density::Sphere(s) => s.project(x),
             Density::Box(b) => b.project(x),

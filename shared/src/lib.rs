@@ -9,6 +9,7 @@
 //! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
 //! - [`march`], [`render`]: the ray marcher and the image/pixel drivers.
 //! - [`film`]: what each pixel records.
+//! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
 
 pub mod camera;
 pub mod curve;
@@ -17,6 +18,7 @@ pub mod film;
 pub mod interleave;
 pub mod march;
 pub mod noise;
+pub mod pse;
 pub mod random;
 pub mod render;
 pub mod scene;

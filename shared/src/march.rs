@@ -15,6 +15,7 @@ use glam::Vec3;
 use crate::camera::Ray;
 use crate::density::Field;
 use crate::film::Sample;
+use crate::pse::surface as pse;
 use crate::scene::{ColourIndex, Light, Scene};
 use crate::shaping::clamp01;
 
@@ -135,6 +136,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                 }
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
+            let shading_normal = pse::perturb_normal(scene, x, f, shading_normal, field);
             let key = match scene.colour_index {
                 ColourIndex::Density => f,
                 ColourIndex::Strata {
@@ -147,7 +149,7 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
                     0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
                 }
             };
-            let base = Vec3::from_array(scene.colour_map.eval(key));
+            let base = pse::surface_colour(scene, x, f, key, field);
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction);
             let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
             let alpha_k = 1.0 - libm::powf(1.0 - rho, scene.opacity_exponent);

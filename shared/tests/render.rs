@@ -11,6 +11,7 @@ fn scene(name: &str, size: u32) -> Scene {
         Overrides {
             width: Some(size),
             height: Some(size),
+            ..Overrides::default()
         },
     )
     .unwrap()
@@ -80,8 +81,9 @@ fn opacity_is_resolution_independent() {
     let size = Overrides {
         width: Some(48),
         height: Some(48),
+        ..Overrides::default()
     };
-    let coarse = Scene::from_text(&text, "fur.ron", size).unwrap();
+    let coarse = Scene::from_text(&text, "fur.ron", size.clone()).unwrap();
     let fine = Scene::from_text(
         &text.replace("Diagonal(200)", "Diagonal(400)"),
         "fur-fine.ron",

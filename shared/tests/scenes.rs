@@ -118,6 +118,7 @@ fn huge_resolution_is_refused() {
         Overrides {
             width: Some(0),
             height: None,
+            ..Overrides::default()
         },
     )
     .map(|_| ())

@@ -508,7 +508,8 @@ impl SceneCache {
     const CAPACITY: usize = 4;
 
     fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, String> {
-        let hash = convert::scene_hash(&job.scene_text, job.width, job.height);
+        let knobs = convert::knobs_from_wire(&job.knobs);
+        let hash = convert::scene_hash(&job.scene_text, job.width, job.height, &knobs);
         if hash != job.scene_hash {
             return Err(format!(
                 "content hash mismatch ({hash:016x} ≠ {:016x})",
@@ -524,6 +525,7 @@ impl SceneCache {
             Overrides {
                 width: Some(job.width),
                 height: Some(job.height),
+                knobs,
             },
         )
         .map_err(|e| e.to_string())?;
