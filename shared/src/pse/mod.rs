@@ -15,6 +15,7 @@
 
 pub mod compile;
 pub mod eval;
+pub mod fuzz;
 pub mod lexer;
 pub mod parser;
 pub mod surface;
