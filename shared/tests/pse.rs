@@ -111,3 +111,55 @@ fn expression_errors_name_the_file_position_the_expression_position_and_a_caret(
         "{e}"
     );
 }
+
+/// The notes' crawling-texture problem: evaluated at the object-space point, the
+/// marble and the density stay with a point of the moving, spinning sphere.
+#[test]
+fn a_solid_texture_in_object_space_sticks_to_its_moving_object() {
+    let text = scene_text("pse/spinning_marble.ron");
+    let desc = hypertexture::scene::parse(&text, "spinning_marble.ron").unwrap();
+    let knobs = hypertexture::scene::knob_values(&desc, &[]).unwrap();
+    let (speed, spin) = (knobs["speed"] as f32, knobs["spin"] as f32);
+    let centre = glam::Vec3::new(-0.4, 0.0, 0.0);
+    // A point of the sphere's soft region, in object space (its place at frame 0).
+    let o = centre + glam::Vec3::new(0.5, 0.3, 0.55);
+    let probe = |frame: u32, x: glam::Vec3| {
+        hypertexture::pse::surface::probe(
+            "[D(object(x)), marble(object(x)), marble(x)]",
+            Some(&desc),
+            &knobs,
+            x,
+            frame,
+        )
+        .unwrap()
+        .components
+    };
+    let at0 = probe(0, o);
+    assert!(at0[0] > 0.0 && at0[0] < 1.0, "in the soft region: {at0:?}");
+    let mut crawled = 0.0f64;
+    for frame in 1..8u32 {
+        // Where the object point is in the world at this frame.
+        let a = spin * frame as f32;
+        let q = o - centre;
+        let rotated = glam::Vec3::new(
+            q.x * libm::cosf(a) + q.z * libm::sinf(a),
+            q.y,
+            -q.x * libm::sinf(a) + q.z * libm::cosf(a),
+        );
+        let world = centre + rotated + glam::Vec3::new(speed * frame as f32, 0.0, 0.0);
+        let now = probe(frame, world);
+        assert!(
+            (now[0] - at0[0]).abs() < 1e-4,
+            "density sticks: {now:?} vs {at0:?}"
+        );
+        assert!(
+            (now[1] - at0[1]).abs() < 1e-3,
+            "marble sticks: {now:?} vs {at0:?}"
+        );
+        crawled += (now[2] - at0[2]).abs();
+    }
+    assert!(
+        crawled > 0.1,
+        "in world space the texture would crawl: {crawled}"
+    );
+}
