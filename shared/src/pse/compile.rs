@@ -1155,9 +1155,10 @@ impl<'a> Compiler<'a> {
         let saved_visible = std::mem::replace(&mut self.visible, index);
         let result = self.block(&f.body).map_err(|mut e| {
             if !e.message.starts_with("in function") {
+                let (line, column) = e.line_column(&f.source);
                 e.message = format!(
-                    "in function `{}` (offset {} of functions): {}",
-                    f.name, e.at, e.message
+                    "in function `{}`, at {line}:{column} of functions: {}",
+                    f.name, e.message
                 );
                 e.at = at;
             }
@@ -1194,7 +1195,9 @@ mod tests {
 
     fn ctx_eval(src: &str, x: Vec3) -> Result<[f32; 3], ExprError> {
         let knobs = BTreeMap::from([("freq".to_string(), 4.0)]);
-        let functions = parse_functions("fn sq(a) { a * a } fn quad(a) { sq(sq(a)) }").unwrap();
+        let functions =
+            parse_functions("fn sq(a) { a * a } fn quad(a) { sq(sq(a)) }\nfn bad(a) { a < 1 }")
+                .unwrap();
         let ctx = Context {
             knobs: &knobs,
             functions: &functions,
@@ -1287,6 +1290,14 @@ mod tests {
         assert!(err("noise(x, x)").message.contains("takes 1 argument"));
         assert!(err("project(x)").message.contains("Sphere"));
         assert!(err("sq(x, 1)").message.contains("takes 1"));
+        let e = err("1 + bad(x)");
+        assert_eq!(e.at, 4, "at the call");
+        assert!(
+            e.message
+                .starts_with("in function `bad`, at 2:13 of functions: `<` compares numbers"),
+            "{}",
+            e.message
+        );
         assert!(err("1 - x").message.contains("vector on the left"));
         let knobs = BTreeMap::new();
         let ctx = Context {

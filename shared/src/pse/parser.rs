@@ -127,6 +127,8 @@ pub struct FnDef {
     pub params: Vec<(String, usize)>,
     /// The body.
     pub body: Block,
+    /// The text of all the definitions (offsets in errors refer to it).
+    pub source: std::sync::Arc<str>,
 }
 
 const KEYWORDS: [&str; 4] = ["let", "if", "else", "fn"];
@@ -142,9 +144,10 @@ pub fn parse_expression(src: &str) -> Result<Block, ExprError> {
 /// Parses a list of function definitions.
 pub fn parse_definitions(src: &str) -> Result<Vec<FnDef>, ExprError> {
     let mut p = Parser::new(src)?;
+    let source: std::sync::Arc<str> = src.into();
     let mut defs = Vec::new();
     while p.peek() != &Tok::End {
-        defs.push(p.fndef()?);
+        defs.push(p.fndef(&source)?);
     }
     Ok(defs)
 }
@@ -264,7 +267,7 @@ impl Parser {
         Ok(())
     }
 
-    fn fndef(&mut self) -> Result<FnDef, ExprError> {
+    fn fndef(&mut self, source: &std::sync::Arc<str>) -> Result<FnDef, ExprError> {
         if !self.eat_keyword("fn") {
             return Err(self.unexpected("`fn`"));
         }
@@ -288,6 +291,7 @@ impl Parser {
             at,
             params,
             body,
+            source: std::sync::Arc::clone(source),
         })
     }
 
