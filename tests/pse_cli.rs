@@ -140,6 +140,30 @@ fn frames_write_a_numbered_sequence() {
         .collect();
     assert!(!dir.join("fire.png").exists() && !dir.join("fire_0004.png").exists());
     assert_ne!(frames[0], frames[1], "the corona moves");
+    // On the farm, each frame is split into pixel sets: the same bytes.
+    let farm = scratch("pse-frames-farm");
+    ok(&coordinator(&[
+        "--scene",
+        scene("pse/corona").to_str().unwrap(),
+        "--out",
+        farm.join("fire.png").to_str().unwrap(),
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--frames",
+        "1..4",
+        "--local-workers=2",
+        "--quiet",
+    ]));
+    for f in 1..=3 {
+        let name = format!("fire_{f:04}.png");
+        assert_eq!(
+            std::fs::read(dir.join(&name)).unwrap(),
+            std::fs::read(farm.join(&name)).unwrap(),
+            "{name}"
+        );
+    }
 }
 
 #[test]

@@ -25,6 +25,10 @@ use crate::shaping::{Bias, Gain};
 
 /// Most scene functions.
 pub const MAX_FUNCTIONS: usize = 64;
+/// Most noise evaluations one evaluation may do (counting every branch and the
+/// largest octave count where it is not a constant), so that no scene, however
+/// small its text, makes a sample arbitrarily slow.
+pub const MAX_NOISE_PER_SAMPLE: u32 = 4096;
 
 /// What an expression computes, which decides its type and its inputs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -231,6 +235,8 @@ struct Compiler<'a> {
     scope: Vec<(String, Val)>,
     /// Functions callable from the current body: `ctx.functions[..visible]`.
     visible: usize,
+    /// Noise evaluations of the ops so far (an upper bound per evaluation).
+    noise_cost: u32,
 }
 
 fn fold1(f: Fn1, a: f64) -> f64 {
@@ -296,6 +302,7 @@ impl<'a> Compiler<'a> {
             constants: HashMap::new(),
             scope: Vec::new(),
             visible: ctx.functions.len(),
+            noise_cost: 0,
         }
     }
 
@@ -304,6 +311,27 @@ impl<'a> Compiler<'a> {
             return Err(ExprError::new(
                 at,
                 format!("the expression compiles to more than {MAX_OPS} operations"),
+            ));
+        }
+        let octaves = |r: u8| match self.template.get(usize::from(r)) {
+            Some(&k) if self.state[usize::from(r)] == RegState::Fixed && k >= 0.0 => {
+                (k.min(16.0)) as u32
+            }
+            _ => 16,
+        };
+        self.noise_cost += match op {
+            Op::Noise(..) | Op::Improved(..) | Op::Density(..) => 1,
+            Op::VNoise(..) => 3,
+            Op::DNoise(..) => 6,
+            Op::Turbulence(_, _, o) | Op::Fbm(_, _, o) => octaves(o),
+            _ => 0,
+        };
+        if self.noise_cost > MAX_NOISE_PER_SAMPLE {
+            return Err(ExprError::new(
+                at,
+                format!(
+                    "the expression evaluates noise more than {MAX_NOISE_PER_SAMPLE} times per sample"
+                ),
             ));
         }
         self.ops.push(op);
@@ -1344,7 +1372,30 @@ mod tests {
             ..ctx
         };
         let e = compile_expression("f39(x.x)", Kind::Probe, &ctx).unwrap_err();
+        assert!(e.message.contains("noise more than"), "{}", e.message);
+        let mut defs = String::from("fn f0(a) { a * 2 + 1 }");
+        for i in 1..40 {
+            defs += &format!(" fn f{i}(a) {{ f{}(a) + f{}(a + 1) }}", i - 1, i - 1);
+        }
+        let functions = parse_functions(&defs).unwrap();
+        let ctx = Context {
+            functions: &functions,
+            ..ctx
+        };
+        let e = compile_expression("f39(x.x)", Kind::Probe, &ctx).unwrap_err();
         assert!(e.message.contains("operations"), "{}", e.message);
+        let sum = vec!["turbulence(x * 2, k)"; 100].join(" + ");
+        let k = BTreeMap::from([("k".to_string(), 16.0)]);
+        let heavy = Context { knobs: &k, ..ctx };
+        let e = compile_expression(&format!("({sum}) + ({sum}) + ({sum})"), Kind::Probe, &heavy)
+            .unwrap_err();
+        assert!(e.message.contains("noise more than"), "{}", e.message);
+        let k = BTreeMap::from([("k".to_string(), 4.0)]);
+        let light = Context { knobs: &k, ..ctx };
+        assert!(
+            compile_expression(&format!("({sum}) + ({sum}) + ({sum})"), Kind::Probe, &light)
+                .is_ok()
+        );
     }
 
     #[test]
