@@ -462,12 +462,14 @@ impl<'a> Compiler<'a> {
             ExprKind::Component(v, i) => {
                 let val = self.expr(v)?;
                 let parts = self.vector(val, v.at, "the value before `.x`, `.y` or `.z`")?;
-                for (j, s) in parts.iter().enumerate() {
-                    if j != usize::from(*i) {
-                        self.release(Val::S(*s));
+                let kept = parts[usize::from(*i)];
+                for s in parts {
+                    // `[s, s, s].x` shares s's register with the result.
+                    if s != kept {
+                        self.release(Val::S(s));
                     }
                 }
-                Ok(Val::S(parts[usize::from(*i)]))
+                Ok(Val::S(kept))
             }
             ExprKind::Unary(op, a) => {
                 let v = self.expr(a)?;
@@ -1011,13 +1013,16 @@ impl<'a> Compiler<'a> {
                         ),
                     ));
                 }
-                // a + (b - a) t, component by component.
+                // a + (b - a) t, component by component; a stays alive throughout.
+                self.pin(a.0, 1);
                 let diff = self.binary(BinOp::Sub, b.0, a.0, b.1, a.1, at)?;
                 let scaled = self.binary(BinOp::Mul, diff, Val::S(st), at, t.1, at)?;
                 self.pin(scaled, 1);
                 let out = self.binary(BinOp::Add, a.0, scaled, a.1, at, at)?;
                 self.pin(scaled, -1);
+                self.pin(a.0, -1);
                 self.release(scaled);
+                self.release(a.0);
                 self.release(t.0);
                 Ok(out)
             }
@@ -1256,6 +1261,20 @@ mod tests {
         assert_eq!(scalar("dot(x, [1, 0, 0]) + cross(x, [0, 0, 1]).y"), 0.0);
         assert_eq!(scalar("d"), 0.25);
         assert_eq!(scalar("mix(x, [0, 0, 0], 0.5).z"), 1.5);
+        // Temporaries as operands: no register is reused while still needed.
+        assert_eq!(
+            scalar("mix(x * 2, x * 3, 0.25).y"),
+            4.0 + (6.0 - 4.0) * 0.25
+        );
+        assert_eq!(
+            scalar("mix(x.x * 2, x.y * 4, 0.5)"),
+            2.0 + (8.0 - 2.0) * 0.5
+        );
+        assert_eq!(
+            scalar("[x.y * 2, 0, 0].x + [x.z + 0, x.z + 0, x.z + 0].y"),
+            7.0
+        );
+        assert_eq!(scalar("let s = x.y * 2; [s, s, s].z + s"), 8.0);
         assert_eq!(
             scalar("clamp(x.z, 0, 1) + smoothstep(0, 4, x.y) + min(1, 2) + max(x, -x).x"),
             3.5
