@@ -474,12 +474,18 @@ impl<'a> Compiler<'a> {
             ExprKind::Unary(op, a) => {
                 let v = self.expr(a)?;
                 match (op, v) {
-                    (UnOp::Neg, Val::S(s)) => self.neg(s, e.at).map(Val::S),
+                    (UnOp::Neg, Val::S(s)) => {
+                        let out = self.neg(s, e.at)?;
+                        self.release(v);
+                        Ok(Val::S(out))
+                    }
                     (UnOp::Neg, Val::V(p)) => {
+                        // Every component first: `-[s, s, s]` reads s three times.
                         let mut out = [S::K(0.0); 3];
                         for i in 0..3 {
                             out[i] = self.neg(p[i], e.at)?;
                         }
+                        self.release(v);
                         Ok(Val::V(out))
                     }
                     (UnOp::Not, v) => {
@@ -563,6 +569,7 @@ impl<'a> Compiler<'a> {
         })
     }
 
+    /// `-s` in a new register (the caller releases s).
     fn neg(&mut self, s: S, at: usize) -> Result<S, ExprError> {
         if let S::K(k) = s {
             return Ok(S::K(-k));
@@ -570,7 +577,6 @@ impl<'a> Compiler<'a> {
         let ra = self.reg(s, at)?;
         let d = self.alloc(at)?;
         self.emit(Op::Neg(d, ra), at)?;
-        self.release(Val::S(s));
         Ok(S::R(d))
     }
 
@@ -1021,9 +1027,9 @@ impl<'a> Compiler<'a> {
                 let out = self.binary(BinOp::Add, a.0, scaled, a.1, at, at)?;
                 self.pin(scaled, -1);
                 self.pin(a.0, -1);
+                // (t was released by the product that consumed it.)
                 self.release(scaled);
                 self.release(a.0);
-                self.release(t.0);
                 Ok(out)
             }
             "length" | "normalize" | "dot" | "cross" | "colour_map" | "vec" => {
@@ -1432,5 +1438,102 @@ mod tests {
         let p = compile_expression(&src, Kind::Density, &ctx).unwrap();
         assert!(p.len() >= 100);
         assert!(p.template.len() < 16, "{}", p.template.len());
+    }
+
+    /// A random well-typed expression and its value computed directly, in the
+    /// same f32 operations: the register code must agree bit for bit (this is
+    /// what caught `mix` reusing a live register).
+    fn random_expression(r: &mut crate::random::SplitMix64, x: Vec3, depth: u32) -> (String, f32) {
+        let leaf = |r: &mut crate::random::SplitMix64| match r.below(4) {
+            0 => ("x.x".to_string(), x.x),
+            1 => ("x.y".to_string(), x.y),
+            2 => ("x.z".to_string(), x.z),
+            _ => {
+                let k = r.below(5) as f32;
+                (format!("{k}"), k)
+            }
+        };
+        if depth == 0 {
+            return leaf(r);
+        }
+        let sub = |r: &mut crate::random::SplitMix64| random_expression(r, x, depth - 1);
+        match r.below(9) {
+            0 => leaf(r),
+            1 => {
+                let ((a, va), (b, vb)) = (sub(r), sub(r));
+                (format!("({a} + {b})"), va + vb)
+            }
+            2 => {
+                let ((a, va), (b, vb)) = (sub(r), sub(r));
+                (format!("({a} * {b})"), va * vb)
+            }
+            3 => {
+                let ((a, va), (b, vb)) = (sub(r), sub(r));
+                (format!("min({a}, {b})"), if vb < va { vb } else { va })
+            }
+            4 => {
+                let ((a, va), (b, vb), (c, vc), (d, vd)) = (sub(r), sub(r), sub(r), sub(r));
+                (
+                    format!(
+                        "if {a} < {b} {{ let v = {c}; let w = v; w * v - {d} }} else {{ {d} }}"
+                    ),
+                    if va < vb { vc * vc - vd } else { vd },
+                )
+            }
+            5 => {
+                let ((a, va), (b, vb), (t, vt)) = (sub(r), sub(r), sub(r));
+                (format!("mix({a}, {b}, {t})"), va + (vb - va) * vt)
+            }
+            6 => {
+                let ((a, va), (b, vb), (c, vc)) = (sub(r), sub(r), sub(r));
+                let i = r.below(3) as usize;
+                (
+                    format!("[{a}, {b}, {c}].{}", ["x", "y", "z"][i]),
+                    [va, vb, vc][i],
+                )
+            }
+            7 => {
+                let ((a, va), (b, vb)) = (sub(r), sub(r));
+                let i = r.below(3) as usize;
+                (
+                    format!("(-[{a}, {b}, {a}]).{}", ["x", "y", "z"][i]),
+                    -[va, vb, va][i],
+                )
+            }
+            _ => {
+                let ((a, va), (b, vb), (c, _)) = (sub(r), sub(r), sub(r));
+                (
+                    format!("(mix([{a}, {b}, {c}], [{c}, {a}, {b}], {b}) * {a}).y"),
+                    (vb + (va - vb) * vb) * va,
+                )
+            }
+        }
+    }
+
+    #[test]
+    fn register_code_agrees_with_direct_evaluation() {
+        let mut r = crate::random::SplitMix64::new(42);
+        let mut failures: Vec<String> = Vec::new();
+        for _ in 0..5000 {
+            let x = Vec3::new(
+                r.next_f32() * 4.0 - 2.0,
+                r.next_f32() * 4.0 - 2.0,
+                r.next_f32() * 4.0 - 2.0,
+            );
+            let (src, expected) = random_expression(&mut r, x, 4);
+            let Ok(got) = ctx_eval(&src, x) else {
+                continue; // too deep or too large: capped, not wrong
+            };
+            if got[0].to_bits() != expected.to_bits() {
+                failures.push(format!("{src} at {x}: {} vs {expected}", got[0]));
+            }
+        }
+        failures.sort_by_key(String::len);
+        assert!(
+            failures.is_empty(),
+            "{} failures, shortest: {}",
+            failures.len(),
+            failures.first().map_or("", |s| s)
+        );
     }
 }
