@@ -110,6 +110,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             frame: 0,
             spp: None,
             quality: None,
+            knobs: Vec::new(),
         };
         let farm_config = farm::FarmConfig {
             listen: "127.0.0.1:0".parse().expect("a valid address"),

@@ -69,7 +69,8 @@ pub struct Cli {
     /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
     #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
     pub interleave: u32,
-    /// Frame number (animated scenes drift their noise by frame · flow).
+    /// Frame number (animated scenes drift their noise by frame · flow; expressions
+    /// see `frame` and `t = frame / frame_rate`).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
     /// Samples per pixel: jittered positions, step phases and (with the scene's
@@ -80,6 +81,13 @@ pub struct Cli {
     /// default) or `high` (the scene's step, the default).
     #[arg(long, value_name = "PRESET")]
     pub quality: Option<QualityArg>,
+    /// Render frames A to B as a numbered sequence (A..B excludes B, A..=B includes
+    /// it): --out fire.png writes fire_0001.png, fire_0002.png, …
+    #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
+    pub frames: Option<(u32, u32)>,
+    /// Set a knob of the scene (repeatable): --set curliness=0.8.
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
+    pub set: Vec<(String, f64)>,
     /// No progress bar and no log lines; errors are still printed.
     #[arg(long, short)]
     pub quiet: bool,
@@ -112,6 +120,12 @@ pub enum Command {
     /// to paste into a scene's distortion (left to right: noise; top to bottom:
     /// density 0 to 1; white = 1).
     Grid(GridArgs),
+    /// Print the value of an expression at a point: a probe for designing
+    /// hypertextures, e.g. `coordinator eval "improved(3.14, 42, 7)"`.
+    Eval(EvalArgs),
+    /// Map the density channel of a rendered EXR to colour again, without
+    /// re-rendering (the 1985 paper's two-pass compositing).
+    Recolor(RecolorArgs),
 }
 
 /// Arguments of `coordinator grid`.
@@ -123,6 +137,41 @@ pub struct GridArgs {
     /// Most values a side (2 to 64); larger images are box-filtered down.
     #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u32).range(2..=64))]
     pub side: u32,
+}
+
+/// Arguments of `coordinator eval`.
+#[derive(Debug, clap::Args)]
+pub struct EvalArgs {
+    /// The expression, e.g. "turbulence(x * 4)".
+    #[arg(value_name = "EXPR")]
+    pub expression: String,
+    /// A scene whose knobs, functions, objects (D, named), colour map and noise
+    /// seed the expression may use.
+    #[arg(long, value_name = "FILE")]
+    pub scene: Option<PathBuf>,
+    /// The point x.
+    #[arg(long, value_name = "X,Y,Z", default_value = "0,0,0", value_parser = point)]
+    pub at: [f64; 3],
+    /// The frame (t = frame / frame_rate).
+    #[arg(long, value_name = "F", default_value_t = 0)]
+    pub frame: u32,
+    /// Set a knob of the scene (repeatable).
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
+    pub set: Vec<(String, f64)>,
+}
+
+/// Arguments of `coordinator recolor`.
+#[derive(Debug, clap::Args)]
+pub struct RecolorArgs {
+    /// An EXR written by the coordinator (it has a `density` channel).
+    #[arg(value_name = "IN.exr")]
+    pub input: PathBuf,
+    /// A colour map file, e.g. scenes/colormaps/fire.ron.
+    #[arg(long, value_name = "FILE")]
+    pub colormap: PathBuf,
+    /// The output image (.png or .exr).
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
 }
 
 /// Arguments of `coordinator bench`.
@@ -202,6 +251,8 @@ impl Cli {
             frame: self.frame,
             spp: self.spp,
             quality: self.quality.map(Into::into),
+            frames: self.frames,
+            knobs: self.set,
             progress: !self.quiet,
             farm,
         }
@@ -216,6 +267,57 @@ fn positive_seconds(s: &str) -> Result<f64, String> {
         Ok(v)
     } else {
         Err(format!("expected seconds between 0 and 86400, found {s}"))
+    }
+}
+
+/// `name=value`.
+fn knob_setting(s: &str) -> Result<(String, f64), String> {
+    let (name, value) = s
+        .split_once('=')
+        .ok_or_else(|| format!("expected KNOB=VALUE, found {s:?}"))?;
+    let value: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("knob {name}: expected a number, found {value:?}"))?;
+    if !value.is_finite() {
+        return Err(format!(
+            "knob {name}: expected a finite number, found {value}"
+        ));
+    }
+    Ok((name.trim().to_string(), value))
+}
+
+/// `A..B` (B excluded) or `A..=B` (B included), as the inclusive pair (A, last).
+fn frame_range(s: &str) -> Result<(u32, u32), String> {
+    let bad = || format!("expected frames A..B or A..=B, found {s:?}");
+    let (a, b, inclusive) = if let Some((a, b)) = s.split_once("..=") {
+        (a, b, true)
+    } else if let Some((a, b)) = s.split_once("..") {
+        (a, b, false)
+    } else {
+        return Err(bad());
+    };
+    let a: u32 = a.trim().parse().map_err(|_| bad())?;
+    let b: u32 = b.trim().parse().map_err(|_| bad())?;
+    let last = if inclusive { Some(b) } else { b.checked_sub(1) };
+    match last {
+        Some(last) if last >= a && last - a < 100_000 => Ok((a, last)),
+        _ => Err(format!(
+            "{s}: the range holds no frames (or more than 100000)"
+        )),
+    }
+}
+
+/// `x,y,z`.
+fn point(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("expected X,Y,Z, found {s:?}"))?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!("expected three finite numbers X,Y,Z, found {s:?}")),
     }
 }
 

@@ -99,6 +99,8 @@ pub struct FrameJob {
     pub spp: Option<u32>,
     /// Quality preset (`--quality`).
     pub quality: Option<hypertexture::Quality>,
+    /// Knob overrides (`--set`).
+    pub knobs: Vec<(String, f64)>,
 }
 
 /// What the farm reports when the frame is done.
@@ -332,6 +334,7 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
                 job.height,
                 job.spp.unwrap_or(0),
                 convert::quality_to_wire(job.quality) as i32,
+                &job.knobs,
             ),
             scene_text: job.scene_text.clone(),
             scene_name: job.scene_name.clone(),
@@ -340,6 +343,7 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
             frame: job.frame,
             spp: job.spp.unwrap_or(0),
             quality: convert::quality_to_wire(job.quality) as i32,
+            knobs: convert::knobs_to_wire(&job.knobs),
         },
         token: token.clone(),
         heartbeat,

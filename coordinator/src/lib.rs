@@ -10,6 +10,7 @@ pub mod local;
 pub mod logging;
 pub mod output;
 pub mod progress;
+pub mod recolor;
 pub mod scheduler;
 
 use std::io::IsTerminal;
@@ -38,6 +39,10 @@ pub struct Config {
     pub spp: Option<u32>,
     /// Marching step preset (default: the scene's step, i.e. high quality).
     pub quality: Option<hypertexture::Quality>,
+    /// Render this inclusive range of frames as a numbered sequence instead.
+    pub frames: Option<(u32, u32)>,
+    /// Knob overrides (`--set name=value`).
+    pub knobs: Vec<(String, f64)>,
     /// Show a progress bar when stderr is a terminal.
     pub progress: bool,
     /// Render on the farm with these options; `None`: in-process.
@@ -77,6 +82,8 @@ impl Config {
             frame: 0,
             spp: None,
             quality: None,
+            frames: None,
+            knobs: Vec::new(),
             progress: false,
             farm: None,
         }
@@ -106,6 +113,17 @@ pub enum CoordinatorError {
     /// The async runtime could not be started.
     #[error("cannot start the async runtime: {0}")]
     Runtime(std::io::Error),
+    /// An expression given on the command line is wrong.
+    #[error("{0}")]
+    Expression(String),
+    /// An image could not be recoloured.
+    #[error("{path}: {message}")]
+    Recolor {
+        /// The file at fault.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
     /// The render threads could not be started.
     #[error("cannot start {threads} render threads: {message}")]
     Threads {
@@ -125,6 +143,36 @@ pub struct Summary {
     pub out: PathBuf,
 }
 
+/// The file of frame `frame` of a sequence written to `out`: `fire.png` → `fire_0007.png`.
+pub fn frame_path(out: &std::path::Path, frame: u32) -> PathBuf {
+    let stem = out
+        .file_stem()
+        .map_or_else(|| "frame".into(), |s| s.to_string_lossy().into_owned());
+    let ext = out
+        .extension()
+        .map_or_else(String::new, |e| format!(".{}", e.to_string_lossy()));
+    out.with_file_name(format!("{stem}_{frame:04}{ext}"))
+}
+
+/// Renders every frame of `config.frames` (or the single `config.frame`) and writes
+/// each image; a sequence goes to numbered files beside `config.out`.
+pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
+    let Some((first, last)) = config.frames else {
+        return Ok(vec![run(config)?]);
+    };
+    output::ImageFormat::from_path(&config.out)?;
+    (first..=last)
+        .map(|frame| {
+            run(Config {
+                frame,
+                frames: None,
+                out: frame_path(&config.out, frame),
+                ..config.clone()
+            })
+        })
+        .collect()
+}
+
 /// Loads the scene, renders it (on the farm, or in-process) and writes the image.
 pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
@@ -138,6 +186,7 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
             height: config.height,
             spp: config.spp,
             quality: config.quality,
+            knobs: config.knobs.clone(),
         },
     )?;
     let (film, render_time, how) = match &config.farm {
@@ -211,6 +260,7 @@ pub fn render_on_farm(
         frame: config.frame,
         spp: config.spp,
         quality: config.quality,
+        knobs: config.knobs.clone(),
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,
@@ -231,6 +281,41 @@ pub fn render_on_farm(
         .build()
         .map_err(CoordinatorError::Runtime)?;
     Ok(runtime.block_on(farm::render(job, farm_config))?)
+}
+
+/// `coordinator eval`: the value of `expression` at `at` (see [`hypertexture::pse::surface::probe`]).
+pub fn eval(
+    expression: &str,
+    scene: Option<&std::path::Path>,
+    at: [f64; 3],
+    frame: u32,
+    knobs: &[(String, f64)],
+) -> Result<String, CoordinatorError> {
+    let desc = match scene {
+        Some(path) => {
+            let text = hypertexture::scene::read_text(path)?;
+            Some(hypertexture::scene::parse(
+                &text,
+                &path.display().to_string(),
+            )?)
+        }
+        None if !knobs.is_empty() => {
+            return Err(CoordinatorError::Expression(
+                "--set needs --scene (knobs are declared by a scene)".into(),
+            ));
+        }
+        None => None,
+    };
+    let values = match &desc {
+        Some(d) => hypertexture::scene::knob_values(d, knobs)?,
+        None => Default::default(),
+    };
+    let x = glam::Vec3::new(at[0] as f32, at[1] as f32, at[2] as f32);
+    hypertexture::pse::surface::probe(expression, desc.as_ref(), &values, x, frame)
+        .map(|p| p.to_string())
+        .map_err(|f| {
+            CoordinatorError::Expression(format!("{}: {}", f.field, f.error.render(&f.source)))
+        })
 }
 
 /// Renders the whole frame on a pool of `threads` threads in this process.

@@ -16,9 +16,21 @@ fn main() -> ExitCode {
             .map(|grid| {
                 println!("{grid}");
             }),
+        Some(Command::Eval(args)) => coordinator::eval(
+            &args.expression,
+            args.scene.as_deref(),
+            args.at,
+            args.frame,
+            &args.set,
+        )
+        .map(|value| println!("{value}")),
+        Some(Command::Recolor(args)) => {
+            coordinator::logging::init(false);
+            coordinator::recolor::run(&args.input, &args.colormap, &args.out)
+        }
         None => {
             coordinator::logging::init(cli.quiet);
-            coordinator::run(cli.into_config()).map(|_| ())
+            coordinator::run_all(cli.into_config()).map(|_| ())
         }
     };
     match result {

@@ -142,17 +142,34 @@ pub fn samples_from_wire(bytes: &[u8], pixels: usize) -> Result<Vec<Sample>, Wir
 }
 
 /// The content hash of a job: FNV-1a over the scene text, then the size, the
-/// samples per pixel and the quality (everything that changes the pixels).
-/// Stable across machines and builds (workers cache scenes by it).
-pub fn scene_hash(text: &str, width: u32, height: u32, spp: u32, quality: i32) -> u64 {
+/// samples per pixel, the quality and each knob override (name, a 0 byte, the
+/// value's bits): everything that changes the pixels. Stable across machines
+/// and builds (workers cache scenes by it).
+pub fn scene_hash(
+    text: &str,
+    width: u32,
+    height: u32,
+    spp: u32,
+    quality: i32,
+    knobs: &[(String, f64)],
+) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in text
+    let knob_bytes = knobs.iter().flat_map(|(name, value)| {
+        name.as_bytes()
+            .iter()
+            .copied()
+            .chain([0])
+            .chain(value.to_bits().to_le_bytes())
+    });
+    for b in text
         .as_bytes()
         .iter()
-        .chain(&width.to_le_bytes())
-        .chain(&height.to_le_bytes())
-        .chain(&spp.to_le_bytes())
-        .chain(&quality.to_le_bytes())
+        .copied()
+        .chain(width.to_le_bytes())
+        .chain(height.to_le_bytes())
+        .chain(spp.to_le_bytes())
+        .chain(quality.to_le_bytes())
+        .chain(knob_bytes)
     {
         h ^= u64::from(b);
         h = h.wrapping_mul(0x0000_0100_0000_01b3);
@@ -182,6 +199,22 @@ pub fn quality_from_wire(quality: i32) -> Result<Option<Quality>, WireError> {
 /// Samples per pixel from the wire: 0 means the scene's own.
 pub fn spp_from_wire(spp: u32) -> Option<u32> {
     (spp != 0).then_some(spp)
+}
+
+/// Knob overrides on the wire.
+pub fn knobs_to_wire(knobs: &[(String, f64)]) -> Vec<pb::KnobSetting> {
+    knobs
+        .iter()
+        .map(|(name, value)| pb::KnobSetting {
+            name: name.clone(),
+            value: *value,
+        })
+        .collect()
+}
+
+/// Knob overrides from the wire (checked against the scene when it is built).
+pub fn knobs_from_wire(knobs: &[pb::KnobSetting]) -> Vec<(String, f64)> {
+    knobs.iter().map(|k| (k.name.clone(), k.value)).collect()
 }
 
 #[cfg(test)]
@@ -243,13 +276,21 @@ mod tests {
     }
 
     #[test]
-    fn hash_depends_on_text_size_and_sampling() {
-        let h = scene_hash("Scene()", 10, 10, 0, 0);
-        assert_eq!(h, scene_hash("Scene()", 10, 10, 0, 0));
-        assert_ne!(h, scene_hash("Scene( )", 10, 10, 0, 0));
-        assert_ne!(h, scene_hash("Scene()", 10, 11, 0, 0));
-        assert_ne!(h, scene_hash("Scene()", 10, 10, 4, 0));
-        assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 1));
+    fn hash_depends_on_text_size_sampling_and_knobs() {
+        let h = scene_hash("Scene()", 10, 10, 0, 0, &[]);
+        assert_eq!(h, scene_hash("Scene()", 10, 10, 0, 0, &[]));
+        assert_ne!(h, scene_hash("Scene( )", 10, 10, 0, 0, &[]));
+        assert_ne!(h, scene_hash("Scene()", 10, 11, 0, 0, &[]));
+        assert_ne!(h, scene_hash("Scene()", 10, 10, 4, 0, &[]));
+        assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 1, &[]));
+        let knob = |v: f64| vec![("curliness".to_string(), v)];
+        assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 0, &knob(0.5)));
+        assert_ne!(
+            scene_hash("Scene()", 10, 10, 0, 0, &knob(0.5)),
+            scene_hash("Scene()", 10, 10, 0, 0, &knob(0.6))
+        );
+        let wire = knobs_to_wire(&knob(0.5));
+        assert_eq!(knobs_from_wire(&wire), knob(0.5));
     }
 
     #[test]

@@ -22,6 +22,13 @@ pub struct Field<'a> {
     pub noise: &'a Noise,
     /// Noise is evaluated at `x - offset` (`offset = frame · flow`).
     pub offset: Vec3,
+    /// The frame number (`frame` in expressions).
+    pub frame: u32,
+    /// The time in frames: `frame`, or within a frame while the shutter of
+    /// motion blur is open (`t = time / frame_rate` in expressions).
+    pub time: f32,
+    /// Frames per second (`t = frame / frame_rate` in expressions).
+    pub frame_rate: f32,
 }
 
 impl Field<'_> {
@@ -60,6 +67,8 @@ pub enum Density {
     Min(Vec<Density>),
     /// An object with its own DMFs.
     Hypertexture(Box<Hypertexture>),
+    /// A density written as an expression (the Pixel Stream Editor), clamped to [0, 1].
+    Expression(Box<crate::pse::Program>),
 }
 
 impl Density {
@@ -133,13 +142,14 @@ impl Density {
             Density::Max(v) => v.iter().fold(0.0, |a, d| a.max(d.eval(x, field))),
             Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval(x, field))),
             Density::Hypertexture(h) => h.eval(x, field),
+            Density::Expression(p) => crate::shaping::clamp01(p.eval_scalar(x, 0.0, field)),
         }
     }
 
     /// x projected perpendicularly onto the inner (D = 1) surface; only primitives
     /// can project (checked at load for every DMF that needs it).
     #[inline]
-    fn project(&self, x: Vec3) -> Vec3 {
+    pub(crate) fn project(&self, x: Vec3) -> Vec3 {
         match self {
             Density::Sphere(s) => s.project(x),
             Density::Box(b) => b.project(x),
@@ -513,6 +523,8 @@ impl Density {
             Density::Sphere(s) => each(x, |p| s.density(p)),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            // The expression's register code runs one point at a time.
+            Density::Expression(_) => each(x, |p| self.eval(p, field)),
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
                 zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
             }),
@@ -768,7 +780,8 @@ impl Density {
             Density::Union(v) | Density::Max(v) => all(v, hull),
             Density::Intersection(v) | Density::Min(v) => meet_known(v),
             Density::Difference(a, _) => a.support(),
-            Density::Complement(_) => None,
+            // Complements and expressions may be non-zero anywhere.
+            Density::Complement(_) | Density::Expression(_) => None,
             Density::Hypertexture(h) => h.support(),
         }
     }

@@ -416,7 +416,7 @@ fn k_bound(terms: &[(f32, f32, Operator)]) -> f32 {
 /// the undistorted objects as empty.
 pub fn max_displacement(density: &Density) -> f32 {
     match density {
-        Density::Sphere(_) | Density::Box(_) | Density::Torus(_) => 0.0,
+        Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Expression(_) => 0.0,
         Density::Union(v) | Density::Intersection(v) | Density::Max(v) | Density::Min(v) => {
             v.iter().map(max_displacement).fold(0.0, f32::max)
         }
@@ -526,6 +526,9 @@ mod tests {
         let field = Field {
             noise: &noise,
             offset: Vec3::ZERO,
+            frame: 0,
+            time: 0.0,
+            frame_rate: 24.0,
         };
         let k = d.factor(Vec3::new(0.3, 0.1, 0.7), Vec3::Y, 0.0, &field);
         assert!((k - (0.2 * 0.5 + 0.5 + 0.1)).abs() < 1e-6, "{k}");

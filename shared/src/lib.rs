@@ -9,6 +9,7 @@
 //! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
 //! - [`march`], [`render`]: the ray marcher and the image/pixel drivers.
 //! - [`film`]: what each pixel records.
+//! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
 
 pub mod camera;
 pub mod curve;
@@ -20,6 +21,7 @@ pub mod interleave;
 pub mod lighting;
 pub mod march;
 pub mod noise;
+pub mod pse;
 pub mod random;
 pub mod render;
 pub mod sampling;

@@ -17,6 +17,7 @@ use crate::density::{Field, Points};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::noise::{LANES, Lanes};
+use crate::pse::surface as pse;
 use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
 
@@ -287,6 +288,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                 }
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
+            let shading_normal = pse::perturb_normal(scene, x, f, shading_normal, field);
             let key = match scene.colour_index {
                 ColourIndex::Density => f,
                 ColourIndex::Strata {
@@ -299,7 +301,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                     0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
                 }
             };
-            let base = Vec3::from_array(scene.colour_map.eval(key));
+            let base = pse::surface_colour(scene, x, f, key, field);
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;

@@ -83,7 +83,7 @@ fn opacity_is_resolution_independent() {
         height: Some(48),
         ..Overrides::default()
     };
-    let coarse = Scene::from_text(&text, "fur.ron", size).unwrap();
+    let coarse = Scene::from_text(&text, "fur.ron", size.clone()).unwrap();
     let fine = Scene::from_text(
         &text.replace("Diagonal(200)", "Diagonal(400)"),
         "fur-fine.ron",

@@ -508,8 +508,15 @@ impl SceneCache {
     const CAPACITY: usize = 4;
 
     fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, String> {
-        let hash =
-            convert::scene_hash(&job.scene_text, job.width, job.height, job.spp, job.quality);
+        let knobs = convert::knobs_from_wire(&job.knobs);
+        let hash = convert::scene_hash(
+            &job.scene_text,
+            job.width,
+            job.height,
+            job.spp,
+            job.quality,
+            &knobs,
+        );
         if hash != job.scene_hash {
             return Err(format!(
                 "content hash mismatch ({hash:016x} ≠ {:016x})",
@@ -527,6 +534,7 @@ impl SceneCache {
                 height: Some(job.height),
                 spp: convert::spp_from_wire(job.spp),
                 quality: convert::quality_from_wire(job.quality).map_err(|e| e.to_string())?,
+                knobs,
             },
         )
         .map_err(|e| e.to_string())?;

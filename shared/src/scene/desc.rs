@@ -6,6 +6,8 @@
 //! Checks that relate several fields run when their struct is complete and point
 //! at its end.
 
+use std::collections::BTreeMap;
+
 use serde::Deserialize;
 
 pub use super::distortion::{DistortionDesc, check_distortion};
@@ -65,6 +67,30 @@ pub struct SceneDesc {
     /// Samples per pixel and the shutter of motion blur.
     #[serde(default)]
     pub sampling: SamplingDesc,
+    /// Named parameters of the expressions, with defaults and ranges; `--set`
+    /// overrides them.
+    #[serde(default)]
+    pub knobs: BTreeMap<String, KnobDesc>,
+    /// Scene functions: `fn name(a, b) { ... }` definitions the expressions call.
+    #[serde(default)]
+    pub functions: Option<String>,
+    /// Named soft objects the expressions call by name: `core(x)`.
+    #[serde(default)]
+    pub objects: BTreeMap<String, ObjectDesc>,
+    /// The hypertexture as an expression of x (replaces `object` + `modulation`,
+    /// which it calls as `D(x)`).
+    #[serde(default)]
+    pub density: Option<String>,
+    /// Colour of a sample as an expression of x and its density d (replaces
+    /// `colour_map` lookup; `colour_map(s)` is still callable).
+    #[serde(default)]
+    pub colour: Option<String>,
+    /// A vector added to the shading normal, an expression of x and d (bumps, waves).
+    #[serde(default)]
+    pub normal_perturbation: Option<String>,
+    /// Frames per second of the time `t = frame / frame_rate`.
+    #[serde(default = "Positive::frame_rate")]
+    pub frame_rate: Positive,
 }
 
 #[derive(Deserialize)]
@@ -115,6 +141,20 @@ struct SceneFields {
     /// Samples per pixel and the shutter of motion blur.
     #[serde(default)]
     sampling: SamplingDesc,
+    #[serde(default)]
+    knobs: BTreeMap<String, KnobDesc>,
+    #[serde(default)]
+    functions: Option<String>,
+    #[serde(default)]
+    objects: BTreeMap<String, ObjectDesc>,
+    #[serde(default)]
+    density: Option<String>,
+    #[serde(default)]
+    colour: Option<String>,
+    #[serde(default)]
+    normal_perturbation: Option<String>,
+    #[serde(default = "Positive::frame_rate")]
+    frame_rate: Positive,
 }
 
 impl TryFrom<SceneFields> for SceneDesc {
@@ -123,6 +163,27 @@ impl TryFrom<SceneFields> for SceneDesc {
         check_chain(&f.object, &f.modulation)?;
         if let Some(d) = &f.distortion {
             check_distortion(&f.object, d)?;
+        }
+        if f.objects.len() > MAX_NAMED_OBJECTS {
+            return Err(format!(
+                "objects: at most {MAX_NAMED_OBJECTS} named objects, found {}",
+                f.objects.len()
+            ));
+        }
+        for name in f.objects.keys() {
+            check_name("objects", name)?;
+            if f.knobs.contains_key(name) {
+                return Err(format!("`{name}` is both a knob and an object"));
+            }
+        }
+        if f.knobs.len() > MAX_KNOBS {
+            return Err(format!(
+                "knobs: at most {MAX_KNOBS} knobs, found {}",
+                f.knobs.len()
+            ));
+        }
+        for name in f.knobs.keys() {
+            check_name("knobs", name)?;
         }
         Ok(SceneDesc {
             image: f.image,
@@ -141,6 +202,83 @@ impl TryFrom<SceneFields> for SceneDesc {
             flow: f.flow,
             distortion: f.distortion,
             sampling: f.sampling,
+            knobs: f.knobs,
+            functions: f.functions,
+            objects: f.objects,
+            density: f.density,
+            colour: f.colour,
+            normal_perturbation: f.normal_perturbation,
+            frame_rate: f.frame_rate,
+        })
+    }
+}
+
+/// Most knobs a scene may declare.
+pub const MAX_KNOBS: usize = 64;
+/// Most named objects a scene may declare.
+pub const MAX_NAMED_OBJECTS: usize = 64;
+
+/// Names the expression language keeps for itself.
+const RESERVED: [&str; 8] = ["x", "t", "frame", "d", "pi", "let", "if", "else"];
+
+/// A knob or object name must be an identifier the expressions can spell.
+fn check_name(what: &str, name: &str) -> Result<(), String> {
+    let mut chars = name.chars();
+    let ok = chars
+        .next()
+        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && name.len() <= 64;
+    if !ok {
+        return Err(format!(
+            "{what}: `{name}` is not a name (letters, digits and _, not starting with a digit)"
+        ));
+    }
+    if RESERVED.contains(&name) || name == "fn" || name == "D" {
+        return Err(format!(
+            "{what}: `{name}` is reserved by the expression language"
+        ));
+    }
+    Ok(())
+}
+
+/// A named parameter of the scene's expressions (Perlin's knobs: length,
+/// fineness, curliness…), with its default and allowed range.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "KnobFields")]
+pub struct KnobDesc {
+    /// The value unless overridden.
+    pub default: f64,
+    /// Smallest allowed value.
+    pub min: f64,
+    /// Largest allowed value.
+    pub max: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Knob")]
+struct KnobFields {
+    default: f64,
+    min: f64,
+    max: f64,
+}
+
+impl TryFrom<KnobFields> for KnobDesc {
+    type Error = String;
+    fn try_from(f: KnobFields) -> Result<Self, String> {
+        if !(f.default.is_finite() && f.min.is_finite() && f.max.is_finite()) {
+            return Err("knob: default, min and max must be finite numbers".into());
+        }
+        if !(f.min <= f.default && f.default <= f.max) {
+            return Err(format!(
+                "knob: the default {} must lie in [min, max] = [{}, {}]",
+                f.default, f.min, f.max
+            ));
+        }
+        Ok(KnobDesc {
+            default: f.default,
+            min: f.min,
+            max: f.max,
         })
     }
 }
@@ -1015,6 +1153,9 @@ checked_float!(
 impl Positive {
     fn one() -> Self {
         Positive(1.0)
+    }
+    fn frame_rate() -> Self {
+        Positive(24.0)
     }
     fn shininess() -> Self {
         Positive(20.0)

@@ -8,6 +8,7 @@
 pub mod desc;
 pub mod distortion;
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use glam::Vec3;
@@ -56,10 +57,26 @@ pub enum SceneError {
     /// An override (from the command line) is out of range.
     #[error("{0}")]
     Override(String),
+    /// An expression does not parse, names something unknown or mixes types.
+    /// `line:column` is the spot in the scene file; `detail` gives the line and
+    /// column inside the expression, the expression's line and a caret.
+    #[error("{path}:{line}:{column}: {field}: {detail}")]
+    Expression {
+        /// The scene file.
+        path: String,
+        /// 1-based line in the file.
+        line: usize,
+        /// 1-based column in the file.
+        column: usize,
+        /// The scene field holding the expression (`density`, `colour`, …).
+        field: String,
+        /// `line:column: message`, the expression's line, a caret under the spot.
+        detail: String,
+    },
 }
 
 /// Settings that replace the scene file's own at load time (from the command line).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Overrides {
     /// Image width in pixels.
     pub width: Option<u32>,
@@ -69,6 +86,87 @@ pub struct Overrides {
     pub spp: Option<u32>,
     /// The marching step preset (`--quality`).
     pub quality: Option<Quality>,
+    /// Knob values (`--set name=value`), applied in order.
+    pub knobs: Vec<(String, f64)>,
+}
+
+/// A compile error of one of the scene's expressions, before it is located in the file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpressionFailure {
+    /// The scene field.
+    pub field: String,
+    /// The expression text.
+    pub source: String,
+    /// What went wrong where.
+    pub error: crate::pse::ExprError,
+}
+
+impl ExpressionFailure {
+    /// The error located in the scene file `text` named `path`: the file position of
+    /// the spot when the expression appears verbatim in the file (no escapes), else
+    /// of the field's name.
+    pub fn locate(&self, text: &str, path: &str) -> SceneError {
+        let offset = if self.source.is_empty() {
+            None
+        } else {
+            text.find(&self.source)
+                .map(|i| i + self.error.at.min(self.source.len()))
+        }
+        .or_else(|| text.find(&format!("{}:", self.field)))
+        .unwrap_or(0);
+        let before = &text[..floor_boundary(text, offset)];
+        let line = before.matches('\n').count() + 1;
+        let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+        SceneError::Expression {
+            path: path.to_string(),
+            line,
+            column,
+            field: self.field.clone(),
+            detail: self.error.render(&self.source),
+        }
+    }
+}
+
+fn floor_boundary(s: &str, mut i: usize) -> usize {
+    i = i.min(s.len());
+    while !s.is_char_boundary(i) {
+        i -= 1;
+    }
+    i
+}
+
+/// The knob values of `desc` after applying `overrides` (each checked: known name,
+/// inside the declared range).
+pub fn knob_values(
+    desc: &SceneDesc,
+    overrides: &[(String, f64)],
+) -> Result<BTreeMap<String, f64>, SceneError> {
+    let mut values: BTreeMap<String, f64> = desc
+        .knobs
+        .iter()
+        .map(|(k, v)| (k.clone(), v.default))
+        .collect();
+    for (name, value) in overrides {
+        let Some(knob) = desc.knobs.get(name) else {
+            let known: Vec<&str> = desc.knobs.keys().map(String::as_str).collect();
+            return Err(SceneError::Override(if known.is_empty() {
+                format!("--set {name}: the scene has no knobs")
+            } else {
+                format!(
+                    "--set {name}: unknown knob; the scene's knobs are {}",
+                    known.join(", ")
+                )
+            }));
+        };
+        if !(value.is_finite() && knob.min <= *value && *value <= knob.max) {
+            return Err(SceneError::Override(format!(
+                "--set {name}={value}: outside the knob's range [{}, {}]",
+                knob.min, knob.max
+            )));
+        }
+        values.insert(name.clone(), *value);
+    }
+    Ok(values)
 }
 
 /// The two sampling presets of Gilet & Dischler's Figures 11–12.
@@ -97,6 +195,26 @@ pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
     options
         .from_str::<SceneDesc>(text)
+        .map_err(|e| SceneError::Parse {
+            path: path.to_string(),
+            line: e.span.start.line,
+            column: e.span.start.col,
+            message: e.code.to_string(),
+        })
+}
+
+/// Parses a colour map file (the format of a scene's `colour_map`: `(interpolation:
+/// Spline, points: [(0.0, (r, g, b)), …])`); `path` names it in error messages.
+pub fn parse_colour_map(text: &str, path: &str) -> Result<Curve<3>, SceneError> {
+    if text.len() > MAX_SCENE_BYTES {
+        return Err(SceneError::TooLarge {
+            path: path.to_string(),
+            size: text.len(),
+        });
+    }
+    ron::Options::default()
+        .from_str::<desc::CurveDesc<desc::Rgb>>(text)
+        .map(|d| Curve::colours(&d))
         .map_err(|e| SceneError::Parse {
             path: path.to_string(),
             line: e.span.start.line,
@@ -215,6 +333,12 @@ pub struct Scene {
     pub(crate) shutter: f32,
     /// The scene's seed, also seeding the pixel samples' jitter.
     pub(crate) seed: u64,
+    /// Frames per second of the expressions' time t.
+    pub(crate) frame_rate: f32,
+    /// The colour of a sample, when written as an expression.
+    pub(crate) colour_expression: Option<crate::pse::Program>,
+    /// The normal perturbation expression (bumps, waves).
+    pub(crate) normal_perturbation: Option<crate::pse::Program>,
 }
 
 impl Scene {
@@ -249,22 +373,19 @@ impl Scene {
         }
         desc::check_resolution(desc.image.width, desc.image.height)
             .map_err(SceneError::Override)?;
-        Ok(Scene::build(&desc))
+        let knobs = knob_values(&desc, &overrides.knobs)?;
+        Scene::build(&desc, &knobs).map_err(|f| f.locate(text, path))
     }
 
-    /// Builds the runtime scene from a checked description.
-    pub fn build(desc: &SceneDesc) -> Scene {
+    /// Builds the runtime scene from a checked description and its knob values,
+    /// compiling the expressions.
+    pub fn build(
+        desc: &SceneDesc,
+        knobs: &BTreeMap<String, f64>,
+    ) -> Result<Scene, ExpressionFailure> {
         let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
         let step = desc.march.step.length((max - min).length());
-        let object = if desc.modulation.is_empty() && desc.distortion.is_none() {
-            desc.object.clone()
-        } else {
-            ObjectDesc::Hypertexture(desc::HypertextureDesc {
-                object: Box::new(desc.object.clone()),
-                modulation: desc.modulation.clone(),
-                distortion: desc.distortion.clone(),
-            })
-        };
+        let object = Scene::object_with_modulation(desc);
         let background = match desc.background {
             BackgroundDesc::Transparent => Background::Transparent,
             BackgroundDesc::Colour(c) => Background::Colour(Vec3::from_array(c.0)),
@@ -300,9 +421,12 @@ impl Scene {
                 octaves: clamped_octaves(frequency.0, step, octaves.0),
             },
         };
-        let density = Density::build(&object, step);
+        let colour_map = Curve::colours(&desc.colour_map);
+        let exprs =
+            crate::pse::surface::SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
+        let density = exprs.density;
         let support = Scene::widened_support(&density, step, (min, max));
-        Scene {
+        Ok(Scene {
             width: desc.image.width,
             height: desc.image.height,
             camera: Camera::new(&desc.camera, desc.image.width, desc.image.height),
@@ -312,7 +436,7 @@ impl Scene {
             threshold: desc.march.threshold.0,
             density,
             noise: Noise::new(desc.seed),
-            colour_map: Curve::colours(&desc.colour_map),
+            colour_map,
             colour_index,
             alpha_map: desc.alpha_map.as_ref().map(Curve::scalars),
             refraction: desc.refraction.as_ref().map(Curve::scalars),
@@ -330,6 +454,22 @@ impl Scene {
             spp: desc.sampling.spp.0,
             shutter: desc.sampling.shutter.0,
             seed: desc.seed,
+            frame_rate: desc.frame_rate.0,
+            colour_expression: exprs.colour,
+            normal_perturbation: exprs.normal_perturbation,
+        })
+    }
+
+    /// The scene's object with its modulation: what expressions call `D`.
+    pub fn object_with_modulation(desc: &SceneDesc) -> ObjectDesc {
+        if desc.modulation.is_empty() && desc.distortion.is_none() {
+            desc.object.clone()
+        } else {
+            ObjectDesc::Hypertexture(desc::HypertextureDesc {
+                object: Box::new(desc.object.clone()),
+                modulation: desc.modulation.clone(),
+                distortion: desc.distortion.clone(),
+            })
         }
     }
 
@@ -406,6 +546,9 @@ impl Scene {
         crate::density::Field {
             noise: &self.noise,
             offset: self.flow * frame as f32,
+            frame,
+            time: frame as f32,
+            frame_rate: self.frame_rate,
         }
     }
 
@@ -415,6 +558,9 @@ impl Scene {
         crate::density::Field {
             noise: &self.noise,
             offset: self.flow * time,
+            frame: time as u32,
+            time,
+            frame_rate: self.frame_rate,
         }
     }
 }

@@ -1,0 +1,409 @@
+//! The compiled form of an expression and its evaluator.
+//!
+//! A [`Program`] is a list of [`Op`]s over a register file of at most
+//! [`MAX_REGISTERS`] floats (registers are `u8`s, so no index can be out of
+//! range). The register file lives on the stack and starts as a copy of the
+//! program's template (inputs, then constants). Jumps only go forward, so a run
+//! takes at most one step per operation: evaluation always terminates, never
+//! allocates, and cannot fail. Vectors are three scalar registers; vector
+//! arithmetic was lowered to scalar operations by the compiler.
+//!
+//! Only IEEE basic operations and `libm` are used, in a fixed order, so every CPU
+//! computes the same bits, and the built-ins call the very functions the native
+//! DMFs call (noise, turbulence, bias, gain, the soft objects' density and
+//! projection), so an expression of a native DMF gives the same image.
+
+use glam::Vec3;
+
+use crate::curve::Curve;
+use crate::density::{Density, Field};
+use crate::shaping::{Bias, Gain};
+
+/// Registers per program: `u8` register names index a `[f32; 256]` file.
+pub const MAX_REGISTERS: usize = 256;
+/// Operations per program (after inlining scene functions).
+pub const MAX_OPS: usize = 16_384;
+
+/// Register of x.x (x.y, x.z follow).
+pub const REG_X: u8 = 0;
+/// Register of the time t.
+pub const REG_T: u8 = 3;
+/// Register of the frame number.
+pub const REG_FRAME: u8 = 4;
+/// Register of d, the density at the sample (colour and normal expressions).
+pub const REG_D: u8 = 5;
+/// Registers the inputs occupy.
+pub const INPUTS: usize = 6;
+
+/// Three registers holding a vector.
+pub type V = [u8; 3];
+
+/// A scalar function of one argument.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fn1 {
+    Abs,
+    Floor,
+    Fract,
+    Sin,
+    Cos,
+    Tan,
+    Exp,
+    Log,
+    Sqrt,
+    Sign,
+}
+
+/// A scalar function of two arguments.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fn2 {
+    Pow,
+    Min,
+    Max,
+    Atan2,
+    Step,
+    Bias,
+    Gain,
+}
+
+/// One operation of the register code.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Op {
+    /// `r[d] = r[a]`.
+    Copy(u8, u8),
+    Add(u8, u8, u8),
+    Sub(u8, u8, u8),
+    Mul(u8, u8, u8),
+    Div(u8, u8, u8),
+    /// `fmod`.
+    Rem(u8, u8, u8),
+    Neg(u8, u8),
+    /// Comparisons and logic give 1 or 0.
+    Lt(u8, u8, u8),
+    Le(u8, u8, u8),
+    Eq(u8, u8, u8),
+    Ne(u8, u8, u8),
+    And(u8, u8, u8),
+    Or(u8, u8, u8),
+    Not(u8, u8),
+    F1(Fn1, u8, u8),
+    F2(Fn2, u8, u8, u8),
+    /// `bias_b(t)` with the exponent computed at load (constant b).
+    BiasK(u8, u8, Bias),
+    /// `gain_g(t)` with the exponent computed at load (constant g).
+    GainK(u8, u8, Gain),
+    /// `clamp(v, lo, hi)`.
+    Clamp(u8, u8, u8, u8),
+    /// `smoothstep(e0, e1, v)`.
+    Smoothstep(u8, u8, u8, u8),
+    /// `noise(p)`.
+    Noise(u8, V),
+    /// `vnoise(p)`.
+    VNoise(V, V),
+    /// `dnoise(p)`: the gradient of noise.
+    DNoise(V, V),
+    /// `turbulence(p, octaves)`.
+    Turbulence(u8, V, u8),
+    /// `fbm(p, octaves)`.
+    Fbm(u8, V, u8),
+    /// Perlin's improved noise (2002) at p.
+    Improved(u8, V),
+    /// The density of soft object `objects[i]` at p.
+    Density(u8, u16, V),
+    /// p projected onto the inner surface of the object.
+    Project(V, V),
+    /// The scene's colour map at s.
+    ColourMap(V, u8),
+    /// Continue at op `target`.
+    Jump(u16),
+    /// Continue at op `target` when `r[c] == 0`.
+    JumpIfZero(u8, u16),
+}
+
+/// What an expression's value is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Result3 {
+    /// A number in a register.
+    Scalar(u8),
+    /// A vector in three registers.
+    Vector(V),
+}
+
+/// A compiled expression: immutable, shared by every thread.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Program {
+    pub(crate) ops: Vec<Op>,
+    /// Initial register values: zeros for the inputs and temporaries, then constants.
+    pub(crate) template: Vec<f32>,
+    pub(crate) result: Result3,
+    /// The soft objects the expression calls (`D` and the scene's named objects).
+    pub(crate) objects: Vec<Density>,
+    /// The primitive `project` projects onto.
+    pub(crate) surface: Option<Density>,
+    /// The scene's colour map (for `colour_map(s)`).
+    pub(crate) colour_map: Option<Curve<3>>,
+    /// The value when the whole expression is a constant, computed in double
+    /// precision at load (`coordinator eval` prints it).
+    pub(crate) constant: Option<[f64; 3]>,
+}
+
+/// The inputs of one evaluation.
+#[derive(Clone, Copy, Debug)]
+pub struct Inputs {
+    /// The point x.
+    pub x: Vec3,
+    /// The density at the sample (colour and normal expressions).
+    pub d: f32,
+}
+
+impl Program {
+    /// Whether the value is a vector.
+    pub fn is_vector(&self) -> bool {
+        matches!(self.result, Result3::Vector(_))
+    }
+
+    /// The value computed at load in double precision, when the expression is a
+    /// constant.
+    pub fn constant(&self) -> Option<[f64; 3]> {
+        self.constant
+    }
+
+    /// Number of operations (for tests and diagnostics).
+    pub fn len(&self) -> usize {
+        self.ops.len()
+    }
+
+    /// Whether the program has no operations (a constant or an input).
+    pub fn is_empty(&self) -> bool {
+        self.ops.is_empty()
+    }
+
+    /// The scalar value (the x component of a vector value).
+    #[inline]
+    pub fn eval_scalar(&self, x: Vec3, d: f32, field: &Field) -> f32 {
+        self.eval(Inputs { x, d }, field)[0]
+    }
+
+    /// The vector value (a scalar value repeated).
+    #[inline]
+    pub fn eval_vector(&self, x: Vec3, d: f32, field: &Field) -> Vec3 {
+        Vec3::from_array(self.eval(Inputs { x, d }, field))
+    }
+
+    /// Runs the program.
+    #[inline]
+    pub fn eval(&self, inputs: Inputs, field: &Field) -> [f32; 3] {
+        if self.template.len() <= 32 {
+            self.run::<32>(inputs, field)
+        } else if self.template.len() <= 64 {
+            self.run::<64>(inputs, field)
+        } else {
+            self.run::<MAX_REGISTERS>(inputs, field)
+        }
+    }
+
+    #[inline]
+    fn run<const N: usize>(&self, inputs: Inputs, field: &Field) -> [f32; 3] {
+        let mut r = [0.0f32; N];
+        r[..self.template.len()].copy_from_slice(&self.template);
+        r[REG_X as usize] = inputs.x.x;
+        r[REG_X as usize + 1] = inputs.x.y;
+        r[REG_X as usize + 2] = inputs.x.z;
+        r[REG_T as usize] = field.time / field.frame_rate;
+        r[REG_FRAME as usize] = field.frame as f32;
+        r[REG_D as usize] = inputs.d;
+        let ops = &self.ops[..];
+        let mut pc = 0;
+        while pc < ops.len() {
+            let op = ops[pc];
+            pc += 1;
+            macro_rules! r {
+                ($i:expr) => {
+                    r[$i as usize]
+                };
+            }
+            let v = |r: &[f32; N], p: V| {
+                Vec3::new(r[p[0] as usize], r[p[1] as usize], r[p[2] as usize])
+            };
+            let set = |r: &mut [f32; N], p: V, value: Vec3| {
+                r[p[0] as usize] = value.x;
+                r[p[1] as usize] = value.y;
+                r[p[2] as usize] = value.z;
+            };
+            match op {
+                Op::Copy(d, a) => r!(d) = r!(a),
+                Op::Add(d, a, b) => r!(d) = r!(a) + r!(b),
+                Op::Sub(d, a, b) => r!(d) = r!(a) - r!(b),
+                Op::Mul(d, a, b) => r!(d) = r!(a) * r!(b),
+                Op::Div(d, a, b) => r!(d) = r!(a) / r!(b),
+                Op::Rem(d, a, b) => r!(d) = libm::fmodf(r!(a), r!(b)),
+                Op::Neg(d, a) => r!(d) = -r!(a),
+                Op::Lt(d, a, b) => r!(d) = truth(r!(a) < r!(b)),
+                Op::Le(d, a, b) => r!(d) = truth(r!(a) <= r!(b)),
+                Op::Eq(d, a, b) => r!(d) = truth(r!(a) == r!(b)),
+                Op::Ne(d, a, b) => r!(d) = truth(r!(a) != r!(b)),
+                Op::And(d, a, b) => r!(d) = truth(r!(a) != 0.0 && r!(b) != 0.0),
+                Op::Or(d, a, b) => r!(d) = truth(r!(a) != 0.0 || r!(b) != 0.0),
+                Op::Not(d, a) => r!(d) = truth(r!(a) == 0.0),
+                Op::F1(f, d, a) => r!(d) = fn1(f, r!(a)),
+                Op::F2(f, d, a, b) => r!(d) = fn2(f, r!(a), r!(b)),
+                Op::BiasK(d, a, b) => r!(d) = b.apply(r!(a)),
+                Op::GainK(d, a, g) => r!(d) = g.apply(r!(a)),
+                Op::Clamp(d, a, lo, hi) => r!(d) = clamp(r!(a), r!(lo), r!(hi)),
+                Op::Smoothstep(d, e0, e1, a) => r!(d) = smoothstep(r!(e0), r!(e1), r!(a)),
+                Op::Noise(d, p) => r!(d) = field.noise.noise(v(&r, p)),
+                Op::VNoise(d, p) => {
+                    let n = field.noise.vnoise(v(&r, p));
+                    set(&mut r, d, n);
+                }
+                Op::DNoise(d, p) => {
+                    let n = dnoise(field, v(&r, p));
+                    set(&mut r, d, n);
+                }
+                Op::Turbulence(d, p, o) => {
+                    r!(d) = field.noise.turbulence(v(&r, p), octaves(r!(o)));
+                }
+                Op::Fbm(d, p, o) => r!(d) = fbm(field, v(&r, p), octaves(r!(o))),
+                Op::Improved(d, p) => {
+                    let p = v(&r, p);
+                    r!(d) = crate::noise::improved(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+                        as f32;
+                }
+                Op::Density(d, i, p) => {
+                    let p = v(&r, p);
+                    r!(d) = self
+                        .objects
+                        .get(usize::from(i))
+                        .map_or(0.0, |o| o.eval(p, field));
+                }
+                Op::Project(d, p) => {
+                    let p = v(&r, p);
+                    let q = self.surface.as_ref().map_or(p, |s| s.project(p));
+                    set(&mut r, d, q);
+                }
+                Op::ColourMap(d, s) => {
+                    let c = self
+                        .colour_map
+                        .as_ref()
+                        .map_or([r!(s); 3], |m| m.eval(r!(s)));
+                    set(&mut r, d, Vec3::from_array(c));
+                }
+                Op::Jump(target) => pc = usize::from(target),
+                Op::JumpIfZero(c, target) => {
+                    if r!(c) == 0.0 {
+                        pc = usize::from(target);
+                    }
+                }
+            }
+        }
+        match self.result {
+            Result3::Scalar(a) => [r[a as usize]; 3],
+            Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
+        }
+    }
+}
+
+#[inline(always)]
+fn truth(b: bool) -> f32 {
+    if b { 1.0 } else { 0.0 }
+}
+
+/// An octave count from a register: floor, clamped to 0..=16 (NaN → 0).
+#[inline]
+fn octaves(v: f32) -> u32 {
+    if v >= 1.0 {
+        if v < 16.0 { v as u32 } else { 16 }
+    } else {
+        0
+    }
+}
+
+/// `clamp(v, lo, hi)`: `max(lo, min(v, hi))` (NaN → lo).
+#[inline]
+pub(crate) fn clamp(v: f32, lo: f32, hi: f32) -> f32 {
+    let v = if v < hi { v } else { hi };
+    if v > lo { v } else { lo }
+}
+
+/// Hermite step between e0 and e1.
+#[inline]
+pub(crate) fn smoothstep(e0: f32, e1: f32, v: f32) -> f32 {
+    let t = clamp((v - e0) / (e1 - e0), 0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Sums `noise(2^i p) / 2^i` (signed, unlike turbulence) in the order turbulence does.
+#[inline]
+fn fbm(field: &Field, p: Vec3, octaves: u32) -> f32 {
+    let mut sum = 0.0;
+    let mut scale = 1.0;
+    for _ in 0..octaves {
+        sum += field.noise.noise(p * scale) / scale;
+        scale *= 2.0;
+    }
+    sum
+}
+
+/// Step of the central differences of `dnoise`: 2^-10 (exact in binary).
+const DNOISE_STEP: f32 = 1.0 / 1024.0;
+
+/// Perlin's Dnoise, the gradient of noise, by central differences of noise.
+#[inline]
+pub(crate) fn dnoise(field: &Field, p: Vec3) -> Vec3 {
+    let n = |q: Vec3| field.noise.noise(q);
+    let h = DNOISE_STEP;
+    let inv = 1.0 / (2.0 * h);
+    Vec3::new(
+        (n(p + Vec3::new(h, 0.0, 0.0)) - n(p - Vec3::new(h, 0.0, 0.0))) * inv,
+        (n(p + Vec3::new(0.0, h, 0.0)) - n(p - Vec3::new(0.0, h, 0.0))) * inv,
+        (n(p + Vec3::new(0.0, 0.0, h)) - n(p - Vec3::new(0.0, 0.0, h))) * inv,
+    )
+}
+
+#[inline]
+pub(crate) fn fn1(f: Fn1, a: f32) -> f32 {
+    match f {
+        Fn1::Abs => a.abs(),
+        Fn1::Floor => a.floor(),
+        Fn1::Fract => a - a.floor(),
+        Fn1::Sin => libm::sinf(a),
+        Fn1::Cos => libm::cosf(a),
+        Fn1::Tan => libm::tanf(a),
+        Fn1::Exp => libm::expf(a),
+        Fn1::Log => libm::logf(a),
+        Fn1::Sqrt => a.sqrt(),
+        Fn1::Sign => {
+            if a > 0.0 {
+                1.0
+            } else if a < 0.0 {
+                -1.0
+            } else {
+                0.0
+            }
+        }
+    }
+}
+
+#[inline]
+pub(crate) fn fn2(f: Fn2, a: f32, b: f32) -> f32 {
+    match f {
+        Fn2::Pow => libm::powf(a, b),
+        Fn2::Min => {
+            if b < a {
+                b
+            } else {
+                a
+            }
+        }
+        Fn2::Max => {
+            if b > a {
+                b
+            } else {
+                a
+            }
+        }
+        Fn2::Atan2 => libm::atan2f(a, b),
+        Fn2::Step => truth(b >= a),
+        Fn2::Bias => Bias::new(a).apply(b),
+        Fn2::Gain => Gain::new(a).apply(b),
+    }
+}
