@@ -22,3 +22,6 @@ for scene in scenes/pse/*.ron; do
     case "$name" in fur | tribble) continue ;; esac
     ./target/release/coordinator --scene "$scene" --out "$out/pse_$name.png" --width 256 --height 256
 done
+
+# Figure 12's interactive preset beside the high-quality render.
+./target/release/coordinator --scene scenes/gilet/holes_r05.ron --out "$out/gilet_holes_r05_interactive.png" --width 256 --height 256 --quality interactive

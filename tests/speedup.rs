@@ -29,10 +29,12 @@ fn the_farm_costs_no_more_cpu_than_the_serial_render() {
     let common = [
         "--scene",
         fur.to_str().unwrap(),
+        // Large enough that the workers' fixed costs (process start, connection,
+        // scene build) stay small beside the render, as they are at full size.
         "--width",
-        "256",
+        "512",
         "--height",
-        "256",
+        "512",
     ];
     let _ = worker_bin();
 

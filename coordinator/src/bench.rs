@@ -137,7 +137,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         let own = cpu_seconds(libc::RUSAGE_SELF) - self0;
         let workers = cpu_seconds(libc::RUSAGE_CHILDREN) - children0;
         // Units differ in size (guided self-scheduling): compare cost per pixel.
-        let sizes = farm_units(scene.width(), scene.height(), DEFAULT_INTERLEAVE);
+        let sizes = farm_units(scene.width(), scene.height(), DEFAULT_INTERLEAVE, n);
         let costs: Vec<f64> = report.unit_costs.iter().map(|&c| c as f64).collect();
         let per_pixel: Vec<f64> = costs
             .iter()
@@ -240,7 +240,7 @@ pub fn simulate(
 ) -> Simulation {
     let serial: f64 = costs.iter().sum();
     // The farm's own units.
-    let units = farm_units(width, height, DEFAULT_INTERLEAVE);
+    let units = farm_units(width, height, DEFAULT_INTERLEAVE, workers);
     // Greedy list scheduling: the next unit goes to the worker free first.
     let mut free: BinaryHeap<std::cmp::Reverse<u64>> =
         (0..workers).map(|_| std::cmp::Reverse(0)).collect();

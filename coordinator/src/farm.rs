@@ -321,7 +321,14 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         source,
     })?;
 
-    let units = farm_units(job.width, job.height, config.interleave);
+    // Units sized for the workers expected: the local ones, or at least 8 when
+    // workers may join from the LAN.
+    let expected = if config.listen.ip().is_loopback() {
+        config.local_workers.max(1)
+    } else {
+        config.local_workers.max(8)
+    };
+    let units = farm_units(job.width, job.height, config.interleave, expected);
     let unit_count = units.len();
     let (finished_tx, mut finished_rx) = watch::channel(false);
     let heartbeat = (config.lease / 4).max(Duration::from_millis(50));

@@ -349,13 +349,17 @@ async fn serve(
                 Ok(Asked::Assignment(a)) => a,
                 Ok(Asked::Wait(d)) => {
                     if sleep_or_stop(d, stop).await {
-                        return Ok(Leave::Done);
+                        return delivered(config, sending.take(), report)
+                            .await
+                            .map(|()| Leave::Done);
                     }
                     continue;
                 }
                 Ok(Asked::Finished) => {
                     if config.exit_when_done || sleep_or_stop(Duration::from_secs(1), stop).await {
-                        return Ok(Leave::Done);
+                        return delivered(config, sending.take(), report)
+                            .await
+                            .map(|()| Leave::Done);
                     }
                     continue;
                 }
@@ -365,7 +369,9 @@ async fn serve(
         let Some(rendering) = start_render(&assignment, pool, scenes) else {
             // A malformed assignment: not ours to fix; ask for other work.
             if sleep_or_stop(Duration::from_millis(500), stop).await {
-                return Ok(Leave::Done);
+                return delivered(config, sending.take(), report)
+                    .await
+                    .map(|()| Leave::Done);
             }
             continue;
         };
