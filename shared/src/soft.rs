@@ -126,29 +126,12 @@ impl SoftBox {
 
     /// x projected onto the inner (D = 1) box: the nearest point of its surface.
     pub fn project(&self, x: Vec3) -> Vec3 {
-        let q = x - self.centre;
         let h = Vec3::new(
             self.falloff[0].inner,
             self.falloff[1].inner,
             self.falloff[2].inner,
         );
-        let inside = q.abs().cmple(h).all();
-        let p = if inside {
-            // Push out through the nearest face.
-            let gap = h - q.abs();
-            let mut p = q;
-            if gap.x <= gap.y && gap.x <= gap.z {
-                p.x = h.x.copysign(q.x);
-            } else if gap.y <= gap.z {
-                p.y = h.y.copysign(q.y);
-            } else {
-                p.z = h.z.copysign(q.z);
-            }
-            p
-        } else {
-            q.clamp(-h, h)
-        };
-        self.centre + p
+        self.centre + nearest_on_box(x - self.centre, h)
     }
 }
 
@@ -264,27 +247,12 @@ pub mod boundary_point {
     /// through the nearest face from inside.
     #[inline]
     pub fn soft_box(b: &SoftBox, x: Vec3) -> Vec3 {
-        let q = x - b.centre;
         let h = Vec3::new(
             b.falloff[0].outer(),
             b.falloff[1].outer(),
             b.falloff[2].outer(),
         );
-        let p = if q.abs().cmple(h).all() {
-            let gap = h - q.abs();
-            let mut p = q;
-            if gap.x <= gap.y && gap.x <= gap.z {
-                p.x = h.x.copysign(q.x);
-            } else if gap.y <= gap.z {
-                p.y = h.y.copysign(q.y);
-            } else {
-                p.z = h.z.copysign(q.z);
-            }
-            p
-        } else {
-            q.clamp(-h, h)
-        };
-        b.centre + p
+        b.centre + super::nearest_on_box(x - b.centre, h)
     }
 
     /// On the tube of radius `r + s/2` around the core circle.
@@ -292,6 +260,27 @@ pub mod boundary_point {
     pub fn torus(t: &SoftTorus, x: Vec3) -> Vec3 {
         let core = t.core_point(x);
         core + direction_or(x - core, t.axis) * t.falloff.outer()
+    }
+}
+
+/// The nearest point of the surface of the box of half sizes `h` about the
+/// origin to `q`: clamped from outside, pushed out through the nearest face
+/// from inside.
+#[inline]
+fn nearest_on_box(q: Vec3, h: Vec3) -> Vec3 {
+    if q.abs().cmple(h).all() {
+        let gap = h - q.abs();
+        let mut p = q;
+        if gap.x <= gap.y && gap.x <= gap.z {
+            p.x = h.x.copysign(q.x);
+        } else if gap.y <= gap.z {
+            p.y = h.y.copysign(q.y);
+        } else {
+            p.z = h.z.copysign(q.z);
+        }
+        p
+    } else {
+        q.clamp(-h, h)
     }
 }
 
