@@ -160,7 +160,7 @@ impl Density {
 
     /// [`Density::project`] at each point.
     #[inline]
-    fn project_lanes(&self, x: &Points) -> Points {
+    pub(crate) fn project_lanes(&self, x: &Points) -> Points {
         match self {
             Density::Sphere(s) => x.map(|p| s.project(p)),
             Density::Box(b) => x.map(|p| b.project(p)),
@@ -523,8 +523,12 @@ impl Density {
             Density::Sphere(s) => each(x, |p| s.density(p)),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
-            // The expression's register code runs one point at a time.
-            Density::Expression(_) => each(x, |p| self.eval(p, field)),
+            // The register code runs on the lanes unless they take different
+            // branches; then one point at a time.
+            Density::Expression(program) => program
+                .eval_lanes(x, &[0.0; LANES], field, isa)
+                .map(|v| v[0].map(crate::shaping::clamp01))
+                .unwrap_or_else(|| each(x, |p| self.eval(p, field))),
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
                 zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
             }),

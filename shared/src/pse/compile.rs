@@ -1247,7 +1247,24 @@ mod tests {
         };
         let p = compile_expression(src, Kind::Probe, &ctx)?;
         let noise = Noise::default();
-        Ok(p.eval(super::super::eval::Inputs { x, d: 0.25 }, &field(&noise)))
+        let f = field(&noise);
+        let value = p.eval(super::super::eval::Inputs { x, d: 0.25 }, &f);
+        // The lane-parallel register code gives the same bits on every path.
+        let mut points = crate::density::Points::default();
+        for l in 0..crate::noise::LANES {
+            points.set(l, x);
+        }
+        for isa in crate::simd::Isa::available() {
+            let lanes = p
+                .eval_lanes(&points, &[0.25; crate::noise::LANES], &f, isa)
+                .expect("uniform lanes take the same branches");
+            for (c, lane) in lanes.iter().enumerate() {
+                for v in lane {
+                    assert_eq!(v.to_bits(), value[c].to_bits(), "{src} on {isa:?}");
+                }
+            }
+        }
+        Ok(value)
     }
 
     fn scalar(src: &str) -> f32 {

@@ -16,8 +16,10 @@
 use glam::Vec3;
 
 use crate::curve::Curve;
-use crate::density::{Density, Field};
+use crate::density::{Density, Field, Points};
+use crate::noise::{LANES, Lanes};
 use crate::shaping::{Bias, Gain};
+use crate::simd::Isa;
 
 /// Registers per program: `u8` register names index a `[f32; 256]` file.
 pub const MAX_REGISTERS: usize = 256;
@@ -299,6 +301,181 @@ impl Program {
             Result3::Scalar(a) => [r[a as usize]; 3],
             Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
         }
+    }
+}
+
+impl Program {
+    /// [`Program::eval`] at [`LANES`] points at once (`d` per point), with the
+    /// same bits per lane: noise, bias, gain, the objects' densities and the
+    /// projection are batched on `isa`; every other operation runs lane by lane
+    /// with the scalar code. `None` when the points take different branches of
+    /// an `if` (the caller then runs them one at a time).
+    pub fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> Option<[Lanes; 3]> {
+        if self.template.len() <= 32 {
+            self.run_lanes::<32>(x, d, field, isa)
+        } else if self.template.len() <= 64 {
+            self.run_lanes::<64>(x, d, field, isa)
+        } else {
+            self.run_lanes::<MAX_REGISTERS>(x, d, field, isa)
+        }
+    }
+
+    #[allow(clippy::needless_range_loop)] // lane loops index several arrays at once
+    fn run_lanes<const N: usize>(
+        &self,
+        x: &Points,
+        d: &Lanes,
+        field: &Field,
+        isa: Isa,
+    ) -> Option<[Lanes; 3]> {
+        let mut r = [[0.0f32; LANES]; N];
+        for (reg, &value) in r.iter_mut().zip(&self.template) {
+            *reg = [value; LANES];
+        }
+        r[REG_X as usize] = x.x;
+        r[REG_X as usize + 1] = x.y;
+        r[REG_X as usize + 2] = x.z;
+        r[REG_T as usize] = [field.time / field.frame_rate; LANES];
+        r[REG_FRAME as usize] = [field.frame as f32; LANES];
+        r[REG_D as usize] = *d;
+        let points = |r: &[Lanes; N], p: V| Points {
+            x: r[p[0] as usize],
+            y: r[p[1] as usize],
+            z: r[p[2] as usize],
+        };
+        let each = |f: &dyn Fn(usize) -> f32| {
+            let mut out = [0.0; LANES];
+            for (l, o) in out.iter_mut().enumerate() {
+                *o = f(l);
+            }
+            out
+        };
+        let ops = &self.ops[..];
+        let mut pc = 0;
+        while pc < ops.len() {
+            let op = ops[pc];
+            pc += 1;
+            macro_rules! lanewise {
+                ($d:expr, |$l:ident| $e:expr) => {{
+                    let mut out = [0.0f32; LANES];
+                    for $l in 0..LANES {
+                        out[$l] = $e;
+                    }
+                    r[$d as usize] = out;
+                }};
+            }
+            macro_rules! g {
+                ($i:expr, $l:expr) => {
+                    r[$i as usize][$l]
+                };
+            }
+            match op {
+                Op::Copy(d, a) => r[d as usize] = r[a as usize],
+                Op::Add(d, a, b) => lanewise!(d, |l| g!(a, l) + g!(b, l)),
+                Op::Sub(d, a, b) => lanewise!(d, |l| g!(a, l) - g!(b, l)),
+                Op::Mul(d, a, b) => lanewise!(d, |l| g!(a, l) * g!(b, l)),
+                Op::Div(d, a, b) => lanewise!(d, |l| g!(a, l) / g!(b, l)),
+                Op::Rem(d, a, b) => lanewise!(d, |l| libm::fmodf(g!(a, l), g!(b, l))),
+                Op::Neg(d, a) => lanewise!(d, |l| -g!(a, l)),
+                Op::Lt(d, a, b) => lanewise!(d, |l| truth(g!(a, l) < g!(b, l))),
+                Op::Le(d, a, b) => lanewise!(d, |l| truth(g!(a, l) <= g!(b, l))),
+                Op::Eq(d, a, b) => lanewise!(d, |l| truth(g!(a, l) == g!(b, l))),
+                Op::Ne(d, a, b) => lanewise!(d, |l| truth(g!(a, l) != g!(b, l))),
+                Op::And(d, a, b) => {
+                    lanewise!(d, |l| truth(g!(a, l) != 0.0 && g!(b, l) != 0.0))
+                }
+                Op::Or(d, a, b) => lanewise!(d, |l| truth(g!(a, l) != 0.0 || g!(b, l) != 0.0)),
+                Op::Not(d, a) => lanewise!(d, |l| truth(g!(a, l) == 0.0)),
+                Op::F1(f, d, a) => lanewise!(d, |l| fn1(f, g!(a, l))),
+                Op::F2(f, d, a, b) => lanewise!(d, |l| fn2(f, g!(a, l), g!(b, l))),
+                Op::BiasK(d, a, b) => r[d as usize] = b.apply_lanes(&r[a as usize], isa),
+                Op::GainK(d, a, g) => r[d as usize] = g.apply_lanes(&r[a as usize], isa),
+                Op::Clamp(d, a, lo, hi) => lanewise!(d, |l| clamp(g!(a, l), g!(lo, l), g!(hi, l))),
+                Op::Smoothstep(d, e0, e1, a) => {
+                    lanewise!(d, |l| smoothstep(g!(e0, l), g!(e1, l), g!(a, l)))
+                }
+                Op::Noise(d, p) => {
+                    let q = points(&r, p);
+                    r[d as usize] = isa.noise(field.noise, &q.x, &q.y, &q.z);
+                }
+                Op::Density(d, i, p) => {
+                    let q = points(&r, p);
+                    r[d as usize] = self
+                        .objects
+                        .get(usize::from(i))
+                        .map_or([0.0; LANES], |o| o.eval_lanes(&q, field, isa));
+                }
+                Op::Project(d, p) => {
+                    let q = points(&r, p);
+                    let q = self.surface.as_ref().map_or(q, |s| s.project_lanes(&q));
+                    r[d[0] as usize] = q.x;
+                    r[d[1] as usize] = q.y;
+                    r[d[2] as usize] = q.z;
+                }
+                // The rest: the scalar code, lane by lane.
+                Op::VNoise(d, p) | Op::DNoise(d, p) => {
+                    let q = points(&r, p);
+                    let vector = |l: usize| {
+                        let at = q.get(l);
+                        if matches!(op, Op::VNoise(..)) {
+                            field.noise.vnoise(at)
+                        } else {
+                            dnoise(field, at)
+                        }
+                    };
+                    let mut out = [[0.0; LANES]; 3];
+                    for l in 0..LANES {
+                        let v = vector(l);
+                        (out[0][l], out[1][l], out[2][l]) = (v.x, v.y, v.z);
+                    }
+                    for (c, lane) in out.into_iter().enumerate() {
+                        r[d[c] as usize] = lane;
+                    }
+                }
+                Op::Turbulence(d, p, o) => {
+                    let q = points(&r, p);
+                    let o = r[o as usize];
+                    r[d as usize] = each(&|l| field.noise.turbulence(q.get(l), octaves(o[l])));
+                }
+                Op::Fbm(d, p, o) => {
+                    let q = points(&r, p);
+                    let o = r[o as usize];
+                    r[d as usize] = each(&|l| fbm(field, q.get(l), octaves(o[l])));
+                }
+                Op::Improved(d, p) => {
+                    let q = points(&r, p);
+                    r[d as usize] = each(&|l| {
+                        let p = q.get(l);
+                        crate::noise::improved(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+                            as f32
+                    });
+                }
+                Op::ColourMap(d, s) => {
+                    let s = r[s as usize];
+                    let mut out = [[0.0; LANES]; 3];
+                    for l in 0..LANES {
+                        let c = self.colour_map.as_ref().map_or([s[l]; 3], |m| m.eval(s[l]));
+                        (out[0][l], out[1][l], out[2][l]) = (c[0], c[1], c[2]);
+                    }
+                    for (c, lane) in out.into_iter().enumerate() {
+                        r[d[c] as usize] = lane;
+                    }
+                }
+                Op::Jump(target) => pc = usize::from(target),
+                Op::JumpIfZero(c, target) => {
+                    let zero = r[c as usize].map(|v| v == 0.0);
+                    if zero.iter().all(|&z| z) {
+                        pc = usize::from(target);
+                    } else if zero.iter().any(|&z| z) {
+                        return None; // the lanes part ways
+                    }
+                }
+            }
+        }
+        Some(match self.result {
+            Result3::Scalar(a) => [r[a as usize]; 3],
+            Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
+        })
     }
 }
 
