@@ -465,7 +465,7 @@ impl Points {
 
     /// The points `f(point)`, lane by lane.
     #[inline(always)]
-    fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
+    pub(crate) fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
         let mut out = Points::default();
         for l in 0..LANES {
             out.set(l, f(self.get(l)));
@@ -523,12 +523,9 @@ impl Density {
             Density::Sphere(s) => each(x, |p| s.density(p)),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
-            // The register code runs on the lanes unless they take different
-            // branches; then one point at a time.
-            Density::Expression(program) => program
-                .eval_lanes(x, &[0.0; LANES], field, isa)
-                .map(|v| v[0].map(crate::shaping::clamp01))
-                .unwrap_or_else(|| each(x, |p| self.eval(p, field))),
+            Density::Expression(program) => {
+                program.eval_lanes(x, &[0.0; LANES], field, isa)[0].map(crate::shaping::clamp01)
+            }
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
                 zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
             }),
@@ -784,8 +781,9 @@ impl Density {
             Density::Union(v) | Density::Max(v) => all(v, hull),
             Density::Intersection(v) | Density::Min(v) => meet_known(v),
             Density::Difference(a, _) => a.support(),
-            // Complements and expressions may be non-zero anywhere.
-            Density::Complement(_) | Density::Expression(_) => None,
+            // A complement may be non-zero anywhere.
+            Density::Complement(_) => None,
+            Density::Expression(p) => p.support(),
             Density::Hypertexture(h) => h.support(),
         }
     }

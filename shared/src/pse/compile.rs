@@ -740,6 +740,9 @@ impl<'a> Compiler<'a> {
     ) -> Result<Val, ExprError> {
         let vc = self.expr(cond)?;
         let sc = self.scalar(vc, cond.at, "the condition of `if`")?;
+        if let S::K(k) = sc {
+            return self.constant_if(k != 0.0, then, otherwise);
+        }
         let rc = self.reg(sc, cond.at)?;
         let jump = self.ops.len();
         self.emit(Op::JumpIfZero(rc, 0), at)?;
@@ -778,6 +781,42 @@ impl<'a> Compiler<'a> {
             [a, b, c] => Val::V([S::R(a), S::R(b), S::R(c)]),
             _ => unreachable!("values have 1 or 3 components"),
         })
+    }
+
+    /// An `if` whose condition is known at load (a knob, a constant): only the
+    /// branch taken is kept. The other is still compiled, in text order, so its
+    /// mistakes are reported, and its operations are then dropped.
+    fn constant_if(
+        &mut self,
+        take_then: bool,
+        then: &Block,
+        otherwise: &Block,
+    ) -> Result<Val, ExprError> {
+        let start = self.ops.len();
+        let vt = self.block(then)?;
+        let then_type = vt.type_name();
+        if !take_then {
+            self.release(vt);
+            self.ops.truncate(start);
+        }
+        let mid = self.ops.len();
+        let ve = self.block(otherwise)?;
+        if ve.type_name() != then_type {
+            return Err(ExprError::new(
+                otherwise.value.at,
+                format!(
+                    "the branches of `if` differ: {then_type} after `if`, {} after `else`",
+                    ve.type_name()
+                ),
+            ));
+        }
+        if take_then {
+            self.release(ve);
+            self.ops.truncate(mid);
+            Ok(vt)
+        } else {
+            Ok(ve)
+        }
     }
 
     fn call(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
@@ -1233,18 +1272,23 @@ mod tests {
         }
     }
 
+    /// Knobs and functions, no objects, no colour map.
+    fn plain_context<'a>(knobs: &'a BTreeMap<String, f64>, functions: &'a [FnDef]) -> Context<'a> {
+        Context {
+            knobs,
+            functions,
+            objects: &[],
+            surface: None,
+            colour_map: None,
+        }
+    }
+
     fn ctx_eval(src: &str, x: Vec3) -> Result<[f32; 3], ExprError> {
         let knobs = BTreeMap::from([("freq".to_string(), 4.0)]);
         let functions =
             parse_functions("fn sq(a) { a * a } fn quad(a) { sq(sq(a)) }\nfn bad(a) { a < 1 }")
                 .unwrap();
-        let ctx = Context {
-            knobs: &knobs,
-            functions: &functions,
-            objects: &[],
-            surface: None,
-            colour_map: None,
-        };
+        let ctx = plain_context(&knobs, &functions);
         let p = compile_expression(src, Kind::Probe, &ctx)?;
         let noise = Noise::default();
         let f = field(&noise);
@@ -1255,9 +1299,7 @@ mod tests {
             points.set(l, x);
         }
         for isa in crate::simd::Isa::available() {
-            let lanes = p
-                .eval_lanes(&points, &[0.25; crate::noise::LANES], &f, isa)
-                .expect("uniform lanes take the same branches");
+            let lanes = p.eval_lanes(&points, &[0.25; crate::noise::LANES], &f, isa);
             for (c, lane) in lanes.iter().enumerate() {
                 for v in lane {
                     assert_eq!(v.to_bits(), value[c].to_bits(), "{src} on {isa:?}");
@@ -1269,6 +1311,68 @@ mod tests {
 
     fn scalar(src: &str) -> f32 {
         ctx_eval(src, Vec3::new(1.0, 2.0, 3.0)).unwrap()[0]
+    }
+
+    #[test]
+    fn lanes_that_part_ways_give_each_points_value() {
+        let knobs = BTreeMap::from([("freq".to_string(), 4.0)]);
+        let functions = parse_functions("fn sq(a) { a * a }").unwrap();
+        let ctx = plain_context(&knobs, &functions);
+        let noise = Noise::default();
+        let f = field(&noise);
+        let mut points = crate::density::Points::default();
+        let at = |l: usize| Vec3::new(l as f32 * 0.3 - 1.0, (l % 3) as f32 * 0.7, 0.2 * l as f32);
+        for l in 0..crate::noise::LANES {
+            points.set(l, at(l));
+        }
+        let d: [f32; crate::noise::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
+        for src in [
+            "if x.x > 0 { noise(x * freq) } else { sq(x.y) + d }",
+            "if x.x > 0.5 { 1 } else if x.y > 0.5 { vnoise(x).y } else if d > 0.3 { 3 } else { x.z }",
+            "let a = if x.y > 0.2 { x * 2 } else { x + [1, 0, 0] }; if a.x < 0 { length(a) } else { turbulence(a, 3) }",
+            "let s = if x.z > 0.5 { noise(x) } else { 0 }; if s > 0 { s * 2 } else { s - 1 }",
+            "if x.x > 10 { 1 } else { 2 }",
+        ] {
+            let p = compile_expression(src, Kind::Probe, &ctx).unwrap();
+            for isa in crate::simd::Isa::available() {
+                let lanes = p.eval_lanes(&points, &d, &f, isa);
+                for l in 0..crate::noise::LANES {
+                    let one = p.eval(super::super::eval::Inputs { x: at(l), d: d[l] }, &f);
+                    for c in 0..3 {
+                        assert_eq!(
+                            lanes[c][l].to_bits(),
+                            one[c].to_bits(),
+                            "{src}, lane {l}, {isa:?}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn an_if_known_at_load_keeps_one_branch() {
+        let knobs = BTreeMap::from([("freq".to_string(), 4.0)]);
+        let ctx = plain_context(&knobs, &[]);
+        let compile = |src| compile_expression(src, Kind::Probe, &ctx);
+        // The operations, whatever their registers.
+        let code = |src| {
+            let ops = compile(src).map(|p| p.ops).unwrap();
+            ops.iter().map(std::mem::discriminant).collect::<Vec<_>>()
+        };
+        let folded = code("if freq > 2 { noise(x) } else { turbulence(x, 4) + 1 }");
+        assert_eq!(folded, code("noise(x)"));
+        let folded = code("if freq > 5 { noise(x) } else { turbulence(x, 4) + 1 }");
+        assert_eq!(folded, code("turbulence(x, 4) + 1"));
+        // The branch not taken is still checked.
+        let e = compile("if freq > 2 { 1 } else { [1, 2, 3] }").unwrap_err();
+        assert!(
+            e.message.contains("the branches of `if` differ"),
+            "{}",
+            e.message
+        );
+        let e = compile("if freq > 2 { 1 } else { nosuch(x) }").unwrap_err();
+        assert!(e.message.contains("nosuch"), "{}", e.message);
     }
 
     #[test]
@@ -1334,13 +1438,7 @@ mod tests {
     #[allow(clippy::approx_constant)] // 3.14 is Perlin's reference input
     fn constants_fold_in_double_precision() {
         let knobs = BTreeMap::new();
-        let ctx = Context {
-            knobs: &knobs,
-            functions: &[],
-            objects: &[],
-            surface: None,
-            colour_map: None,
-        };
+        let ctx = plain_context(&knobs, &[]);
         let p = compile_expression("improved(3.14, 42, 7)", Kind::Probe, &ctx).unwrap();
         assert_eq!(p.constant().unwrap()[0], 0.136_919_958_784_000_12);
         assert!(p.is_empty());
@@ -1371,13 +1469,7 @@ mod tests {
         );
         assert!(err("1 - x").message.contains("vector on the left"));
         let knobs = BTreeMap::new();
-        let ctx = Context {
-            knobs: &knobs,
-            functions: &[],
-            objects: &[],
-            surface: None,
-            colour_map: None,
-        };
+        let ctx = plain_context(&knobs, &[]);
         assert!(compile_expression("x", Kind::Density, &ctx).is_err());
         assert!(compile_expression("d", Kind::Density, &ctx).is_err());
         assert!(compile_expression("1", Kind::Normal, &ctx).is_err());
@@ -1395,13 +1487,7 @@ mod tests {
         assert!(parse_functions("fn f(a, a) { a }").is_err());
         let functions = parse_functions("fn f(a) { g(a) } fn g(a) { f(a) }").unwrap();
         let knobs = BTreeMap::new();
-        let ctx = Context {
-            knobs: &knobs,
-            functions: &functions,
-            objects: &[],
-            surface: None,
-            colour_map: None,
-        };
+        let ctx = plain_context(&knobs, &functions);
         let e = compile_expression("g(1)", Kind::Probe, &ctx).unwrap_err();
         assert!(e.message.contains("defined later"), "{}", e.message);
         // Each function doubles the size of the last: capped, not hung.
@@ -1446,13 +1532,7 @@ mod tests {
         // A long sum of noises needs a handful of registers, not one per term.
         let src = vec!["noise(x * 3)"; 100].join(" + ");
         let knobs = BTreeMap::new();
-        let ctx = Context {
-            knobs: &knobs,
-            functions: &[],
-            objects: &[],
-            surface: None,
-            colour_map: None,
-        };
+        let ctx = plain_context(&knobs, &[]);
         let p = compile_expression(&src, Kind::Density, &ctx).unwrap();
         assert!(p.len() >= 100);
         assert!(p.template.len() < 16, "{}", p.template.len());

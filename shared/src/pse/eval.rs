@@ -17,7 +17,7 @@ use glam::Vec3;
 
 use crate::curve::Curve;
 use crate::density::{Density, Field, Points};
-use crate::noise::{LANES, Lanes};
+use crate::noise::{LANES, Lanes, VNOISE_OFFSET};
 use crate::shaping::{Bias, Gain};
 use crate::simd::Isa;
 
@@ -308,9 +308,10 @@ impl Program {
     /// [`Program::eval`] at [`LANES`] points at once (`d` per point), with the
     /// same bits per lane: noise, bias, gain, the objects' densities and the
     /// projection are batched on `isa`; every other operation runs lane by lane
-    /// with the scalar code. `None` when the points take different branches of
-    /// an `if` (the caller then runs them one at a time).
-    pub fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> Option<[Lanes; 3]> {
+    /// with the scalar code. When the points take different branches of an `if`,
+    /// both branches run with the lanes that did not take one masked: an
+    /// operation's result is kept only in the lanes whose path runs it.
+    pub fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3] {
         if self.template.len() <= 32 {
             self.run_lanes::<32>(x, d, field, isa)
         } else if self.template.len() <= 64 {
@@ -327,7 +328,7 @@ impl Program {
         d: &Lanes,
         field: &Field,
         isa: Isa,
-    ) -> Option<[Lanes; 3]> {
+    ) -> [Lanes; 3] {
         let mut r = [[0.0f32; LANES]; N];
         for (reg, &value) in r.iter_mut().zip(&self.template) {
             *reg = [value; LANES];
@@ -351,10 +352,65 @@ impl Program {
             out
         };
         let ops = &self.ops[..];
+        // Lane l runs the operations from `resume[l]` on (jumps only go
+        // forwards, so every lane's path is visited in order); `usize::MAX` once
+        // it is running. `active` is the mask of running lanes.
+        let mut resume = [usize::MAX; LANES];
+        let mut active = [true; LANES];
+        let mut all_active = true;
         let mut pc = 0;
-        while pc < ops.len() {
+        loop {
+            if !all_active {
+                for l in 0..LANES {
+                    if resume[l] == pc {
+                        (resume[l], active[l]) = (usize::MAX, true);
+                    }
+                }
+                all_active = active.iter().all(|&a| a);
+                if !active.iter().any(|&a| a) {
+                    // Every lane waits further on: go to the nearest.
+                    pc = resume.iter().copied().min().unwrap_or(ops.len());
+                    continue;
+                }
+            }
+            if pc >= ops.len() {
+                break;
+            }
             let op = ops[pc];
             pc += 1;
+            match op {
+                Op::Jump(target) => {
+                    if all_active {
+                        pc = usize::from(target);
+                    } else {
+                        for l in 0..LANES {
+                            if active[l] {
+                                (resume[l], active[l]) = (usize::from(target), false);
+                            }
+                        }
+                        all_active = false;
+                    }
+                    continue;
+                }
+                Op::JumpIfZero(c, target) => {
+                    let zero = r[c as usize].map(|v| v == 0.0);
+                    if all_active && zero.iter().all(|&z| z) {
+                        pc = usize::from(target);
+                    } else {
+                        for l in 0..LANES {
+                            if active[l] && zero[l] {
+                                (resume[l], active[l]) = (usize::from(target), false);
+                                all_active = false;
+                            }
+                        }
+                    }
+                    continue;
+                }
+                _ => {}
+            }
+            // The lanes that do not run this operation keep their registers.
+            let written = op.written();
+            let saved = (!all_active).then(|| written.map(|w| w.map(|w| r[usize::from(w)])));
             macro_rules! lanewise {
                 ($d:expr, |$l:ident| $e:expr) => {{
                     let mut out = [0.0f32; LANES];
@@ -412,35 +468,50 @@ impl Program {
                     r[d[1] as usize] = q.y;
                     r[d[2] as usize] = q.z;
                 }
-                // The rest: the scalar code, lane by lane.
-                Op::VNoise(d, p) | Op::DNoise(d, p) => {
+                Op::VNoise(d, p) => {
+                    // Noise::vnoise: noise at x − c, x, x + c.
                     let q = points(&r, p);
-                    let vector = |l: usize| {
-                        let at = q.get(l);
-                        if matches!(op, Op::VNoise(..)) {
-                            field.noise.vnoise(at)
-                        } else {
-                            dnoise(field, at)
+                    let noise = |q: &Points| isa.noise(field.noise, &q.x, &q.y, &q.z);
+                    let a = noise(&q.map(|q| q - VNOISE_OFFSET));
+                    let b = noise(&q);
+                    let c = noise(&q.map(|q| q + VNOISE_OFFSET));
+                    (r[d[0] as usize], r[d[1] as usize], r[d[2] as usize]) = (a, b, c);
+                }
+                Op::Turbulence(d, p, o) | Op::Fbm(d, p, o) => {
+                    let q = points(&r, p);
+                    let o = r[o as usize].map(octaves);
+                    let absolute = matches!(op, Op::Turbulence(..));
+                    r[d as usize] = if o.iter().all(|&n| n == o[0]) {
+                        // Σ noise(2^i x) / 2^i over the octaves, as the scalar code sums.
+                        let mut sum = [0.0f32; LANES];
+                        let mut scale = 1.0f32;
+                        for _ in 0..o[0] {
+                            let s = q.map(|q| q * scale);
+                            let n = isa.noise(field.noise, &s.x, &s.y, &s.z);
+                            for l in 0..LANES {
+                                let v = if absolute { n[l].abs() } else { n[l] };
+                                sum[l] += v / scale;
+                            }
+                            scale *= 2.0;
                         }
+                        sum
+                    } else if absolute {
+                        each(&|l| field.noise.turbulence(q.get(l), o[l]))
+                    } else {
+                        each(&|l| fbm(field, q.get(l), o[l]))
                     };
+                }
+                // The rest: the scalar code, lane by lane.
+                Op::DNoise(d, p) => {
+                    let q = points(&r, p);
                     let mut out = [[0.0; LANES]; 3];
                     for l in 0..LANES {
-                        let v = vector(l);
+                        let v = dnoise(field, q.get(l));
                         (out[0][l], out[1][l], out[2][l]) = (v.x, v.y, v.z);
                     }
                     for (c, lane) in out.into_iter().enumerate() {
                         r[d[c] as usize] = lane;
                     }
-                }
-                Op::Turbulence(d, p, o) => {
-                    let q = points(&r, p);
-                    let o = r[o as usize];
-                    r[d as usize] = each(&|l| field.noise.turbulence(q.get(l), octaves(o[l])));
-                }
-                Op::Fbm(d, p, o) => {
-                    let q = points(&r, p);
-                    let o = r[o as usize];
-                    r[d as usize] = each(&|l| fbm(field, q.get(l), octaves(o[l])));
                 }
                 Op::Improved(d, p) => {
                     let q = points(&r, p);
@@ -461,21 +532,62 @@ impl Program {
                         r[d[c] as usize] = lane;
                     }
                 }
-                Op::Jump(target) => pc = usize::from(target),
-                Op::JumpIfZero(c, target) => {
-                    let zero = r[c as usize].map(|v| v == 0.0);
-                    if zero.iter().all(|&z| z) {
-                        pc = usize::from(target);
-                    } else if zero.iter().any(|&z| z) {
-                        return None; // the lanes part ways
+                Op::Jump(_) | Op::JumpIfZero(..) => unreachable!("control flow is handled above"),
+            }
+            if let Some(saved) = saved {
+                for (w, old) in written.iter().zip(saved) {
+                    if let (Some(w), Some(old)) = (w, old) {
+                        let reg = &mut r[usize::from(*w)];
+                        for l in 0..LANES {
+                            if !active[l] {
+                                reg[l] = old[l];
+                            }
+                        }
                     }
                 }
             }
         }
-        Some(match self.result {
+        match self.result {
             Result3::Scalar(a) => [r[a as usize]; 3],
             Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
-        })
+        }
+    }
+}
+
+impl Op {
+    /// The registers the operation writes (none for jumps).
+    fn written(&self) -> [Option<u8>; 3] {
+        match *self {
+            Op::Copy(d, _)
+            | Op::Add(d, ..)
+            | Op::Sub(d, ..)
+            | Op::Mul(d, ..)
+            | Op::Div(d, ..)
+            | Op::Rem(d, ..)
+            | Op::Neg(d, _)
+            | Op::Lt(d, ..)
+            | Op::Le(d, ..)
+            | Op::Eq(d, ..)
+            | Op::Ne(d, ..)
+            | Op::And(d, ..)
+            | Op::Or(d, ..)
+            | Op::Not(d, _)
+            | Op::F1(_, d, _)
+            | Op::F2(_, d, ..)
+            | Op::BiasK(d, ..)
+            | Op::GainK(d, ..)
+            | Op::Clamp(d, ..)
+            | Op::Smoothstep(d, ..)
+            | Op::Noise(d, _)
+            | Op::Turbulence(d, ..)
+            | Op::Fbm(d, ..)
+            | Op::Improved(d, _)
+            | Op::Density(d, ..) => [Some(d), None, None],
+            Op::VNoise(d, _) | Op::DNoise(d, _) | Op::Project(d, _) | Op::ColourMap(d, _) => {
+                d.map(Some)
+            }
+            Op::Jump(_) | Op::JumpIfZero(..) => [None; 3],
+        }
     }
 }
 

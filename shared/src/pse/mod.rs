@@ -18,6 +18,7 @@ pub mod eval;
 pub mod fuzz;
 pub mod lexer;
 pub mod parser;
+pub mod support;
 pub mod surface;
 
 pub use compile::{Context, Kind, compile_expression, parse_functions};
