@@ -8,6 +8,7 @@
 use glam::Vec3;
 
 use crate::distortion::Distortion;
+use crate::motion::Pose;
 use crate::noise::{LANES, Lanes, Noise, VNOISE_OFFSET, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
 use crate::shaping::{Bias, Gain};
@@ -29,6 +30,25 @@ pub struct Field<'a> {
     pub time: f32,
     /// Frames per second (`t = frame / frame_rate` in expressions).
     pub frame_rate: f32,
+    /// Where the moving object is at this moment ([`Density::Moving`]).
+    pub pose: Option<Pose>,
+    /// A world box outside which the density is 0 for certain at this moment,
+    /// or `None`: anywhere (the marcher skips the samples outside it).
+    pub support: Option<Aabb>,
+}
+
+impl Field<'_> {
+    /// The object-space point of the world point x (x itself for a still object).
+    #[inline]
+    pub fn object_point(&self, x: Vec3) -> Vec3 {
+        self.pose.map_or(x, |p| p.to_object(x))
+    }
+
+    /// The world direction of an object-space direction.
+    #[inline]
+    pub fn world_vector(&self, v: Vec3) -> Vec3 {
+        self.pose.map_or(v, |p| p.to_world_vector(v))
+    }
 }
 
 impl Field<'_> {
@@ -69,6 +89,9 @@ pub enum Density {
     Hypertexture(Box<Hypertexture>),
     /// A density written as an expression (the Pixel Stream Editor), clamped to [0, 1].
     Expression(Box<crate::pse::Program>),
+    /// The scene's hypertexture on a moving object: evaluated at the
+    /// object-space point of the field's pose (the root of a moving scene only).
+    Moving(Box<Density>),
 }
 
 impl Density {
@@ -143,6 +166,7 @@ impl Density {
             Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval(x, field))),
             Density::Hypertexture(h) => h.eval(x, field),
             Density::Expression(p) => crate::shaping::clamp01(p.eval_scalar(x, 0.0, field)),
+            Density::Moving(d) => d.eval(field.object_point(x), field),
         }
     }
 
@@ -569,6 +593,10 @@ impl Density {
                 zip(&a, &d.eval_lanes(x, field, isa), f32::min)
             }),
             Density::Hypertexture(h) => h.eval_lanes(x, field, isa),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_lanes(&pose.to_object_lanes(x), field, isa),
+                None => d.eval_lanes(x, field, isa),
+            },
         }
     }
 }
@@ -784,6 +812,8 @@ impl Density {
             // A complement may be non-zero anywhere.
             Density::Complement(_) => None,
             Density::Expression(p) => p.support(),
+            // In object space: the field maps it to the world of each moment.
+            Density::Moving(d) => d.support(),
             Density::Hypertexture(h) => h.support(),
         }
     }

@@ -417,7 +417,7 @@ pub fn max_displacement(density: &Density) -> f32 {
             v.iter().map(max_displacement).fold(0.0, f32::max)
         }
         Density::Difference(a, b) => max_displacement(a).max(max_displacement(b)),
-        Density::Complement(a) => max_displacement(a),
+        Density::Complement(a) | Density::Moving(a) => max_displacement(a),
         Density::Hypertexture(h) => {
             h.distortion().map_or(0.0, Distortion::max_displacement) + max_displacement(h.object())
         }
@@ -525,6 +525,8 @@ mod tests {
             frame: 0,
             time: 0.0,
             frame_rate: 24.0,
+            pose: None,
+            support: None,
         };
         let k = d.factor(Vec3::new(0.3, 0.1, 0.7), Vec3::Y, 0.0, &field);
         assert!((k - (0.2 * 0.5 + 0.5 + 0.1)).abs() < 1e-6, "{k}");

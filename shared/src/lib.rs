@@ -20,6 +20,7 @@ pub mod film;
 pub mod interleave;
 pub mod lighting;
 pub mod march;
+pub mod motion;
 pub mod noise;
 pub mod pse;
 pub mod random;

@@ -227,7 +227,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
 
-    let mut basis = Basis::new(ray, step, (t0, t1), phase, scene.support);
+    let mut basis = Basis::new(ray, step, (t0, t1), phase, field.support);
     let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
     let mut path = 0.0f32;
@@ -288,7 +288,9 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                 }
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
-            let shading_normal = pse::perturb_normal(scene, x, f, shading_normal, field);
+            // Colours and textures belong to the object: its point, not the world's.
+            let object_x = field.object_point(x);
+            let shading_normal = pse::perturb_normal(scene, object_x, f, shading_normal, field);
             let key = match scene.colour_index {
                 ColourIndex::Density => f,
                 ColourIndex::Strata {
@@ -296,12 +298,12 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                     amplitude,
                     octaves,
                 } => {
-                    let q = x - field.offset;
+                    let q = object_x - field.offset;
                     let turb = field.noise.turbulence(q, octaves);
                     0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
                 }
             };
-            let base = pse::surface_colour(scene, x, f, key, field);
+            let base = pse::surface_colour(scene, object_x, f, key, field);
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
@@ -328,7 +330,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                     };
                     if let Some((_, exit)) = slab(&ray, min, max) {
                         path += t;
-                        basis = Basis::new(ray, step, (0.0, exit), phase, scene.support);
+                        basis = Basis::new(ray, step, (0.0, exit), phase, field.support);
                         chunk = Chunk::empty();
                         previous = None;
                         k = 1;

@@ -113,54 +113,86 @@ fn expression_errors_name_the_file_position_the_expression_position_and_a_caret(
     );
 }
 
-/// The notes' crawling-texture problem: evaluated at the object-space point, the
-/// marble and the density stay with a point of the moving, spinning sphere.
+/// The notes' crawling-texture problem: with the scene's `transform`, the
+/// density stays with a point of the moving, spinning sphere.
 #[test]
-fn a_solid_texture_in_object_space_sticks_to_its_moving_object() {
-    let text = scene_text("pse/spinning_marble.ron");
-    let desc = hypertexture::scene::parse(&text, "spinning_marble.ron").unwrap();
-    let knobs = hypertexture::scene::knob_values(&desc, &[]).unwrap();
-    let (speed, spin) = (knobs["speed"] as f32, knobs["spin"] as f32);
+fn a_moving_objects_density_follows_its_transform() {
+    let scene = load("pse/spinning_marble.ron", 16, &[]).unwrap();
+    let (speed, spin) = (0.03f32, 4.5f32.to_radians());
     let centre = glam::Vec3::new(-0.4, 0.0, 0.0);
     // A point of the sphere's soft region, in object space (its place at frame 0).
     let o = centre + glam::Vec3::new(0.5, 0.3, 0.55);
-    let probe = |frame: u32, x: glam::Vec3| {
-        hypertexture::pse::surface::probe(
-            "[D(object(x)), marble(object(x)), marble(x)]",
-            Some(&desc),
-            &knobs,
-            x,
-            frame,
-        )
-        .unwrap()
-        .components
-    };
-    let at0 = probe(0, o);
-    assert!(at0[0] > 0.0 && at0[0] < 1.0, "in the soft region: {at0:?}");
-    let mut crawled = 0.0f64;
+    let at0 = scene.density_at(o, 0);
+    assert!(at0 > 0.0 && at0 < 1.0, "in the soft region: {at0}");
     for frame in 1..8u32 {
         // Where the object point is in the world at this frame.
         let a = spin * frame as f32;
         let q = o - centre;
         let rotated = glam::Vec3::new(
-            q.x * libm::cosf(a) + q.z * libm::sinf(a),
+            q.x * a.cos() + q.z * a.sin(),
             q.y,
-            -q.x * libm::sinf(a) + q.z * libm::cosf(a),
+            -q.x * a.sin() + q.z * a.cos(),
         );
         let world = centre + rotated + glam::Vec3::new(speed * frame as f32, 0.0, 0.0);
-        let now = probe(frame, world);
+        let now = scene.density_at(world, frame);
+        assert!((now - at0).abs() < 1e-4, "frame {frame}: {now} vs {at0}");
         assert!(
-            (now[0] - at0[0]).abs() < 1e-4,
-            "density sticks: {now:?} vs {at0:?}"
+            (scene.density_at(o, frame) - at0).abs() > 1e-3,
+            "the world point itself has moved on"
         );
-        assert!(
-            (now[1] - at0[1]).abs() < 1e-3,
-            "marble sticks: {now:?} vs {at0:?}"
-        );
-        crawled += (now[2] - at0[2]).abs();
     }
+}
+
+/// A marble sphere moved two pixels a frame: with `transform` the frame-1 image
+/// is the frame-0 image two pixels on, marble included (the texture sticks);
+/// moving only the density (`D(x - frame·v)`), the marble crawls.
+#[test]
+fn a_solid_texture_sticks_to_its_moving_object() {
+    // Orthographic, 2 units over 64 pixels: 1/32 a pixel; the object moves 1/16.
+    let scene = |moving: &str| {
+        let text = format!(
+            r#"Scene(
+                image: (width: 64, height: 64),
+                camera: (eye: (0, 0, 4), look_at: (0, 0, 0), projection: Orthographic(height: 2.0)),
+                lights: (ambient: (0.2, 0.2, 0.2), sources: [Directional(direction: (0, 0, 1), colour: (1, 1, 1))]),
+                march: (bounds: (min: (-1, -1, -1), max: (1, 1, 1)), step: Length(0.02), opacity: 200.0),
+                object: Sphere(centre: (0, 0, 0), radius: 0.55, softness: 0.1),
+                functions: "fn marble(p) {{ sin(12 * p.x + 4 * turbulence(p * 3, 4)) }}",
+                colour_map: (points: [(0.0, (0.1, 0.1, 0.3)), (1.0, (1.0, 0.9, 0.8))]),
+                {moving}
+            )"#
+        );
+        Scene::from_text(&text, "moving.ron", Overrides::default()).unwrap()
+    };
+    let sticks = scene(
+        r#"transform: (velocity: (0.0625, 0, 0)), colour: "colour_map(0.5 + 0.5 * marble(x))","#,
+    );
+    let crawls = scene(
+        r#"density: "D(x - frame * [0.0625, 0, 0])", colour: "colour_map(0.5 + 0.5 * marble(x))","#,
+    );
+    let difference = |scene: &Scene| {
+        let (a, b) = (
+            hypertexture::render::render(scene, 0, &|_| {}),
+            hypertexture::render::render(scene, 1, &|_| {}),
+        );
+        let (mut worst, mut coverage) = (0.0f32, 0.0f32);
+        for y in 0..64 {
+            for x in 0..62 {
+                let (p, q) = (a.get(x, y).rgba, b.get(x + 2, y).rgba);
+                coverage += p[3];
+                for c in 0..4 {
+                    worst = worst.max((p[c] - q[c]).abs());
+                }
+            }
+        }
+        assert!(coverage > 500.0, "the sphere is in the picture: {coverage}");
+        worst
+    };
+    let stuck = difference(&sticks);
+    assert!(stuck < 2e-3, "the texture moves with its object: {stuck}");
+    let crawled = difference(&crawls);
     assert!(
-        crawled > 0.1,
+        crawled > 0.05,
         "in world space the texture would crawl: {crawled}"
     );
 }

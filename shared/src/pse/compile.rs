@@ -1269,6 +1269,8 @@ mod tests {
             frame: 0,
             time: 0.0,
             frame_rate: 24.0,
+            pose: None,
+            support: None,
         }
     }
 

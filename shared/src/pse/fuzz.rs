@@ -54,6 +54,8 @@ pub fn compile_and_run(functions: &str, expression: &str) {
         frame: 7,
         time: 7.0,
         frame_rate: 24.0,
+        pose: None,
+        support: None,
     };
     for kind in [Kind::Density, Kind::Colour, Kind::Normal, Kind::Probe] {
         if let Ok(program) = compile_expression(expression, kind, &ctx) {

@@ -96,11 +96,12 @@ pub(crate) fn surface_colour(scene: &Scene, x: Vec3, f: f32, key: f32, field: &F
 }
 
 /// The shading normal with the `normal_perturbation` expression added (Perlin
-/// 1985: `normal += dnoise(x)`), renormalised.
+/// 1985: `normal += dnoise(x)`), renormalised; x is the object-space point, and
+/// the perturbation turns with the object.
 #[inline]
 pub(crate) fn perturb_normal(scene: &Scene, x: Vec3, f: f32, n: Vec3, field: &Field) -> Vec3 {
     match &scene.normal_perturbation {
-        Some(p) => (n + p.eval_vector(x, f, field)).normalize_or(n),
+        Some(p) => (n + field.world_vector(p.eval_vector(x, f, field))).normalize_or(n),
         None => n,
     }
 }
@@ -198,6 +199,8 @@ pub fn probe(
         frame,
         time: frame as f32,
         frame_rate,
+        pose: None,
+        support: None,
     };
     let v = program.eval(super::eval::Inputs { x, d: 0.0 }, &field);
     let components = if program.is_vector() {

@@ -58,6 +58,9 @@ pub struct SceneDesc {
     pub seed: u64,
     /// Drift of the noise domain per frame: noise is evaluated at `x - frame · flow`,
     /// so an animation's texture streams through the object (rising flames).
+    /// It moves the built-in DMFs' noise (also when an expression calls them as
+    /// `D(x)`); an expression moves its own noise calls with `frame` or `t`, e.g.
+    /// `noise(x - frame * [0, 0.1, 0])`, so that what it says is what it does.
     #[serde(default)]
     pub flow: V3,
     /// Gilet & Dischler's distortion of the whole object (after `modulation`'s
@@ -91,6 +94,11 @@ pub struct SceneDesc {
     /// Frames per second of the time `t = frame / frame_rate`.
     #[serde(default = "Positive::frame_rate")]
     pub frame_rate: Positive,
+    /// Where the object is at each moment (a rigid motion). The hypertexture,
+    /// its colour and its solid textures are evaluated at the object-space point,
+    /// so a texture sticks to its moving object (the notes' crawling textures).
+    #[serde(default)]
+    pub transform: Option<TransformDesc>,
 }
 
 #[derive(Deserialize)]
@@ -155,6 +163,8 @@ struct SceneFields {
     normal_perturbation: Option<String>,
     #[serde(default = "Positive::frame_rate")]
     frame_rate: Positive,
+    #[serde(default)]
+    transform: Option<TransformDesc>,
 }
 
 impl TryFrom<SceneFields> for SceneDesc {
@@ -209,8 +219,35 @@ impl TryFrom<SceneFields> for SceneDesc {
             colour: f.colour,
             normal_perturbation: f.normal_perturbation,
             frame_rate: f.frame_rate,
+            transform: f.transform,
         })
     }
+}
+
+/// The rigid motion of the object: at time τ (in frames) its object-space point o
+/// is at the world point `pivot + R(angle + spin·τ)(o − pivot) + translate +
+/// velocity·τ`, R the rotation about `axis` through the pivot.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TransformDesc {
+    /// Offset at frame 0.
+    #[serde(default)]
+    pub translate: V3,
+    /// Offset added per frame.
+    #[serde(default)]
+    pub velocity: V3,
+    /// Centre of the rotation, in object space.
+    #[serde(default)]
+    pub pivot: V3,
+    /// Axis of the rotation.
+    #[serde(default = "Direction::y")]
+    pub axis: Direction,
+    /// Rotation at frame 0, in degrees.
+    #[serde(default)]
+    pub angle: Finite,
+    /// Rotation added per frame, in degrees.
+    #[serde(default)]
+    pub spin: Finite,
 }
 
 /// Most knobs a scene may declare.

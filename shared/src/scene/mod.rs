@@ -16,6 +16,7 @@ use glam::Vec3;
 use crate::camera::Camera;
 use crate::curve::Curve;
 use crate::density::Density;
+use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
 use crate::simd::Isa;
 use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, ObjectDesc, SceneDesc};
@@ -339,6 +340,8 @@ pub struct Scene {
     pub(crate) colour_expression: Option<crate::pse::Program>,
     /// The normal perturbation expression (bumps, waves).
     pub(crate) normal_perturbation: Option<crate::pse::Program>,
+    /// The object's rigid motion (`density` is then [`Density::Moving`]).
+    pub(crate) motion: Option<Motion>,
 }
 
 impl Scene {
@@ -424,7 +427,12 @@ impl Scene {
         let colour_map = Curve::colours(&desc.colour_map);
         let exprs =
             crate::pse::surface::SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
-        let density = exprs.density;
+        let motion = desc.transform.as_ref().map(Motion::build);
+        let density = match motion {
+            Some(_) => Density::Moving(Box::new(exprs.density)),
+            None => exprs.density,
+        };
+        // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
         Ok(Scene {
             width: desc.image.width,
@@ -457,6 +465,7 @@ impl Scene {
             frame_rate: desc.frame_rate.0,
             colour_expression: exprs.colour,
             normal_perturbation: exprs.normal_perturbation,
+            motion,
         })
     }
 
@@ -543,24 +552,24 @@ impl Scene {
     /// The evaluation context of `frame`.
     #[inline]
     pub(crate) fn field(&self, frame: u32) -> crate::density::Field<'_> {
-        crate::density::Field {
-            noise: &self.noise,
-            offset: self.flow * frame as f32,
-            frame,
-            time: frame as f32,
-            frame_rate: self.frame_rate,
-        }
+        self.field_at(frame as f32)
     }
 
     /// The evaluation context at `time` frames (a frame plus a shutter offset).
     #[inline]
     pub(crate) fn field_at(&self, time: f32) -> crate::density::Field<'_> {
+        let pose = self.motion.map(|m| m.at(time));
         crate::density::Field {
             noise: &self.noise,
             offset: self.flow * time,
             frame: time as u32,
             time,
             frame_rate: self.frame_rate,
+            pose,
+            support: match pose {
+                Some(pose) => self.support.map(|b| pose.world_box(b)),
+                None => self.support,
+            },
         }
     }
 }
