@@ -66,7 +66,7 @@ pub struct Context<'a> {
 }
 
 /// Names that are not functions a scene may define.
-const BUILTINS: [&str; 38] = [
+const BUILTINS: [&str; 39] = [
     "noise",
     "vnoise",
     "dnoise",
@@ -94,6 +94,7 @@ const BUILTINS: [&str; 38] = [
     "mix",
     "length",
     "normalize",
+    "direction",
     "dot",
     "cross",
     "project",
@@ -1071,11 +1072,11 @@ impl<'a> Compiler<'a> {
                 self.release(a.0);
                 Ok(out)
             }
-            "length" | "normalize" | "dot" | "cross" | "colour_map" | "vec" => {
+            "length" | "normalize" | "direction" | "dot" | "cross" | "colour_map" | "vec" => {
                 self.vector_builtin(name, args, at)
             }
             _ => {
-                let mut names: Vec<&str> = BUILTINS[..33].to_vec();
+                let mut names: Vec<&str> = BUILTINS[..34].to_vec();
                 names.extend(self.ctx.objects.iter().map(|(n, _)| n.as_str()));
                 names.extend(
                     self.ctx.functions[..self.visible]
@@ -1127,7 +1128,8 @@ impl<'a> Compiler<'a> {
                 self.release(s.0);
                 Ok(Val::V(d.map(S::R)))
             }
-            "length" | "normalize" => {
+            // `direction` is the 1985 paper's name for `normalize`.
+            "length" | "normalize" | "direction" => {
                 let [a] = self.args::<1>(name, args, at)?;
                 let v = self.vector(a.0, a.1, &format!("the argument of {name}"))?;
                 let l2 = self.dot(v, v, at)?;
@@ -1391,6 +1393,7 @@ mod tests {
         assert_eq!(scalar("dot(x, [1, 0, 0]) + cross(x, [0, 0, 1]).y"), 0.0);
         assert_eq!(scalar("d"), 0.25);
         assert_eq!(scalar("mix(x, [0, 0, 0], 0.5).z"), 1.5);
+        assert_eq!(scalar("direction(x * 2).y"), scalar("normalize(x).y"));
         // Temporaries as operands: no register is reused while still needed.
         assert_eq!(
             scalar("mix(x * 2, x * 3, 0.25).y"),
