@@ -31,6 +31,12 @@ pub struct Bias {
 }
 
 impl Bias {
+    /// Whether every t in [0, 1] maps into [0, 1] (b in (0, 1]: a finite
+    /// exponent ≥ 0), so the result is finite for every finite t.
+    pub(crate) fn keeps_unit_interval(&self) -> bool {
+        self.exponent >= 0.0 && self.exponent.is_finite()
+    }
+
     /// The bias curve with parameter `b` in (0, 1).
     pub fn new(b: f32) -> Self {
         Bias {
@@ -70,6 +76,11 @@ pub struct Gain {
 }
 
 impl Gain {
+    /// [`Bias::keeps_unit_interval`] of the underlying bias.
+    pub(crate) fn keeps_unit_interval(&self) -> bool {
+        self.bias.keeps_unit_interval()
+    }
+
     /// The gain curve with parameter `g` in (0, 1).
     pub fn new(g: f32) -> Self {
         Gain {

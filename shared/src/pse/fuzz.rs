@@ -9,7 +9,9 @@ use glam::Vec3;
 use super::eval::Inputs;
 use super::{Context, Kind, compile_expression, parse_functions};
 use crate::curve::Curve;
-use crate::density::{Density, Field};
+use crate::density::{Density, Field, Points};
+use crate::noise::{LANES, Lanes};
+use crate::simd::Isa;
 use crate::noise::Noise;
 use crate::scene::desc::{ObjectDesc, SphereDesc, V3};
 
@@ -68,6 +70,61 @@ pub fn compile_and_run(functions: &str, expression: &str) {
             ] {
                 let _ = program.eval(Inputs { x, d: 0.5 }, &field);
             }
+            lanes_agree(&program, &field);
+            if kind == Kind::Density {
+                support_holds(&program, &field);
+            }
+        }
+    }
+}
+
+/// Points of the sample grid the checks use: inside the sphere, in its soft
+/// shell, outside it.
+const POINTS: [Vec3; LANES] = [
+    Vec3::new(0.0, 0.0, 0.0),
+    Vec3::new(0.3, -0.7, 0.2),
+    Vec3::new(0.9, 0.1, 0.0),
+    Vec3::new(-0.5, 0.5, -0.6),
+    Vec3::new(3.0, 0.0, 0.0),
+    Vec3::new(0.0, -1.5, 0.2),
+    Vec3::new(1.2, 1.2, 1.2),
+    Vec3::new(-2.0, 0.25, 7.0),
+];
+
+/// The 8-lane register code gives each lane the bits of the point alone (lanes
+/// take different branches here), on every instruction set.
+fn lanes_agree(program: &super::Program, field: &Field) {
+    let mut points = Points::default();
+    for (l, &p) in POINTS.iter().enumerate() {
+        points.set(l, p);
+    }
+    let d: Lanes = std::array::from_fn(|l| l as f32 / 7.0);
+    let alone: Vec<[f32; 3]> = (0..LANES)
+        .map(|l| program.eval(Inputs { x: POINTS[l], d: d[l] }, field))
+        .collect();
+    for isa in Isa::available() {
+        let lanes = program.eval_lanes(&points, &d, field, isa);
+        for (l, one) in alone.iter().enumerate() {
+            for c in 0..3 {
+                let (a, b) = (lanes[c][l], one[c]);
+                assert!(
+                    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                    "lane {l} on {isa:?}: {a} vs {b} alone"
+                );
+            }
+        }
+    }
+}
+
+/// Outside the box [`super::Program::support`] finds, the density is 0.
+fn support_holds(program: &super::Program, field: &Field) {
+    let Some((lo, hi)) = program.support() else {
+        return;
+    };
+    for x in POINTS {
+        if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+            let f = crate::shaping::clamp01(program.eval_scalar(x, 0.0, field));
+            assert!(f == 0.0, "{f} at {x}, outside the support {lo} {hi}");
         }
     }
 }

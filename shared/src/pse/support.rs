@@ -13,15 +13,18 @@
 //! Anything else (noise, `cos`, `exp`, a point moved before `D` is evaluated)
 //! may be non-zero anywhere.
 //!
-//! The analysis assumes no operation overflows to infinity (`0 · ∞` would be a
-//! NaN, not 0); a NaN density is clamped to 0 anyway.
+//! A product is 0 where a factor is 0 only if the other factor is finite there
+//! (`0 · ∞` is a NaN, and a NaN is not 0 to `!=` or to a branch), so every
+//! register also carries a bound on its magnitude, `None` when it may be
+//! infinite or NaN; the sample point is taken to lie within ±10³⁰ (march bounds
+//! are far smaller).
 
 use std::collections::BTreeMap;
 
 use glam::Vec3;
 
-use super::eval::{Fn1, Fn2, Op, Program, REG_X, Result3};
-use crate::density::Aabb;
+use super::eval::{Fn1, Fn2, INPUTS, Op, Program, REG_D, REG_FRAME, REG_T, REG_X, Result3};
+use crate::density::{Aabb, Density};
 
 /// Where a value can be non-zero: `None` anywhere, or inside a box (an empty
 /// box: nowhere, the value is always 0).
@@ -51,6 +54,16 @@ struct State {
     point: Vec<Option<u8>>,
     /// The register holds this value at every point (a constant never overwritten).
     constant: Vec<Option<f32>>,
+    /// A bound on the register's magnitude, `None`: it may be infinite or NaN.
+    magnitude: Vec<Option<f64>>,
+}
+
+/// The magnitude bound of the sample point's coordinates.
+const POINT_MAGNITUDE: f64 = 1e30;
+
+/// `m` as a magnitude bound, if every f32 below it (rounded up) is finite.
+fn finite(m: f64) -> Option<f64> {
+    (m <= 1e37).then_some(m)
 }
 
 /// What two paths agree on.
@@ -73,6 +86,12 @@ impl State {
                 .collect(),
             point: agreed(self.point, other.point),
             constant: agreed(self.constant, other.constant),
+            magnitude: self
+                .magnitude
+                .into_iter()
+                .zip(other.magnitude)
+                .map(|(a, b)| Some(a?.max(b?)))
+                .collect(),
         }
     }
 }
@@ -90,15 +109,22 @@ impl Program {
             support: vec![None; n],
             point: vec![None; n],
             constant: vec![None; n],
+            magnitude: vec![None; n],
         };
-        // Inputs are registers 0..INPUTS; the constants follow them.
-        for (r, &v) in self.template.iter().enumerate().skip(super::eval::INPUTS) {
+        // Inputs are registers 0..INPUTS; the temporaries (0) and constants follow.
+        for (r, &v) in self.template.iter().enumerate().skip(INPUTS) {
             entry.constant[r] = Some(v);
             entry.support[r] = if v == 0.0 { Some(NOWHERE) } else { None };
+            entry.magnitude[r] = v.is_finite().then(|| f64::from(v.abs()));
         }
         for i in 0..3u8 {
             entry.point[usize::from(REG_X + i)] = Some(i);
+            entry.magnitude[usize::from(REG_X + i)] = Some(POINT_MAGNITUDE);
         }
+        // t and the frame are finite; d is in [0, 1].
+        entry.magnitude[usize::from(REG_T)] = Some(1e10);
+        entry.magnitude[usize::from(REG_FRAME)] = Some(1e10);
+        entry.magnitude[usize::from(REG_D)] = Some(1.0);
         let mut incoming: BTreeMap<usize, State> = BTreeMap::new();
         let arrive = |at: usize, s: State, incoming: &mut BTreeMap<usize, State>| {
             let joined = match incoming.remove(&at) {
@@ -145,65 +171,120 @@ impl Program {
     fn step(&self, s: &mut State, op: Op) {
         let sup = |r: u8| s.support[usize::from(r)];
         let konst = |r: u8| s.constant[usize::from(r)];
-        let same = |r: u8| sup(r);
-        let (dests, support): (Vec<u8>, Support) = match op {
+        let mag = |r: u8| s.magnitude[usize::from(r)];
+        let mags = |p: [u8; 3]| Some(mag(p[0])?.max(mag(p[1])?).max(mag(p[2])?));
+        let nonzero_constant = |r: u8| konst(r).is_some_and(|k| k != 0.0 && k.is_finite());
+        let unit = Some(1.0);
+        // (written registers, their support, their magnitude bound)
+        let (dests, support, magnitude): (Vec<u8>, Support, Option<f64>) = match op {
             Op::Copy(d, a) => {
-                let (p, k, v) = (s.point[usize::from(a)], konst(a), meet(sup(a), s.reach));
                 let d = usize::from(d);
-                s.support[d] = v;
-                s.point[d] = p;
-                s.constant[d] = k;
+                s.support[d] = meet(sup(a), s.reach);
+                s.point[d] = s.point[usize::from(a)];
+                s.constant[d] = konst(a);
+                s.magnitude[d] = mag(a);
                 return;
             }
-            Op::Add(d, a, b) | Op::Sub(d, a, b) => (vec![d], union(sup(a), sup(b))),
-            Op::Mul(d, a, b) | Op::And(d, a, b) => (vec![d], meet(sup(a), sup(b))),
+            Op::Add(d, a, b) | Op::Sub(d, a, b) => (
+                vec![d],
+                union(sup(a), sup(b)),
+                finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a + b)),
+            ),
+            // 0 · b = 0 only for a finite b.
+            Op::Mul(d, a, b) => (
+                vec![d],
+                meet(
+                    if mag(b).is_some() { sup(a) } else { None },
+                    if mag(a).is_some() { sup(b) } else { None },
+                ),
+                finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a * b)),
+            ),
             Op::Div(d, a, b) | Op::Rem(d, a, b) => {
-                let divisor_nonzero = konst(b).is_some_and(|k| k != 0.0);
-                (vec![d], if divisor_nonzero { same(a) } else { None })
+                if nonzero_constant(b) {
+                    let k = f64::from(konst(b).unwrap_or(1.0).abs());
+                    let m = match op {
+                        Op::Div(..) => mag(a).and_then(|m| finite(m / k)),
+                        _ => mag(a),
+                    };
+                    (vec![d], sup(a), m)
+                } else {
+                    (vec![d], None, None)
+                }
             }
-            Op::Neg(d, a) => (vec![d], same(a)),
-            // 0 < 0 and 0 != 0 are false; 0 <= 0, 0 == 0 and !0 are true.
-            Op::Lt(d, a, b) | Op::Ne(d, a, b) | Op::Or(d, a, b) => (vec![d], union(sup(a), sup(b))),
-            Op::Le(d, ..) | Op::Eq(d, ..) | Op::Not(d, _) => (vec![d], None),
+            Op::Neg(d, a) => (vec![d], sup(a), mag(a)),
+            // 0 < 0, 0 != 0, 0 && b and 0 || 0 are false; 0 <= 0, 0 == 0, !0 true.
+            Op::Lt(d, a, b) | Op::Ne(d, a, b) | Op::Or(d, a, b) => {
+                (vec![d], union(sup(a), sup(b)), unit)
+            }
+            Op::And(d, a, b) => (vec![d], meet(sup(a), sup(b)), unit),
+            Op::Le(d, ..) | Op::Eq(d, ..) | Op::Not(d, _) => (vec![d], None, unit),
             Op::F1(f, d, a) => match f {
-                Fn1::Abs
-                | Fn1::Floor
-                | Fn1::Fract
-                | Fn1::Sin
-                | Fn1::Tan
-                | Fn1::Sqrt
-                | Fn1::Sign => (vec![d], same(a)),
-                Fn1::Cos | Fn1::Exp | Fn1::Log => (vec![d], None),
+                Fn1::Abs => (vec![d], sup(a), mag(a)),
+                Fn1::Floor => (vec![d], sup(a), mag(a).map(|m| m + 1.0)),
+                Fn1::Fract | Fn1::Sin => (vec![d], sup(a), mag(a).and(unit)),
+                Fn1::Sign => (vec![d], sup(a), unit),
+                Fn1::Tan | Fn1::Sqrt => (vec![d], sup(a), None),
+                Fn1::Cos => (vec![d], None, mag(a).and(unit)),
+                Fn1::Exp | Fn1::Log => (vec![d], None, None),
             },
             Op::F2(f, d, a, b) => match f {
-                Fn2::Min | Fn2::Max => (vec![d], union(sup(a), sup(b))),
+                Fn2::Min | Fn2::Max => (
+                    vec![d],
+                    union(sup(a), sup(b)),
+                    mag(a).zip(mag(b)).map(|(a, b)| a.max(b)),
+                ),
                 // bias_b(0) = gain_g(0) = 0: the second argument is t.
-                Fn2::Bias | Fn2::Gain => (vec![d], same(b)),
-                Fn2::Pow | Fn2::Atan2 | Fn2::Step => (vec![d], None),
+                Fn2::Bias | Fn2::Gain => {
+                    let unit_b = konst(a).is_some_and(|b| b > 0.0 && b < 1.0);
+                    (vec![d], sup(b), if unit_b { mag(b).and(unit) } else { None })
+                }
+                Fn2::Step => (vec![d], None, unit),
+                Fn2::Atan2 => (vec![d], None, mag(a).and(mag(b)).and(Some(4.0))),
+                Fn2::Pow => (vec![d], None, None),
             },
-            Op::BiasK(d, a, _) | Op::GainK(d, a, _) => (vec![d], same(a)),
+            Op::BiasK(d, a, bias) => {
+                let m = if bias.keeps_unit_interval() { mag(a).and(unit) } else { None };
+                (vec![d], sup(a), m)
+            }
+            Op::GainK(d, a, gain) => {
+                let m = if gain.keeps_unit_interval() { mag(a).and(unit) } else { None };
+                (vec![d], sup(a), m)
+            }
             Op::Clamp(d, v, lo, hi) => {
                 let keeps_zero =
                     konst(lo).is_some_and(|l| l <= 0.0) && konst(hi).is_some_and(|h| h >= 0.0);
-                (vec![d], if keeps_zero { same(v) } else { None })
+                (
+                    vec![d],
+                    if keeps_zero { sup(v) } else { None },
+                    mag(lo).zip(mag(hi)).map(|(a, b)| a.max(b)),
+                )
             }
             Op::Density(d, object, p) => {
                 let at_x = (0..3u8).all(|i| s.point[usize::from(p[usize::from(i)])] == Some(i));
-                let support = if at_x {
-                    self.objects[usize::from(object)].support()
-                } else {
-                    None
+                let object = self.objects.get(usize::from(object));
+                let support = if at_x { object.and_then(Density::support) } else { None };
+                (vec![d], support, mags(p).and(unit))
+            }
+            Op::Noise(d, p) | Op::Improved(d, p) => (vec![d], None, mags(p).and(Some(2.0))),
+            Op::Turbulence(d, p, _) | Op::Fbm(d, p, _) => {
+                (vec![d], None, mags(p).and(Some(64.0)))
+            }
+            Op::VNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(2.0))),
+            // Central differences of noise over 2⁻⁹.
+            Op::DNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(4096.0))),
+            Op::Project(d, p) => {
+                // Onto the inner surface: inside the surface's support.
+                let reach = self.surface.as_ref().and_then(Density::support).map(|(lo, hi)| {
+                    f64::from(lo.abs().max(hi.abs()).max_element())
+                });
+                let m = match &self.surface {
+                    None => mags(p),
+                    Some(_) => mags(p).and(reach),
                 };
-                (vec![d], support)
+                (d.to_vec(), None, m)
             }
-            Op::Smoothstep(d, ..)
-            | Op::Noise(d, _)
-            | Op::Turbulence(d, ..)
-            | Op::Fbm(d, ..)
-            | Op::Improved(d, _) => (vec![d], None),
-            Op::VNoise(d, _) | Op::DNoise(d, _) | Op::Project(d, _) | Op::ColourMap(d, _) => {
-                (d.to_vec(), None)
-            }
+            Op::Smoothstep(d, ..) => (vec![d], None, None),
+            Op::ColourMap(d, _) => (d.to_vec(), None, None),
             Op::Jump(_) | Op::JumpIfZero(..) => {
                 unreachable!("control flow is followed by the caller")
             }
@@ -216,6 +297,7 @@ impl Program {
             s.support[d] = support;
             s.point[d] = None;
             s.constant[d] = None;
+            s.magnitude[d] = magnitude;
         }
     }
 }
