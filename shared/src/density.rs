@@ -159,7 +159,7 @@ impl Density {
     }
 
     /// [`Density::project`] at each point.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn project_lanes(&self, x: &Points) -> Points {
         match self {
             Density::Sphere(s) => x.map(|p| s.project(p)),
@@ -495,32 +495,46 @@ fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
 }
 
 impl Field<'_> {
-    /// `noise` at the points, through the scene's instruction-set path.
-    #[inline]
-    fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
-        isa.noise(self.noise, &p.x, &p.y, &p.z)
+    /// `noise` at the points: the lane kernel itself, inlined into the
+    /// per-instruction-set copy of [`Density::eval_lanes`].
+    #[inline(always)]
+    fn noise_lanes(&self, p: &Points) -> Lanes {
+        self.noise.noise_lanes(&p.x, &p.y, &p.z)
     }
 
     /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
-    #[inline]
-    fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
-        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
+    #[inline(always)]
+    fn noise_at(&self, frequency: f32, x: &Points) -> Lanes {
+        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency))
     }
 }
 
 impl Density {
     /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
     /// the noise and the powers computed a batch at a time on `isa`.
+    #[inline]
     pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        if isa == Isa::Scalar {
-            let mut out = [0.0; LANES];
-            for (l, o) in out.iter_mut().enumerate() {
-                *o = self.eval(x.get(l), field);
-            }
-            return out;
+        match isa {
+            Isa::Scalar => each(x, |p| self.eval(p, field)),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => each(x, |p| self.eval(p, field)),
         }
+    }
+
+    /// [`Density::eval_lanes`] on a SIMD path: written once, inlined into a
+    /// copy per instruction set (`x86` below) together with everything it
+    /// calls but its children, so the lanes stay in that set's registers
+    /// from the points to the powers.
+    #[inline(always)]
+    pub(crate) fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         match self {
-            Density::Sphere(s) => each(x, |p| s.density(p)),
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
             // The register code runs on the lanes unless they take different
@@ -571,17 +585,35 @@ impl Density {
             Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
                 zip(&a, &d.eval_lanes(x, field, isa), f32::min)
             }),
-            Density::Hypertexture(h) => h.eval_lanes(x, field, isa),
+            Density::Hypertexture(h) => h.eval_lanes_simd(x, field, isa),
         }
     }
 }
 
+/// The copies of [`Density::eval_lanes_simd`] per instruction set.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Sse41)
+    }
+}
+
 impl Hypertexture {
-    /// [`Hypertexture::eval`] at [`LANES`] points (see [`Density::eval_lanes`]).
-    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
+    /// [`Density::eval_lanes_simd`]).
+    #[inline(always)]
+    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         let mut p = *x;
         for w in &self.warps {
-            p = w.apply_lanes(&p, field, isa);
+            p = w.apply_lanes(&p, field);
         }
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
@@ -592,9 +624,9 @@ impl Hypertexture {
                 break;
             }
             let next = match m {
-                Modulation::Bias(b) => b.apply_lanes(&v, isa),
-                Modulation::Gain(g) => g.apply_lanes(&v, isa),
-                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field, isa),
+                Modulation::Bias(b) => b.apply_simd(&v),
+                Modulation::Gain(g) => g.apply_simd(&v),
+                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field),
             };
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
@@ -604,9 +636,9 @@ impl Hypertexture {
 }
 
 impl Warp {
-    /// [`Warp::apply`] at each point.
-    #[inline]
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+    /// [`Warp::apply`] at each point (on a SIMD path).
+    #[inline(always)]
+    fn apply_lanes(&self, x: &Points, field: &Field) -> Points {
         let scale_about = |centre: Vec3, s: &Lanes| {
             let mut out = Points::default();
             for (l, &s) in s.iter().enumerate() {
@@ -620,7 +652,7 @@ impl Warp {
                 amplitude,
                 centre,
             } => {
-                let n = field.noise_at(frequency, x, isa);
+                let n = field.noise_at(frequency, x);
                 scale_about(centre, &n.map(|n| 1.0 + amplitude * n))
             }
             Warp::FractalRadius {
@@ -632,7 +664,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut f = frequency;
                 for _ in 0..octaves {
-                    let n = field.noise_at(f, x, isa);
+                    let n = field.noise_at(f, x);
                     sum = zip(&sum, &n, |s, n| s + n / f);
                     f *= 2.0;
                 }
@@ -651,7 +683,7 @@ impl Warp {
                     let q = x - field.offset;
                     Vec3::new(q.x, q.y * stretch, q.z) * frequency
                 });
-                let n = field.noise_lanes(&q, isa);
+                let n = field.noise_lanes(&q);
                 let mut out = *x;
                 for (l, &n) in n.iter().enumerate() {
                     let p = x.get(l);
@@ -672,7 +704,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut scale = 1.0f32;
                 for _ in 0..octaves {
-                    let n = field.noise_lanes(&q.map(|p| p * scale), isa);
+                    let n = field.noise_lanes(&q.map(|p| p * scale));
                     sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
                     scale *= 2.0;
                 }
@@ -683,22 +715,15 @@ impl Warp {
 }
 
 impl Fur {
-    /// [`Fur::apply`] at each point.
-    #[inline]
-    fn apply_lanes(
-        &self,
-        d: &Lanes,
-        x: &Points,
-        object: &Density,
-        field: &Field,
-        isa: Isa,
-    ) -> Lanes {
+    /// [`Fur::apply`] at each point (on a SIMD path).
+    #[inline(always)]
+    fn apply_lanes(&self, d: &Lanes, x: &Points, object: &Density, field: &Field) -> Lanes {
         let x = if self.curliness > 0.0 {
             let q = x.map(|x| x - field.offset);
-            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
-            let b = field.noise_lanes(&q, isa);
-            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET), isa);
-            let curl = self.curl_gain.apply_lanes(&d.map(|d| 1.0 - d), isa);
+            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET));
+            let b = field.noise_lanes(&q);
+            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET));
+            let curl = self.curl_gain.apply_simd(&d.map(|d| 1.0 - d));
             let mut out = Points::default();
             for l in 0..LANES {
                 let v = Vec3::new(a[l], b[l], c[l]);
@@ -709,9 +734,9 @@ impl Fur {
             *x
         };
         let s = field
-            .noise_at(self.frequency, &object.project_lanes(&x), isa)
+            .noise_at(self.frequency, &object.project_lanes(&x))
             .map(|n| 0.5 * (1.0 + n));
-        let shaped = self.gain.apply_lanes(&self.bias.apply_lanes(&s, isa), isa);
+        let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
         zip(&shaped, d, |f, d| f * d)
     }
 }

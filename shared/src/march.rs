@@ -20,6 +20,7 @@ use crate::noise::{LANES, Lanes};
 use crate::pse::surface as pse;
 use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
+use crate::simd::Isa;
 
 /// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
 /// t ≥ 0, or `None` when it misses (the slab test).
@@ -153,21 +154,19 @@ impl Chunk {
         if self.full && (held as usize) < LANES {
             return (self.f[held as usize], self.alpha[held as usize]);
         }
-        let mut x = Points::default();
-        for l in 0..LANES {
-            x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
-        }
         self.full = true;
         self.start = k;
-        self.f = scene.density.eval_lanes(&x, field, scene.isa);
-        let transmit = self.f.map(|f| {
-            let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
-            1.0 - rho
-        });
-        self.alpha = scene
-            .isa
-            .pow01(&transmit, scene.opacity_exponent)
-            .map(|t| 1.0 - t);
+        (self.f, self.alpha) = match scene.isa {
+            Isa::Scalar => samples(scene, basis, k, field, false),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::samples_sse41(scene, basis, k, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::samples_avx2(scene, basis, k, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => samples(scene, basis, k, field, false),
+        };
         self.has_gradient = 0;
         (self.f[0], self.alpha[0])
     }
@@ -205,6 +204,64 @@ impl Chunk {
             }
         }
         self.neighbours[j]
+    }
+}
+
+/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at samples k .. k + [`LANES`]
+/// of `basis`. With `simd` (a constant where it is inlined: into the copies
+/// per instruction set below) the density tree's lane code and the powers are
+/// inlined here too, so the points go from the ray to the powers in registers.
+#[inline(always)]
+fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (Lanes, Lanes) {
+    let mut x = Points::default();
+    for l in 0..LANES {
+        x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
+    }
+    let f = if simd {
+        scene.density.eval_lanes_simd(&x, field, scene.isa)
+    } else {
+        scene.density.eval_lanes(&x, field, Isa::Scalar)
+    };
+    let transmit = f.map(|f| {
+        let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
+        1.0 - rho
+    });
+    // 1^e = 1 (`pow01`): empty samples are transparent without the power.
+    if transmit.iter().all(|&t| t >= 1.0) {
+        return (f, [0.0; LANES]);
+    }
+    let e = scene.opacity_exponent;
+    let p = if simd {
+        crate::simd::pow01_lanes(&transmit, e)
+    } else {
+        Isa::Scalar.pow01(&transmit, e)
+    };
+    (f, p.map(|t| 1.0 - t))
+}
+
+/// The copies of [`samples`] per instruction set.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn samples_avx2(
+        scene: &Scene,
+        basis: &Basis,
+        k: u32,
+        field: &Field,
+    ) -> (Lanes, Lanes) {
+        samples(scene, basis, k, field, true)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn samples_sse41(
+        scene: &Scene,
+        basis: &Basis,
+        k: u32,
+        field: &Field,
+    ) -> (Lanes, Lanes) {
+        samples(scene, basis, k, field, true)
     }
 }
 

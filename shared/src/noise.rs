@@ -174,6 +174,13 @@ impl Noise {
         out
     }
 
+    /// [`Noise::noise`] at each of the lanes' points (no SIMD path here).
+    #[cfg(not(target_arch = "x86_64"))]
+    #[inline(always)]
+    pub(crate) fn noise_lanes(&self, px: &Lanes, py: &Lanes, pz: &Lanes) -> Lanes {
+        std::array::from_fn(|l| self.noise(Vec3::new(px[l], py[l], pz[l])))
+    }
+
     /// [`Noise::noise`] at 4 points in SSE registers (see [`Noise::noise_lanes`]).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]

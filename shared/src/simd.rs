@@ -120,7 +120,7 @@ impl Isa {
 /// `pow01` written lane-parallel: both branches computed, then selected, so the
 /// loop vectorises; each lane's value is the scalar one.
 #[inline(always)]
-fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
+pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
     let mut out = [0.0; LANES];
     for l in 0..LANES {
         let v = x[l];
