@@ -744,10 +744,24 @@ impl Fur {
 /// An axis-aligned box `(min, max)`.
 pub type Aabb = (Vec3, Vec3);
 
-/// A bound on |noise| that holds for every seed: the knots' weights sum to 1
-/// (ω(t) + ω(1 − t) = 1 on each axis) and each knot contributes at most
-/// |Γ·(u, v, w)| ≤ √3; widened by 1% for rounding.
-pub const NOISE_BOUND: f32 = 1.75;
+/// Where the density can be non-zero, as the marcher uses it: a box and,
+/// where one is known, a ball (see [`Density::support_ball`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Support {
+    /// The box of [`Density::support`].
+    pub aabb: Aabb,
+    /// The ball of [`Density::support_ball`] `(centre, radius)`.
+    pub ball: Option<(Vec3, f32)>,
+}
+
+/// A bound on |noise| that holds for every seed, √(3/4) widened by 1% for
+/// rounding. With W_c = ω(u_c)ω(v_c)ω(w_c) the weight and d_c the offset of
+/// corner c (the weights are ≥ 0 and sum to 1: ω(t) + ω(1 − t) = 1 on each
+/// axis) and |Γ_c| = 1:
+/// |noise| ≤ Σ W_c |Γ_c·d_c| ≤ Σ W_c |d_c| ≤ √(Σ W_c |d_c|²) (Jensen)
+/// = √(g(u) + g(v) + g(w)) with g(t) = ω(t)t² + ω(1 − t)(1 − t)², and
+/// g(t) − ¼ = (2t − 1)²((2t − 1)² − 2)/4 ≤ 0 on [0, 1].
+pub const NOISE_BOUND: f32 = 0.875;
 
 fn hull(a: Aabb, b: Aabb) -> Aabb {
     (a.0.min(b.0), a.1.max(b.1))
@@ -816,7 +830,41 @@ impl Density {
     }
 }
 
+impl Density {
+    /// A ball `(centre, radius)` outside which the density is 0 for certain,
+    /// where one is known: around soft spheres and the radial warps of them
+    /// (the gallery's noisy, fractal and fiery spheres), tighter than the
+    /// box of [`Density::support`] (the marcher skips what lies outside either).
+    pub fn support_ball(&self) -> Option<(Vec3, f32)> {
+        match self {
+            Density::Sphere(s) => Some((s.centre, s.falloff.outer())),
+            Density::Intersection(v) | Density::Min(v) => v.iter().find_map(Density::support_ball),
+            Density::Difference(a, _) => a.support_ball(),
+            Density::Hypertexture(h) => h.support_ball(),
+            _ => None,
+        }
+    }
+}
+
 impl Hypertexture {
+    /// [`Density::support_ball`]: the object's, widened by the distortion's
+    /// largest displacement and pulled back through the warps that scale about
+    /// its centre (x is evaluated at c + (x − c)·s, s ≥ lo > 0, so |x − c| ≤ r / lo).
+    fn support_ball(&self) -> Option<(Vec3, f32)> {
+        let (centre, mut r) = self.object.support_ball()?;
+        if let Some(d) = &self.distortion {
+            r += d.max_displacement();
+        }
+        for w in self.warps.iter().rev() {
+            let (about, lo, _) = w.scale_range()?;
+            if about != centre || !(lo > 0.0) {
+                return None;
+            }
+            r /= lo;
+        }
+        r.is_finite().then_some((centre, r))
+    }
+
     /// [`Density::support`]: the object's, widened by the distortion's largest
     /// displacement and pulled back through the warps.
     pub fn support(&self) -> Option<Aabb> {
@@ -834,15 +882,16 @@ impl Hypertexture {
 }
 
 impl Warp {
-    /// A box holding every x that this warp moves into `b`.
-    fn preimage(&self, b: Aabb) -> Option<Aabb> {
+    /// For the warps `c + (x − c)·s` that scale about a centre c: c and the
+    /// range `[lo, hi]` of the factor s.
+    fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
         let m = NOISE_BOUND;
         match *self {
             Warp::NoisyRadius {
                 amplitude, centre, ..
             } => {
                 let a = amplitude.abs() * m;
-                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+                Some((centre, 1.0 - a, 1.0 + a))
             }
             Warp::FractalRadius {
                 frequency,
@@ -857,7 +906,7 @@ impl Warp {
                     f *= 2.0;
                 }
                 let a = amplitude.abs() * sum;
-                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+                Some((centre, 1.0 - a, 1.0 + a))
             }
             Warp::TurbulentRadius {
                 amplitude,
@@ -872,16 +921,37 @@ impl Warp {
                     scale *= 2.0;
                 }
                 let a = amplitude * t;
-                unscale(b, centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0), Vec3::ONE)
+                Some((centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0)))
             }
+            Warp::Dripping { .. } => None,
+        }
+    }
+
+    /// A box holding every x that this warp moves into `b`.
+    fn preimage(&self, b: Aabb) -> Option<Aabb> {
+        let m = NOISE_BOUND;
+        if let Some((centre, lo, hi)) = self.scale_range() {
+            return unscale(b, centre, lo, hi, Vec3::ONE);
+        }
+        match *self {
+            Warp::NoisyRadius { .. }
+            | Warp::FractalRadius { .. }
+            | Warp::TurbulentRadius { .. } => None,
             Warp::Dripping {
                 amplitude, centre, ..
             } => {
                 // Below the centre y is scaled by a pull in [1 − a·M, 1]
                 // (a ≥ 0) or [1, 1 − a·M]; above, x is unchanged.
                 let pull = 1.0 - amplitude * m;
-                let stretched = unscale(b, centre, pull.min(1.0), pull.max(1.0), Vec3::Y)?;
-                Some(hull(b, stretched))
+                match unscale(b, centre, pull.min(1.0), pull.max(1.0), Vec3::Y) {
+                    Some(stretched) => Some(hull(b, stretched)),
+                    // A pull that can reach 0 may bring any y below the
+                    // centre to the centre's: only x and z stay bounded.
+                    None => Some((
+                        Vec3::new(b.0.x, f32::NEG_INFINITY, b.0.z),
+                        Vec3::new(b.1.x, b.1.y.max(centre.y), b.1.z),
+                    )),
+                }
             }
         }
     }

@@ -13,7 +13,7 @@
 use glam::Vec3;
 
 use crate::camera::Ray;
-use crate::density::{Field, Points};
+use crate::density::{Field, Points, Support};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::noise::{LANES, Lanes};
@@ -45,6 +45,21 @@ pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
         t1 = t1.min(far);
     }
     (t0 <= t1).then_some((t0, t1))
+}
+
+/// The parameters where `ray` enters and leaves the ball of `radius` about
+/// `centre` (either may be negative), or `None` when it misses.
+#[inline]
+fn ball(ray: &Ray, centre: Vec3, radius: f32) -> Option<(f32, f32)> {
+    let o = ray.origin - centre;
+    let a = ray.direction.length_squared();
+    let b = ray.direction.dot(o);
+    let disc = b * b - a * (o.length_squared() - radius * radius);
+    if !(disc >= 0.0 && a > 0.0) {
+        return None;
+    }
+    let root = disc.sqrt();
+    Some(((-b - root) / a, (-b + root) / a))
 }
 
 /// Two vectors perpendicular to the unit vector `d` and to each other, each of
@@ -82,14 +97,23 @@ impl Basis {
         step: f32,
         (t0, t1): (f32, f32),
         phase: f32,
-        support: Option<(Vec3, Vec3)>,
+        support: Option<Support>,
     ) -> Basis {
         let (dv, dw) = perpendiculars(ray.direction, step);
         // Empty-space skipping: only the samples inside the (widened) support are
         // evaluated; the others are 0, exactly what evaluating them would give.
+        let inside = |s: Support| {
+            let (a, b) = slab(&ray, s.aabb.0, s.aabb.1)?;
+            let (c, d) = match s.ball {
+                Some((centre, r)) => ball(&ray, centre, r)?,
+                None => (a, b),
+            };
+            let (a, b) = (a.max(c), b.min(d));
+            (a <= b).then_some((a, b))
+        };
         let (first, last) = match support {
             None => (0, t1),
-            Some((min, max)) => match slab(&ray, min, max) {
+            Some(s) => match inside(s) {
                 None => (u32::MAX, t0 - 1.0),
                 Some((a, b)) => {
                     let skip = ((a - t0) / step - phase).floor() - 1.0;
@@ -222,10 +246,19 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
     } else {
         scene.density.eval_lanes(&x, field, Isa::Scalar)
     };
-    let transmit = f.map(|f| {
-        let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
-        1.0 - rho
-    });
+    let mut transmit = [0.0; LANES];
+    match &scene.alpha_map {
+        None => {
+            for l in 0..LANES {
+                transmit[l] = 1.0 - clamp01(f[l]);
+            }
+        }
+        Some(m) => {
+            for l in 0..LANES {
+                transmit[l] = 1.0 - clamp01(m.eval1(f[l]));
+            }
+        }
+    }
     // 1^e = 1 (`pow01`): empty samples are transparent without the power.
     if transmit.iter().all(|&t| t >= 1.0) {
         return (f, [0.0; LANES]);
@@ -236,7 +269,11 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
     } else {
         Isa::Scalar.pow01(&transmit, e)
     };
-    (f, p.map(|t| 1.0 - t))
+    let mut alpha = [0.0; LANES];
+    for l in 0..LANES {
+        alpha[l] = 1.0 - p[l];
+    }
+    (f, alpha)
 }
 
 /// The copies of [`samples`] per instruction set.
