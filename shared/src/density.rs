@@ -544,7 +544,7 @@ impl Density {
                 .map(|v| v[0].map(crate::shaping::clamp01))
                 .unwrap_or_else(|| each(x, |p| self.eval(p, field))),
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
+                zip(&a, &d.eval_child(x, field, isa), boolean::union)
             }),
             Density::Intersection(v) => {
                 let mut a = [1.0; LANES];
@@ -552,7 +552,7 @@ impl Density {
                     if a.iter().all(|&a| a == 0.0) {
                         break;
                     }
-                    let b = d.eval_lanes(x, field, isa);
+                    let b = d.eval_child(x, field, isa);
                     // A lane that reached 0 stopped there (`eval` breaks out).
                     a = zip(&a, &b, |a, b| {
                         if a == 0.0 {
@@ -565,11 +565,11 @@ impl Density {
                 a
             }
             Density::Difference(a, b) => {
-                let a = a.eval_lanes(x, field, isa);
+                let a = a.eval_child(x, field, isa);
                 if a.iter().all(|&a| a == 0.0) {
                     return [0.0; LANES];
                 }
-                let b = b.eval_lanes(x, field, isa);
+                let b = b.eval_child(x, field, isa);
                 zip(&a, &b, |a, b| {
                     if a == 0.0 {
                         0.0
@@ -578,14 +578,27 @@ impl Density {
                     }
                 })
             }
-            Density::Complement(a) => a.eval_lanes(x, field, isa).map(boolean::complement),
+            Density::Complement(a) => a.eval_child(x, field, isa).map(boolean::complement),
             Density::Max(v) => v.iter().fold([0.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), f32::max)
+                zip(&a, &d.eval_child(x, field, isa), f32::max)
             }),
             Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), f32::min)
+                zip(&a, &d.eval_child(x, field, isa), f32::min)
             }),
             Density::Hypertexture(h) => h.eval_lanes_simd(x, field, isa),
+        }
+    }
+}
+
+impl Density {
+    /// A child's lanes inside [`Density::eval_lanes_simd`]: the primitives
+    /// inline, the rest through [`Density::eval_lanes`].
+    #[inline(always)]
+    fn eval_child(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            _ => self.eval_lanes(x, field, isa),
         }
     }
 }
@@ -618,7 +631,7 @@ impl Hypertexture {
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
         }
-        let mut v = self.object.eval_lanes(&p, field, isa);
+        let mut v = self.object.eval_child(&p, field, isa);
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
                 break;
@@ -832,12 +845,14 @@ impl Density {
 
 impl Density {
     /// A ball `(centre, radius)` outside which the density is 0 for certain,
-    /// where one is known: around soft spheres and the radial warps of them
-    /// (the gallery's noisy, fractal and fiery spheres), tighter than the
-    /// box of [`Density::support`] (the marcher skips what lies outside either).
+    /// where one is known: around soft spheres and tori and the radial warps
+    /// of them (the gallery's noisy, fractal and fiery spheres, the furry
+    /// donut), tighter than the box of [`Density::support`] (the marcher skips
+    /// what lies outside either).
     pub fn support_ball(&self) -> Option<(Vec3, f32)> {
         match self {
             Density::Sphere(s) => Some((s.centre, s.falloff.outer())),
+            Density::Torus(t) => Some((t.centre, t.major_radius + t.falloff.outer())),
             Density::Intersection(v) | Density::Min(v) => v.iter().find_map(Density::support_ball),
             Density::Difference(a, _) => a.support_ball(),
             Density::Hypertexture(h) => h.support_ball(),
