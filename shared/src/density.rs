@@ -692,18 +692,20 @@ impl Warp {
                 if x.y.iter().all(|&y| y >= centre.y) {
                     return *x;
                 }
-                let q = x.map(|x| {
-                    let q = x - field.offset;
-                    Vec3::new(q.x, q.y * stretch, q.z) * frequency
-                });
+                let o = field.offset;
+                let mut q = Points::default();
+                for l in 0..LANES {
+                    q.x[l] = (x.x[l] - o.x) * frequency;
+                    q.y[l] = ((x.y[l] - o.y) * stretch) * frequency;
+                    q.z[l] = (x.z[l] - o.z) * frequency;
+                }
                 let n = field.noise_lanes(&q);
                 let mut out = *x;
-                for (l, &n) in n.iter().enumerate() {
-                    let p = x.get(l);
-                    if p.y < centre.y {
-                        let pull = 1.0 - amplitude * n.max(0.0);
-                        out.set(l, Vec3::new(p.x, centre.y + (p.y - centre.y) * pull, p.z));
-                    }
+                for l in 0..LANES {
+                    let y = x.y[l];
+                    let pull = 1.0 - amplitude * n[l].max(0.0);
+                    let moved = centre.y + (y - centre.y) * pull;
+                    out.y[l] = if y < centre.y { moved } else { y };
                 }
                 out
             }

@@ -156,6 +156,8 @@ struct Chunk {
     /// f(x + Δx_ν), f(x + Δx_ω) of samples `start + l`, where `has_gradient`.
     neighbours: [(f32, f32); LANES],
     has_gradient: u32,
+    /// Whether every f held is +0.
+    empty: bool,
 }
 
 impl Chunk {
@@ -167,6 +169,7 @@ impl Chunk {
             alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
             has_gradient: 0,
+            empty: false,
         }
     }
 
@@ -192,6 +195,7 @@ impl Chunk {
             _ => samples(scene, basis, k, field, false),
         };
         self.has_gradient = 0;
+        self.empty = self.f.iter().all(|f| f.to_bits() == 0);
         (self.f[0], self.alpha[0])
     }
 
@@ -434,6 +438,20 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
 
         previous = Some(f);
         k += 1;
+        if chunk.empty && chunk.full && k == chunk.start + 1 {
+            // Sample k − 1 opened a chunk of zeros and went through the loop
+            // without effect (no colour, no bend); the rest of the chunk would
+            // do the same, costing budget and leaving f(x − Δx_μ) = 0.
+            let end = chunk.start + LANES as u32;
+            while k < end {
+                let t = basis.t(k, step);
+                if t > basis.t1 || budget == 0 || t > basis.last {
+                    break;
+                }
+                budget -= 1;
+                k += 1;
+            }
+        }
     }
 
     let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
