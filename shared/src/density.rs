@@ -701,9 +701,9 @@ impl Warp {
                 }
                 let n = field.noise_lanes(&q);
                 let mut out = *x;
-                for l in 0..LANES {
+                for (l, &n) in n.iter().enumerate() {
                     let y = x.y[l];
-                    let pull = 1.0 - amplitude * n[l].max(0.0);
+                    let pull = 1.0 - amplitude * n.max(0.0);
                     let moved = centre.y + (y - centre.y) * pull;
                     out.y[l] = if y < centre.y { moved } else { y };
                 }
@@ -874,7 +874,7 @@ impl Hypertexture {
         }
         for w in self.warps.iter().rev() {
             let (about, lo, _) = w.scale_range()?;
-            if about != centre || !(lo > 0.0) {
+            if about != centre || lo.is_nan() || lo <= 0.0 {
                 return None;
             }
             r /= lo;

@@ -136,11 +136,11 @@ impl Noise {
             for dj in 0..2 {
                 let y = v - dj as f32;
                 let wyz = wy[dj] * wz[dk];
-                for di in 0..2 {
+                for (di, &wxd) in wx.iter().enumerate() {
                     let x = u - di as f32;
                     let g = &self.gradient_of[corners[dj + 2 * dk] + di].0;
                     let dot = g[0] * x + g[1] * y + g[2] * z;
-                    sum += wx[di] * wyz * dot;
+                    sum += wxd * wyz * dot;
                 }
             }
         }
@@ -216,9 +216,9 @@ impl Noise {
                 let xs = [u, _mm_sub_ps(u, one)];
                 let ys = [v, _mm_sub_ps(v, one)];
                 let zs = [w, _mm_sub_ps(w, one)];
-                let wx = xs.map(|t| omega4(t));
-                let wy = ys.map(|t| omega4(t));
-                let wz = zs.map(|t| omega4(t));
+                let wx = xs.map(omega4);
+                let wy = ys.map(omega4);
+                let wz = zs.map(omega4);
                 let mut sum = _mm_setzero_ps();
                 for dk in 0..2 {
                     for dj in 0..2 {
