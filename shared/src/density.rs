@@ -32,9 +32,9 @@ pub struct Field<'a> {
     pub frame_rate: f32,
     /// Where the moving object is at this moment ([`Density::Moving`]).
     pub pose: Option<Pose>,
-    /// A world box outside which the density is 0 for certain at this moment,
-    /// or `None`: anywhere (the marcher skips the samples outside it).
-    pub support: Option<Aabb>,
+    /// Where the density can be non-zero at this moment, in world space, or
+    /// `None`: anywhere (the marcher skips the samples outside it).
+    pub support: Option<Support>,
 }
 
 impl Field<'_> {
@@ -183,7 +183,7 @@ impl Density {
     }
 
     /// [`Density::project`] at each point.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn project_lanes(&self, x: &Points) -> Points {
         match self {
             Density::Sphere(s) => x.map(|p| s.project(p)),
@@ -519,39 +519,53 @@ fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
 }
 
 impl Field<'_> {
-    /// `noise` at the points, through the scene's instruction-set path.
-    #[inline]
-    fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
-        isa.noise(self.noise, &p.x, &p.y, &p.z)
+    /// `noise` at the points: the lane kernel itself, inlined into the
+    /// per-instruction-set copy of [`Density::eval_lanes`].
+    #[inline(always)]
+    fn noise_lanes(&self, p: &Points) -> Lanes {
+        self.noise.noise_lanes(&p.x, &p.y, &p.z)
     }
 
     /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
-    #[inline]
-    fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
-        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
+    #[inline(always)]
+    fn noise_at(&self, frequency: f32, x: &Points) -> Lanes {
+        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency))
     }
 }
 
 impl Density {
     /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
     /// the noise and the powers computed a batch at a time on `isa`.
+    #[inline]
     pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        if isa == Isa::Scalar {
-            let mut out = [0.0; LANES];
-            for (l, o) in out.iter_mut().enumerate() {
-                *o = self.eval(x.get(l), field);
-            }
-            return out;
+        match isa {
+            Isa::Scalar => each(x, |p| self.eval(p, field)),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => each(x, |p| self.eval(p, field)),
         }
+    }
+
+    /// [`Density::eval_lanes`] on a SIMD path: written once, inlined into a
+    /// copy per instruction set (`x86` below) together with everything it
+    /// calls but its children, so the lanes stay in that set's registers
+    /// from the points to the powers.
+    #[inline(always)]
+    pub(crate) fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         match self {
-            Density::Sphere(s) => each(x, |p| s.density(p)),
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
             Density::Expression(program) => {
                 program.eval_lanes(x, &[0.0; LANES], field, isa)[0].map(crate::shaping::clamp01)
             }
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), boolean::union)
+                zip(&a, &d.eval_child(x, field, isa), boolean::union)
             }),
             Density::Intersection(v) => {
                 let mut a = [1.0; LANES];
@@ -559,7 +573,7 @@ impl Density {
                     if a.iter().all(|&a| a == 0.0) {
                         break;
                     }
-                    let b = d.eval_lanes(x, field, isa);
+                    let b = d.eval_child(x, field, isa);
                     // A lane that reached 0 stopped there (`eval` breaks out).
                     a = zip(&a, &b, |a, b| {
                         if a == 0.0 {
@@ -572,11 +586,11 @@ impl Density {
                 a
             }
             Density::Difference(a, b) => {
-                let a = a.eval_lanes(x, field, isa);
+                let a = a.eval_child(x, field, isa);
                 if a.iter().all(|&a| a == 0.0) {
                     return [0.0; LANES];
                 }
-                let b = b.eval_lanes(x, field, isa);
+                let b = b.eval_child(x, field, isa);
                 zip(&a, &b, |a, b| {
                     if a == 0.0 {
                         0.0
@@ -585,41 +599,72 @@ impl Density {
                     }
                 })
             }
-            Density::Complement(a) => a.eval_lanes(x, field, isa).map(boolean::complement),
+            Density::Complement(a) => a.eval_child(x, field, isa).map(boolean::complement),
             Density::Max(v) => v.iter().fold([0.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), f32::max)
+                zip(&a, &d.eval_child(x, field, isa), f32::max)
             }),
             Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
-                zip(&a, &d.eval_lanes(x, field, isa), f32::min)
+                zip(&a, &d.eval_child(x, field, isa), f32::min)
             }),
-            Density::Hypertexture(h) => h.eval_lanes(x, field, isa),
+            Density::Hypertexture(h) => h.eval_lanes_simd(x, field, isa),
             Density::Moving(d) => match &field.pose {
-                Some(pose) => d.eval_lanes(&pose.to_object_lanes(x), field, isa),
-                None => d.eval_lanes(x, field, isa),
+                Some(pose) => d.eval_child(&pose.to_object_lanes(x), field, isa),
+                None => d.eval_child(x, field, isa),
             },
         }
     }
 }
 
+impl Density {
+    /// A child's lanes inside [`Density::eval_lanes_simd`]: the primitives
+    /// inline, the rest through [`Density::eval_lanes`].
+    #[inline(always)]
+    fn eval_child(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            _ => self.eval_lanes(x, field, isa),
+        }
+    }
+}
+
+/// The copies of [`Density::eval_lanes_simd`] per instruction set.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Sse41)
+    }
+}
+
 impl Hypertexture {
-    /// [`Hypertexture::eval`] at [`LANES`] points (see [`Density::eval_lanes`]).
-    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
+    /// [`Density::eval_lanes_simd`]).
+    #[inline(always)]
+    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         let mut p = *x;
         for w in &self.warps {
-            p = w.apply_lanes(&p, field, isa);
+            p = w.apply_lanes(&p, field);
         }
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
         }
-        let mut v = self.object.eval_lanes(&p, field, isa);
+        let mut v = self.object.eval_child(&p, field, isa);
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
                 break;
             }
             let next = match m {
-                Modulation::Bias(b) => b.apply_lanes(&v, isa),
-                Modulation::Gain(g) => g.apply_lanes(&v, isa),
-                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field, isa),
+                Modulation::Bias(b) => b.apply_simd(&v),
+                Modulation::Gain(g) => g.apply_simd(&v),
+                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field),
             };
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
@@ -629,9 +674,9 @@ impl Hypertexture {
 }
 
 impl Warp {
-    /// [`Warp::apply`] at each point.
-    #[inline]
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+    /// [`Warp::apply`] at each point (on a SIMD path).
+    #[inline(always)]
+    fn apply_lanes(&self, x: &Points, field: &Field) -> Points {
         let scale_about = |centre: Vec3, s: &Lanes| {
             let mut out = Points::default();
             for (l, &s) in s.iter().enumerate() {
@@ -645,7 +690,7 @@ impl Warp {
                 amplitude,
                 centre,
             } => {
-                let n = field.noise_at(frequency, x, isa);
+                let n = field.noise_at(frequency, x);
                 scale_about(centre, &n.map(|n| 1.0 + amplitude * n))
             }
             Warp::FractalRadius {
@@ -657,7 +702,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut f = frequency;
                 for _ in 0..octaves {
-                    let n = field.noise_at(f, x, isa);
+                    let n = field.noise_at(f, x);
                     sum = zip(&sum, &n, |s, n| s + n / f);
                     f *= 2.0;
                 }
@@ -672,18 +717,20 @@ impl Warp {
                 if x.y.iter().all(|&y| y >= centre.y) {
                     return *x;
                 }
-                let q = x.map(|x| {
-                    let q = x - field.offset;
-                    Vec3::new(q.x, q.y * stretch, q.z) * frequency
-                });
-                let n = field.noise_lanes(&q, isa);
+                let o = field.offset;
+                let mut q = Points::default();
+                for l in 0..LANES {
+                    q.x[l] = (x.x[l] - o.x) * frequency;
+                    q.y[l] = ((x.y[l] - o.y) * stretch) * frequency;
+                    q.z[l] = (x.z[l] - o.z) * frequency;
+                }
+                let n = field.noise_lanes(&q);
                 let mut out = *x;
                 for (l, &n) in n.iter().enumerate() {
-                    let p = x.get(l);
-                    if p.y < centre.y {
-                        let pull = 1.0 - amplitude * n.max(0.0);
-                        out.set(l, Vec3::new(p.x, centre.y + (p.y - centre.y) * pull, p.z));
-                    }
+                    let y = x.y[l];
+                    let pull = 1.0 - amplitude * n.max(0.0);
+                    let moved = centre.y + (y - centre.y) * pull;
+                    out.y[l] = if y < centre.y { moved } else { y };
                 }
                 out
             }
@@ -697,7 +744,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut scale = 1.0f32;
                 for _ in 0..octaves {
-                    let n = field.noise_lanes(&q.map(|p| p * scale), isa);
+                    let n = field.noise_lanes(&q.map(|p| p * scale));
                     sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
                     scale *= 2.0;
                 }
@@ -708,22 +755,15 @@ impl Warp {
 }
 
 impl Fur {
-    /// [`Fur::apply`] at each point.
-    #[inline]
-    fn apply_lanes(
-        &self,
-        d: &Lanes,
-        x: &Points,
-        object: &Density,
-        field: &Field,
-        isa: Isa,
-    ) -> Lanes {
+    /// [`Fur::apply`] at each point (on a SIMD path).
+    #[inline(always)]
+    fn apply_lanes(&self, d: &Lanes, x: &Points, object: &Density, field: &Field) -> Lanes {
         let x = if self.curliness > 0.0 {
             let q = x.map(|x| x - field.offset);
-            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
-            let b = field.noise_lanes(&q, isa);
-            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET), isa);
-            let curl = self.curl_gain.apply_lanes(&d.map(|d| 1.0 - d), isa);
+            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET));
+            let b = field.noise_lanes(&q);
+            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET));
+            let curl = self.curl_gain.apply_simd(&d.map(|d| 1.0 - d));
             let mut out = Points::default();
             for l in 0..LANES {
                 let v = Vec3::new(a[l], b[l], c[l]);
@@ -734,9 +774,9 @@ impl Fur {
             *x
         };
         let s = field
-            .noise_at(self.frequency, &object.project_lanes(&x), isa)
+            .noise_at(self.frequency, &object.project_lanes(&x))
             .map(|n| 0.5 * (1.0 + n));
-        let shaped = self.gain.apply_lanes(&self.bias.apply_lanes(&s, isa), isa);
+        let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
         zip(&shaped, d, |f, d| f * d)
     }
 }
@@ -744,10 +784,24 @@ impl Fur {
 /// An axis-aligned box `(min, max)`.
 pub type Aabb = (Vec3, Vec3);
 
-/// A bound on |noise| that holds for every seed: the knots' weights sum to 1
-/// (ω(t) + ω(1 − t) = 1 on each axis) and each knot contributes at most
-/// |Γ·(u, v, w)| ≤ √3; widened by 1% for rounding.
-pub const NOISE_BOUND: f32 = 1.75;
+/// Where the density can be non-zero, as the marcher uses it: a box and,
+/// where one is known, a ball (see [`Density::support_ball`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Support {
+    /// The box of [`Density::support`].
+    pub aabb: Aabb,
+    /// The ball of [`Density::support_ball`] `(centre, radius)`.
+    pub ball: Option<(Vec3, f32)>,
+}
+
+/// A bound on |noise| that holds for every seed, √(3/4) widened by 1% for
+/// rounding. With W_c = ω(u_c)ω(v_c)ω(w_c) the weight and d_c the offset of
+/// corner c (the weights are ≥ 0 and sum to 1: ω(t) + ω(1 − t) = 1 on each
+/// axis) and |Γ_c| = 1:
+/// |noise| ≤ Σ W_c |Γ_c·d_c| ≤ Σ W_c |d_c| ≤ √(Σ W_c |d_c|²) (Jensen)
+/// = √(g(u) + g(v) + g(w)) with g(t) = ω(t)t² + ω(1 − t)(1 − t)², and
+/// g(t) − ¼ = (2t − 1)²((2t − 1)² − 2)/4 ≤ 0 on [0, 1].
+pub const NOISE_BOUND: f32 = 0.875;
 
 fn hull(a: Aabb, b: Aabb) -> Aabb {
     (a.0.min(b.0), a.1.max(b.1))
@@ -819,7 +873,45 @@ impl Density {
     }
 }
 
+impl Density {
+    /// A ball `(centre, radius)` outside which the density is 0 for certain,
+    /// where one is known: around soft spheres and tori and the radial warps
+    /// of them (the gallery's noisy, fractal and fiery spheres, the furry
+    /// donut), tighter than the box of [`Density::support`] (the marcher skips
+    /// what lies outside either).
+    pub fn support_ball(&self) -> Option<(Vec3, f32)> {
+        match self {
+            Density::Sphere(s) => Some((s.centre, s.falloff.outer())),
+            Density::Torus(t) => Some((t.centre, t.major_radius + t.falloff.outer())),
+            Density::Intersection(v) | Density::Min(v) => v.iter().find_map(Density::support_ball),
+            Density::Difference(a, _) => a.support_ball(),
+            Density::Hypertexture(h) => h.support_ball(),
+            // In object space, like `support`.
+            Density::Moving(d) => d.support_ball(),
+            _ => None,
+        }
+    }
+}
+
 impl Hypertexture {
+    /// [`Density::support_ball`]: the object's, widened by the distortion's
+    /// largest displacement and pulled back through the warps that scale about
+    /// its centre (x is evaluated at c + (x − c)·s, s ≥ lo > 0, so |x − c| ≤ r / lo).
+    fn support_ball(&self) -> Option<(Vec3, f32)> {
+        let (centre, mut r) = self.object.support_ball()?;
+        if let Some(d) = &self.distortion {
+            r += d.max_displacement();
+        }
+        for w in self.warps.iter().rev() {
+            let (about, lo, _) = w.scale_range()?;
+            if about != centre || lo.is_nan() || lo <= 0.0 {
+                return None;
+            }
+            r /= lo;
+        }
+        r.is_finite().then_some((centre, r))
+    }
+
     /// [`Density::support`]: the object's, widened by the distortion's largest
     /// displacement and pulled back through the warps.
     pub fn support(&self) -> Option<Aabb> {
@@ -837,15 +929,16 @@ impl Hypertexture {
 }
 
 impl Warp {
-    /// A box holding every x that this warp moves into `b`.
-    fn preimage(&self, b: Aabb) -> Option<Aabb> {
+    /// For the warps `c + (x − c)·s` that scale about a centre c: c and the
+    /// range `[lo, hi]` of the factor s.
+    fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
         let m = NOISE_BOUND;
         match *self {
             Warp::NoisyRadius {
                 amplitude, centre, ..
             } => {
                 let a = amplitude.abs() * m;
-                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+                Some((centre, 1.0 - a, 1.0 + a))
             }
             Warp::FractalRadius {
                 frequency,
@@ -860,7 +953,7 @@ impl Warp {
                     f *= 2.0;
                 }
                 let a = amplitude.abs() * sum;
-                unscale(b, centre, 1.0 - a, 1.0 + a, Vec3::ONE)
+                Some((centre, 1.0 - a, 1.0 + a))
             }
             Warp::TurbulentRadius {
                 amplitude,
@@ -875,16 +968,37 @@ impl Warp {
                     scale *= 2.0;
                 }
                 let a = amplitude * t;
-                unscale(b, centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0), Vec3::ONE)
+                Some((centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0)))
             }
+            Warp::Dripping { .. } => None,
+        }
+    }
+
+    /// A box holding every x that this warp moves into `b`.
+    fn preimage(&self, b: Aabb) -> Option<Aabb> {
+        let m = NOISE_BOUND;
+        if let Some((centre, lo, hi)) = self.scale_range() {
+            return unscale(b, centre, lo, hi, Vec3::ONE);
+        }
+        match *self {
+            Warp::NoisyRadius { .. }
+            | Warp::FractalRadius { .. }
+            | Warp::TurbulentRadius { .. } => None,
             Warp::Dripping {
                 amplitude, centre, ..
             } => {
                 // Below the centre y is scaled by a pull in [1 − a·M, 1]
                 // (a ≥ 0) or [1, 1 − a·M]; above, x is unchanged.
                 let pull = 1.0 - amplitude * m;
-                let stretched = unscale(b, centre, pull.min(1.0), pull.max(1.0), Vec3::Y)?;
-                Some(hull(b, stretched))
+                match unscale(b, centre, pull.min(1.0), pull.max(1.0), Vec3::Y) {
+                    Some(stretched) => Some(hull(b, stretched)),
+                    // A pull that can reach 0 may bring any y below the
+                    // centre to the centre's: only x and z stay bounded.
+                    None => Some((
+                        Vec3::new(b.0.x, f32::NEG_INFINITY, b.0.z),
+                        Vec3::new(b.1.x, b.1.y.max(centre.y), b.1.z),
+                    )),
+                }
             }
         }
     }

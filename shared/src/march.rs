@@ -13,13 +13,14 @@
 use glam::Vec3;
 
 use crate::camera::Ray;
-use crate::density::{Field, Points};
+use crate::density::{Field, Points, Support};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::noise::{LANES, Lanes};
 use crate::pse::surface as pse;
 use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
+use crate::simd::Isa;
 
 /// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
 /// t ≥ 0, or `None` when it misses (the slab test).
@@ -44,6 +45,21 @@ pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
         t1 = t1.min(far);
     }
     (t0 <= t1).then_some((t0, t1))
+}
+
+/// The parameters where `ray` enters and leaves the ball of `radius` about
+/// `centre` (either may be negative), or `None` when it misses.
+#[inline]
+fn ball(ray: &Ray, centre: Vec3, radius: f32) -> Option<(f32, f32)> {
+    let o = ray.origin - centre;
+    let a = ray.direction.length_squared();
+    let b = ray.direction.dot(o);
+    let disc = b * b - a * (o.length_squared() - radius * radius);
+    if !(disc >= 0.0 && a > 0.0) {
+        return None;
+    }
+    let root = disc.sqrt();
+    Some(((-b - root) / a, (-b + root) / a))
 }
 
 /// Two vectors perpendicular to the unit vector `d` and to each other, each of
@@ -81,14 +97,23 @@ impl Basis {
         step: f32,
         (t0, t1): (f32, f32),
         phase: f32,
-        support: Option<(Vec3, Vec3)>,
+        support: Option<Support>,
     ) -> Basis {
         let (dv, dw) = perpendiculars(ray.direction, step);
         // Empty-space skipping: only the samples inside the (widened) support are
         // evaluated; the others are 0, exactly what evaluating them would give.
+        let inside = |s: Support| {
+            let (a, b) = slab(&ray, s.aabb.0, s.aabb.1)?;
+            let (c, d) = match s.ball {
+                Some((centre, r)) => ball(&ray, centre, r)?,
+                None => (a, b),
+            };
+            let (a, b) = (a.max(c), b.min(d));
+            (a <= b).then_some((a, b))
+        };
         let (first, last) = match support {
             None => (0, t1),
-            Some((min, max)) => match slab(&ray, min, max) {
+            Some(s) => match inside(s) {
                 None => (u32::MAX, t0 - 1.0),
                 Some((a, b)) => {
                     let skip = ((a - t0) / step - phase).floor() - 1.0;
@@ -131,6 +156,8 @@ struct Chunk {
     /// f(x + Δx_ν), f(x + Δx_ω) of samples `start + l`, where `has_gradient`.
     neighbours: [(f32, f32); LANES],
     has_gradient: u32,
+    /// Whether every f held is +0.
+    empty: bool,
 }
 
 impl Chunk {
@@ -142,6 +169,7 @@ impl Chunk {
             alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
             has_gradient: 0,
+            empty: false,
         }
     }
 
@@ -153,22 +181,21 @@ impl Chunk {
         if self.full && (held as usize) < LANES {
             return (self.f[held as usize], self.alpha[held as usize]);
         }
-        let mut x = Points::default();
-        for l in 0..LANES {
-            x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
-        }
         self.full = true;
         self.start = k;
-        self.f = scene.density.eval_lanes(&x, field, scene.isa);
-        let transmit = self.f.map(|f| {
-            let rho = clamp01(scene.alpha_map.as_ref().map_or(f, |m| m.eval1(f)));
-            1.0 - rho
-        });
-        self.alpha = scene
-            .isa
-            .pow01(&transmit, scene.opacity_exponent)
-            .map(|t| 1.0 - t);
+        (self.f, self.alpha) = match scene.isa {
+            Isa::Scalar => samples(scene, basis, k, field, false),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::samples_sse41(scene, basis, k, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::samples_avx2(scene, basis, k, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => samples(scene, basis, k, field, false),
+        };
         self.has_gradient = 0;
+        self.empty = self.f.iter().all(|f| f.to_bits() == 0);
         (self.f[0], self.alpha[0])
     }
 
@@ -205,6 +232,77 @@ impl Chunk {
             }
         }
         self.neighbours[j]
+    }
+}
+
+/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at samples k .. k + [`LANES`]
+/// of `basis`. With `simd` (a constant where it is inlined: into the copies
+/// per instruction set below) the density tree's lane code and the powers are
+/// inlined here too, so the points go from the ray to the powers in registers.
+#[inline(always)]
+fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (Lanes, Lanes) {
+    let mut x = Points::default();
+    for l in 0..LANES {
+        x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
+    }
+    let f = if simd {
+        scene.density.eval_lanes_simd(&x, field, scene.isa)
+    } else {
+        scene.density.eval_lanes(&x, field, Isa::Scalar)
+    };
+    let mut transmit = [0.0; LANES];
+    match &scene.alpha_map {
+        None => {
+            for l in 0..LANES {
+                transmit[l] = 1.0 - clamp01(f[l]);
+            }
+        }
+        Some(m) => {
+            for l in 0..LANES {
+                transmit[l] = 1.0 - clamp01(m.eval1(f[l]));
+            }
+        }
+    }
+    // 1^e = 1 (`pow01`): empty samples are transparent without the power.
+    if transmit.iter().all(|&t| t >= 1.0) {
+        return (f, [0.0; LANES]);
+    }
+    let e = scene.opacity_exponent;
+    let p = if simd {
+        crate::simd::pow01_lanes(&transmit, e)
+    } else {
+        Isa::Scalar.pow01(&transmit, e)
+    };
+    let mut alpha = [0.0; LANES];
+    for l in 0..LANES {
+        alpha[l] = 1.0 - p[l];
+    }
+    (f, alpha)
+}
+
+/// The copies of [`samples`] per instruction set.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn samples_avx2(
+        scene: &Scene,
+        basis: &Basis,
+        k: u32,
+        field: &Field,
+    ) -> (Lanes, Lanes) {
+        samples(scene, basis, k, field, true)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn samples_sse41(
+        scene: &Scene,
+        basis: &Basis,
+        k: u32,
+        field: &Field,
+    ) -> (Lanes, Lanes) {
+        samples(scene, basis, k, field, true)
     }
 }
 
@@ -342,6 +440,20 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
 
         previous = Some(f);
         k += 1;
+        if chunk.empty && chunk.full && k == chunk.start + 1 {
+            // Sample k − 1 opened a chunk of zeros and went through the loop
+            // without effect (no colour, no bend); the rest of the chunk would
+            // do the same, costing budget and leaving f(x − Δx_μ) = 0.
+            let end = chunk.start + LANES as u32;
+            while k < end {
+                let t = basis.t(k, step);
+                if t > basis.t1 || budget == 0 || t > basis.last {
+                    break;
+                }
+                budget -= 1;
+                k += 1;
+            }
+        }
     }
 
     let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);

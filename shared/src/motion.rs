@@ -14,7 +14,7 @@
 
 use glam::Vec3;
 
-use crate::density::{Aabb, Points};
+use crate::density::{Aabb, Points, Support};
 use crate::noise::LANES;
 use crate::scene::desc::TransformDesc;
 
@@ -118,11 +118,30 @@ impl Pose {
         a * v.x + b * v.y + c * v.z
     }
 
+    /// The world point of the object-space point `o`.
+    #[inline]
+    pub fn to_world(&self, o: Vec3) -> Vec3 {
+        self.to_world_vector(o - self.pivot) + self.shift
+    }
+
+    /// The object-space support `s` where the pose puts it: a world box around
+    /// the turned box, and the ball moved (its radius a little larger for
+    /// rounding).
+    pub fn world_support(&self, s: Support) -> Support {
+        Support {
+            aabb: self.world_box(s.aabb),
+            ball: s.ball.map(|(centre, r)| {
+                let c = self.to_world(centre);
+                (c, r * (1.0 + 1e-5) + 1e-5 * c.abs().max_element())
+            }),
+        }
+    }
+
     /// A world box holding the object-space box `b` wherever the pose puts it.
     pub fn world_box(&self, (lo, hi): Aabb) -> Aabb {
         let centre = (lo + hi) * 0.5;
         let half = (hi - lo) * 0.5;
-        let world_centre = self.to_world_vector(centre - self.pivot) + self.shift;
+        let world_centre = self.to_world(centre);
         // |R| h: the half extents of the rotated box; a little more for rounding.
         let [a, b, c] = self.inverse;
         let reach = a.abs() * half.x + b.abs() * half.y + c.abs() * half.z;
@@ -151,7 +170,7 @@ mod tests {
                 Vec3::new(1.0, -2.0, 0.5),
                 Vec3::new(0.2, 0.0, 0.0),
             ] {
-                let w = pose.to_world_vector(o - m.pivot) + pose.shift;
+                let w = pose.to_world(o);
                 assert!((pose.to_object(w) - o).length() < 1e-5, "{time} {o}");
             }
             // The pivot travels with the translation only.
@@ -177,7 +196,7 @@ mod tests {
                     if i & 2 == 0 { b.0.y } else { b.1.y },
                     if i & 4 == 0 { b.0.z } else { b.1.z },
                 );
-                let w = pose.to_world_vector(corner - m.pivot) + pose.shift;
+                let w = pose.to_world(corner);
                 assert!(
                     w.cmpge(lo).all() && w.cmple(hi).all(),
                     "{w} outside {lo} {hi}"

@@ -59,7 +59,20 @@ impl Bias {
     #[inline]
     pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
         let t = t.map(clamp01);
-        let p = isa.pow01(&t, self.exponent);
+        self.finish(&t, &isa.pow01(&t, self.exponent))
+    }
+
+    /// [`Bias::apply_lanes`] inlined into a SIMD path's code (never the
+    /// scalar path's: that goes point by point).
+    #[inline(always)]
+    pub(crate) fn apply_simd(&self, t: &Lanes) -> Lanes {
+        let t = t.map(clamp01);
+        self.finish(&t, &crate::simd::pow01_lanes(&t, self.exponent))
+    }
+
+    /// 0 where t is 0, else the power `p`.
+    #[inline(always)]
+    fn finish(&self, t: &Lanes, p: &Lanes) -> Lanes {
         let mut out = [0.0; LANES];
         for l in 0..LANES {
             out[l] = if t[l] == 0.0 { 0.0 } else { p[l] };
@@ -104,7 +117,20 @@ impl Gain {
     pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
         let t = t.map(clamp01);
         let arg = t.map(|t| if t < 0.5 { 2.0 * t } else { 2.0 - 2.0 * t });
-        let b = self.bias.apply_lanes(&arg, isa);
+        self.finish(&t, &self.bias.apply_lanes(&arg, isa))
+    }
+
+    /// [`Gain::apply_lanes`] inlined into a SIMD path's code.
+    #[inline(always)]
+    pub(crate) fn apply_simd(&self, t: &Lanes) -> Lanes {
+        let t = t.map(clamp01);
+        let arg = t.map(|t| if t < 0.5 { 2.0 * t } else { 2.0 - 2.0 * t });
+        self.finish(&t, &self.bias.apply_simd(&arg))
+    }
+
+    /// The two halves of the spline from `b = bias(arg)`.
+    #[inline(always)]
+    fn finish(&self, t: &Lanes, b: &Lanes) -> Lanes {
         let mut out = [0.0; LANES];
         for l in 0..LANES {
             out[l] = if t[l] < 0.5 {

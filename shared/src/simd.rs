@@ -10,6 +10,8 @@
 //! The choice is a field of the scene ([`crate::Scene::isa`]), not global
 //! state: a test can force any path, and a farm of mixed CPUs stays exact.
 
+use glam::Vec3;
+
 use crate::fastmath;
 use crate::noise::{LANES, Lanes, Noise};
 
@@ -66,7 +68,7 @@ impl Isa {
             Isa::Scalar => {
                 let mut out = [0.0; LANES];
                 for l in 0..LANES {
-                    out[l] = n.noise(glam::Vec3::new(x[l], y[l], z[l]));
+                    out[l] = n.noise(Vec3::new(x[l], y[l], z[l]));
                 }
                 out
             }
@@ -78,6 +80,24 @@ impl Isa {
             Isa::Avx2 => unsafe { x86::noise_avx2(n, x, y, z) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => Isa::Scalar.noise(n, x, y, z),
+        }
+    }
+
+    /// `noise` at every point of `points`, into `out` (at least as long).
+    pub fn noise_batch(self, n: &Noise, points: &[Vec3], out: &mut [f32]) {
+        match self {
+            Isa::Scalar => {
+                for (o, &p) in out.iter_mut().zip(points) {
+                    *o = n.noise(p);
+                }
+            }
+            // SAFETY: as in `noise`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::noise_batch_sse41(n, points, out) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::noise_batch_avx2(n, points, out) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => Isa::Scalar.noise_batch(n, points, out),
         }
     }
 
@@ -100,7 +120,7 @@ impl Isa {
 /// `pow01` written lane-parallel: both branches computed, then selected, so the
 /// loop vectorises; each lane's value is the scalar one.
 #[inline(always)]
-fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
+pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
     let mut out = [0.0; LANES];
     for l in 0..LANES {
         let v = x[l];
@@ -118,9 +138,66 @@ fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
     out
 }
 
+/// `noise` over a slice, 4 points at a time: 4 `Vec3`s are 3 loads, turned
+/// into x, y and z vectors by shuffles (the last batch padded).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn noise_batch_lanes(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+    use std::arch::x86_64::*;
+    const _: () = assert!(std::mem::size_of::<Vec3>() == 12);
+    let out = &mut out[..points.len()];
+    let mut quads = points.chunks_exact(4);
+    let mut outs = out.chunks_exact_mut(4);
+    for (p, o) in (&mut quads).zip(&mut outs) {
+        // SAFETY: 4 `Vec3`s are 12 contiguous f32 (glam's `Vec3` is
+        // `repr(C)` of 3 f32), loaded as 3 unaligned vectors; `o` holds 4 f32.
+        // SSE is part of the x86-64 baseline.
+        unsafe {
+            let f = p.as_ptr().cast::<f32>();
+            let (a, b, c) = (
+                _mm_loadu_ps(f),
+                _mm_loadu_ps(f.add(4)),
+                _mm_loadu_ps(f.add(8)),
+            );
+            // a = x0 y0 z0 x1, b = y1 z1 x2 y2, c = z2 x3 y3 z3.
+            let x = _mm_shuffle_ps::<0b10_00_10_00>(
+                _mm_shuffle_ps::<0b11_11_00_00>(a, a),
+                _mm_shuffle_ps::<0b01_01_10_10>(b, c),
+            );
+            let y = _mm_shuffle_ps::<0b10_00_10_00>(
+                _mm_shuffle_ps::<0b00_00_01_01>(a, b),
+                _mm_shuffle_ps::<0b10_10_11_11>(b, c),
+            );
+            let z = _mm_shuffle_ps::<0b10_00_10_00>(
+                _mm_shuffle_ps::<0b01_01_10_10>(a, b),
+                _mm_shuffle_ps::<0b11_11_00_00>(c, c),
+            );
+            _mm_storeu_ps(o.as_mut_ptr(), n.noise4(x, y, z));
+        }
+    }
+    let rest = quads.remainder();
+    let (mut x, mut y, mut z) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
+    for (l, q) in rest.iter().enumerate() {
+        (x[l], y[l], z[l]) = (q.x, q.y, q.z);
+    }
+    let v = n.noise_lanes(&x, &y, &z);
+    let o = outs.into_remainder();
+    o.copy_from_slice(&v[..o.len()]);
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn noise_batch_avx2(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+        noise_batch_lanes(n, points, out)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn noise_batch_sse41(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+        noise_batch_lanes(n, points, out)
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {

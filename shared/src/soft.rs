@@ -96,6 +96,19 @@ impl SoftSphere {
     pub fn project(&self, x: Vec3) -> Vec3 {
         self.centre + direction_or(x - self.centre, Vec3::Y) * self.falloff.inner
     }
+
+    /// [`SoftSphere::density`] at each of the lanes' points, written
+    /// lane-parallel with exactly the scalar operations (so the same bits).
+    #[inline(always)]
+    pub fn density_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        let c = self.centre;
+        let mut out = [0.0; LANES];
+        for l in 0..LANES {
+            let (qx, qy, qz) = (x[l] - c.x, y[l] - c.y, z[l] - c.z);
+            out[l] = self.falloff.density_select(qx * qx + qy * qy + qz * qz);
+        }
+        out
+    }
 }
 
 /// A soft box: the generalized intersection (product) of three soft slabs, one

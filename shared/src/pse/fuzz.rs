@@ -10,10 +10,10 @@ use super::eval::Inputs;
 use super::{Context, Kind, compile_expression, parse_functions};
 use crate::curve::Curve;
 use crate::density::{Density, Field, Points};
-use crate::noise::{LANES, Lanes};
-use crate::simd::Isa;
 use crate::noise::Noise;
+use crate::noise::{LANES, Lanes};
 use crate::scene::desc::{ObjectDesc, SphereDesc, V3};
+use crate::simd::Isa;
 
 /// Parses `functions`, compiles `expression` as every kind of expression, and
 /// evaluates each program that compiles at a few points (finite and not).
@@ -100,7 +100,15 @@ fn lanes_agree(program: &super::Program, field: &Field) {
     }
     let d: Lanes = std::array::from_fn(|l| l as f32 / 7.0);
     let alone: Vec<[f32; 3]> = (0..LANES)
-        .map(|l| program.eval(Inputs { x: POINTS[l], d: d[l] }, field))
+        .map(|l| {
+            program.eval(
+                Inputs {
+                    x: POINTS[l],
+                    d: d[l],
+                },
+                field,
+            )
+        })
         .collect();
     for isa in Isa::available() {
         let lanes = program.eval_lanes(&points, &d, field, isa);

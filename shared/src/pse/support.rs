@@ -236,18 +236,30 @@ impl Program {
                 // bias_b(0) = gain_g(0) = 0: the second argument is t.
                 Fn2::Bias | Fn2::Gain => {
                     let unit_b = konst(a).is_some_and(|b| b > 0.0 && b < 1.0);
-                    (vec![d], sup(b), if unit_b { mag(b).and(unit) } else { None })
+                    (
+                        vec![d],
+                        sup(b),
+                        if unit_b { mag(b).and(unit) } else { None },
+                    )
                 }
                 Fn2::Step => (vec![d], None, unit),
                 Fn2::Atan2 => (vec![d], None, mag(a).and(mag(b)).and(Some(4.0))),
                 Fn2::Pow => (vec![d], None, None),
             },
             Op::BiasK(d, a, bias) => {
-                let m = if bias.keeps_unit_interval() { mag(a).and(unit) } else { None };
+                let m = if bias.keeps_unit_interval() {
+                    mag(a).and(unit)
+                } else {
+                    None
+                };
                 (vec![d], sup(a), m)
             }
             Op::GainK(d, a, gain) => {
-                let m = if gain.keeps_unit_interval() { mag(a).and(unit) } else { None };
+                let m = if gain.keeps_unit_interval() {
+                    mag(a).and(unit)
+                } else {
+                    None
+                };
                 (vec![d], sup(a), m)
             }
             Op::Clamp(d, v, lo, hi) => {
@@ -262,21 +274,25 @@ impl Program {
             Op::Density(d, object, p) => {
                 let at_x = (0..3u8).all(|i| s.point[usize::from(p[usize::from(i)])] == Some(i));
                 let object = self.objects.get(usize::from(object));
-                let support = if at_x { object.and_then(Density::support) } else { None };
+                let support = if at_x {
+                    object.and_then(Density::support)
+                } else {
+                    None
+                };
                 (vec![d], support, mags(p).and(unit))
             }
             Op::Noise(d, p) | Op::Improved(d, p) => (vec![d], None, mags(p).and(Some(2.0))),
-            Op::Turbulence(d, p, _) | Op::Fbm(d, p, _) => {
-                (vec![d], None, mags(p).and(Some(64.0)))
-            }
+            Op::Turbulence(d, p, _) | Op::Fbm(d, p, _) => (vec![d], None, mags(p).and(Some(64.0))),
             Op::VNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(2.0))),
             // Central differences of noise over 2⁻⁹.
             Op::DNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(4096.0))),
             Op::Project(d, p) => {
                 // Onto the inner surface: inside the surface's support.
-                let reach = self.surface.as_ref().and_then(Density::support).map(|(lo, hi)| {
-                    f64::from(lo.abs().max(hi.abs()).max_element())
-                });
+                let reach = self
+                    .surface
+                    .as_ref()
+                    .and_then(Density::support)
+                    .map(|(lo, hi)| f64::from(lo.abs().max(hi.abs()).max_element()));
                 let m = match &self.surface {
                     None => mags(p),
                     Some(_) => mags(p).and(reach),

@@ -15,7 +15,7 @@ use glam::Vec3;
 
 use crate::camera::Camera;
 use crate::curve::Curve;
-use crate::density::Density;
+use crate::density::{Density, Support};
 use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
 use crate::simd::Isa;
@@ -321,7 +321,7 @@ pub struct Scene {
     pub(crate) flow: Vec3,
     /// Where the density can be non-zero (widened by two steps, so the sample
     /// after the last non-zero one is inside too), or `None`: anywhere.
-    pub(crate) support: Option<(Vec3, Vec3)>,
+    pub(crate) support: Option<Support>,
     /// The instruction-set path of the batch kernels (every path gives the same bits).
     pub(crate) isa: Isa,
     /// Forward or central differences.
@@ -498,14 +498,13 @@ impl Scene {
         };
     }
 
-    fn widened_support(
-        density: &Density,
-        step: f32,
-        (min, max): (Vec3, Vec3),
-    ) -> Option<(Vec3, Vec3)> {
-        density.support().map(|(lo, hi)| {
-            let margin = Vec3::splat(2.0 * step) + (max - min).abs() * 1e-4;
-            (lo - margin, hi + margin)
+    fn widened_support(density: &Density, step: f32, (min, max): (Vec3, Vec3)) -> Option<Support> {
+        let margin = Vec3::splat(2.0 * step) + (max - min).abs() * 1e-4;
+        density.support().map(|(lo, hi)| Support {
+            aabb: (lo - margin, hi + margin),
+            ball: density
+                .support_ball()
+                .map(|(centre, r)| (centre, r + margin.max_element())),
         })
     }
 
@@ -567,7 +566,7 @@ impl Scene {
             frame_rate: self.frame_rate,
             pose,
             support: match pose {
-                Some(pose) => self.support.map(|b| pose.world_box(b)),
+                Some(pose) => self.support.map(|b| pose.world_support(b)),
                 None => self.support,
             },
         }
