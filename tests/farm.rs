@@ -230,6 +230,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         let work = client
             .get_work(pb::GetWorkParams {
                 worker_id: id.clone(),
+                known_scene_hash: 0,
             })
             .await
             .unwrap()
@@ -246,8 +247,10 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             worker_id: id.clone(),
             assignment_id,
             unit: Some(unit),
-            samples,
+            samples: samples.into(),
             render_cpu_micros: 0,
+            want_next: true,
+            known_scene_hash: 0,
         };
         let floats =
             |values: &[f32]| -> Vec<u8> { values.iter().flat_map(|v| v.to_le_bytes()).collect() };

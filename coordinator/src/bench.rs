@@ -95,8 +95,8 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         }
     );
 
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+    // As in `coordinator --local-workers N`: the farm is served on one thread.
+    let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;
@@ -173,6 +173,9 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         per_unit_network * 1e3
     );
 
+    if config.simulate.is_empty() {
+        return Ok(());
+    }
     println!();
     println!(
         "## Simulated farms (pull schedule vs contiguous blocks), from measured per-pixel costs"
