@@ -675,3 +675,50 @@ fn error_chain(e: &dyn std::error::Error) -> String {
     }
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(text: &str) -> pb::Job {
+        pb::Job {
+            scene_hash: convert::scene_hash(text, 8, 8, 0, 0, &[]),
+            scene_text: text.to_string(),
+            scene_name: "test.ron".into(),
+            width: 8,
+            height: 8,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_scene_is_built_once_and_then_needs_no_text() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenes/noisy_sphere.ron"
+        ))
+        .unwrap();
+        let mut scenes = SceneCache::default();
+        assert_eq!(scenes.known(), 0);
+        let full = job(&text);
+        let without_text = pb::Job {
+            scene_text: String::new(),
+            ..full.clone()
+        };
+        assert!(
+            scenes.get(&without_text).is_err(),
+            "no text and never built: refused"
+        );
+        let built = scenes.get(&full).unwrap();
+        assert_eq!(scenes.known(), full.scene_hash);
+        assert!(Arc::ptr_eq(&built, &scenes.get(&without_text).unwrap()));
+        let forged = pb::Job {
+            scene_hash: full.scene_hash ^ 1,
+            ..full
+        };
+        assert!(
+            scenes.get(&forged).is_err(),
+            "a hash that does not match the text"
+        );
+    }
+}
