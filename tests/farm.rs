@@ -423,6 +423,33 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A worker told to exit when the frame is done learns it from the reply to its
+/// last tile, and exits 0 (it does not chase a coordinator that has gone).
+#[test]
+fn a_worker_exits_when_the_frame_is_done() {
+    let dir = scratch("farm-done");
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let worker = Running::worker(&["--coordinator", &url, "--threads", "1", "--exit-when-done"]);
+    let (status, log) = worker.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
+    let (status, log) = coord.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A free port on loopback (bound, then released).
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

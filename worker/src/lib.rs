@@ -359,26 +359,33 @@ async fn serve(
         }
         let assignment = match ahead.take() {
             Some(a) => a,
-            None => match ask(client, worker_id, scenes.known()).await {
-                Ok(Asked::Assignment(a)) => a,
-                Ok(Asked::Wait(d)) => {
-                    if sleep_or_stop(d, stop).await {
-                        return delivered(config, sending.take(), report)
-                            .await
-                            .map(|_| Leave::Done);
+            None => {
+                // Nothing ahead: the reply to the tile in flight may bring the next
+                // unit, or say that the frame is done; otherwise ask.
+                let asked = match delivered(config, sending.take(), report).await? {
+                    Delivered::Next(asked) => Ok(asked),
+                    Delivered::Lost(status) => Err(status),
+                    Delivered::Nothing => ask(client, worker_id, scenes.known()).await,
+                };
+                match asked {
+                    Ok(Asked::Assignment(a)) => a,
+                    Ok(Asked::Wait(d)) => {
+                        if sleep_or_stop(d, stop).await {
+                            return Ok(Leave::Done);
+                        }
+                        continue;
                     }
-                    continue;
-                }
-                Ok(Asked::Finished) => {
-                    if config.exit_when_done || sleep_or_stop(Duration::from_secs(1), stop).await {
-                        return delivered(config, sending.take(), report)
-                            .await
-                            .map(|_| Leave::Done);
+                    Ok(Asked::Finished) => {
+                        if config.exit_when_done
+                            || sleep_or_stop(Duration::from_secs(1), stop).await
+                        {
+                            return Ok(Leave::Done);
+                        }
+                        continue;
                     }
-                    continue;
+                    Err(status) => return lost(config, status),
                 }
-                Err(status) => return lost(config, status),
-            },
+            }
         };
         let Some(rendering) = start_render(&assignment, pool, scenes) else {
             // A malformed assignment: not ours to fix; ask for other work.
