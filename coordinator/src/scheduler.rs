@@ -249,9 +249,11 @@ impl Scheduler {
             _ => return Err(Refusal::NotHeld(assignment_id)),
         }
         // Checked (the samples come out only after the whole tile passed): write it.
+        let film = self.film.pixels_mut();
         for ((x, y), sample) in claimed.pixels(width).zip(samples) {
-            self.film.set(x, y, sample);
-            self.rendered[(y * width + x) as usize] = true;
+            let i = (y * width + x) as usize;
+            film[i] = sample;
+            self.rendered[i] = true;
         }
         self.done[issued_unit] = true;
         self.remaining -= 1;
