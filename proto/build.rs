@@ -6,6 +6,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .build_client(true)
         .build_server(true)
+        // Tiles as `Bytes`: decoding takes a slice of the received buffer, no copy.
+        .bytes(".hypertexture.v1.SubmitTileParams.samples")
         .compile_fds(descriptors)?;
     Ok(())
 }

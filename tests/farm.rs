@@ -230,6 +230,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         let work = client
             .get_work(pb::GetWorkParams {
                 worker_id: id.clone(),
+                known_scene_hash: 0,
             })
             .await
             .unwrap()
@@ -246,8 +247,10 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             worker_id: id.clone(),
             assignment_id,
             unit: Some(unit),
-            samples,
+            samples: samples.into(),
             render_cpu_micros: 0,
+            want_next: true,
+            known_scene_hash: 0,
         };
         let floats =
             |values: &[f32]| -> Vec<u8> { values.iter().flat_map(|v| v.to_le_bytes()).collect() };
@@ -304,6 +307,146 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         log.join("\n")
     );
     same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Protocol 2 by hand: a tile's reply hands out the next unit, without the scene
+/// text the worker already has. The client then dies holding that unit (never
+/// started); the lease runs out, a real worker renders it, and the image is
+/// exactly the in-process one.
+#[test]
+fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+
+    let dir = scratch("farm-ahead");
+    let reference = dir.join("reference.png");
+    in_process("noisy_sphere", 32, &reference);
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "1",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let mut client = FarmClient::connect(url.clone()).await.unwrap();
+        let id = client
+            .register(pb::RegisterParams {
+                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+                name: "short-lived".into(),
+                threads: 1,
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id;
+        let work = client
+            .get_work(pb::GetWorkParams {
+                worker_id: id.clone(),
+                known_scene_hash: 0,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let Some(Outcome::Assignment(first)) = work.outcome else {
+            panic!("expected an assignment")
+        };
+        let job = first.job.unwrap();
+        assert!(
+            !job.scene_text.is_empty(),
+            "a new worker gets the scene text"
+        );
+        // Render the unit as a worker would, and ask for the next one with the tile.
+        let scene = hypertexture::Scene::from_text(
+            &job.scene_text,
+            &job.scene_name,
+            hypertexture::Overrides {
+                width: Some(job.width),
+                height: Some(job.height),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let wire_unit = first.unit.unwrap();
+        let unit = hypertexture_proto::convert::unit_from_wire(&wire_unit, 32, 32).unwrap();
+        let pixels: Vec<(u32, u32)> = unit.pixels(32).collect();
+        let samples = hypertexture::render::render_pixels(&scene, job.frame, &pixels);
+        let reply = client
+            .submit_tile(pb::SubmitTileParams {
+                worker_id: id.clone(),
+                assignment_id: first.assignment_id,
+                unit: Some(wire_unit),
+                samples: hypertexture_proto::convert::samples_to_wire(&samples),
+                render_cpu_micros: 1,
+                want_next: true,
+                known_scene_hash: job.scene_hash,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(reply.accepted);
+        let Some(pb::GetWorkResult {
+            outcome: Some(Outcome::Assignment(ahead)),
+        }) = reply.next
+        else {
+            panic!("expected the next unit in the reply: {:?}", reply.next)
+        };
+        let ahead_job = ahead.job.unwrap();
+        assert_eq!(ahead_job.scene_hash, job.scene_hash);
+        assert!(
+            ahead_job.scene_text.is_empty(),
+            "the worker has this scene: its text is left out"
+        );
+        assert_ne!(ahead.unit, Some(wire_unit));
+        // The client dies here, holding `ahead`.
+    });
+    coord.wait_for("stopped answering", 30);
+    let _worker = Running::worker(&["--coordinator", &url, "--threads", "2"]);
+    let (status, log) = coord.finish(60);
+    assert!(status.success(), "{}", log.join("\n"));
+    same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A worker told to exit when the frame is done learns it from the reply to its
+/// last tile, and exits 0 (it does not chase a coordinator that has gone).
+#[test]
+fn a_worker_exits_when_the_frame_is_done() {
+    let dir = scratch("farm-done");
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let worker = Running::worker(&["--coordinator", &url, "--threads", "1", "--exit-when-done"]);
+    let (status, log) = worker.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
+    let (status, log) = coord.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

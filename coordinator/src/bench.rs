@@ -95,8 +95,8 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         }
     );
 
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+    // As in `coordinator --local-workers N`: the farm is served on one thread.
+    let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;
@@ -154,10 +154,11 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         }
         let speedup = serial / wall;
         println!(
-            "| {n} worker process{} (loopback gRPC) | {wall:.3} ({total:.2} with start-up) | {speedup:.2} | {:.0}% | {:.2}% | {} | {:.2} | {} |",
+            "| {n} worker process{} (loopback gRPC) | {wall:.3} ({total:.2} with start-up) | {speedup:.2} | {:.0}% | {:.2}% ({:.0} ms) | {} | {:.2} | {} |",
             if n == 1 { "" } else { "es" },
             100.0 * speedup / n.min(cores) as f64,
             100.0 * own / (own + workers).max(1e-9),
+            own * 1e3,
             report.tile_bytes,
             if mean > 0.0 { max / mean } else { 0.0 },
             if same(&report.film, &serial_film) {
@@ -169,10 +170,13 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     }
     println!();
     println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used. Time a worker spends per unit not rendering (measured, 1 worker): {:.2} ms.",
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. Time a worker spends per unit not rendering (measured, 1 worker): {:.2} ms.",
         per_unit_network * 1e3
     );
 
+    if config.simulate.is_empty() {
+        return Ok(());
+    }
     println!();
     println!(
         "## Simulated farms (pull schedule vs contiguous blocks), from measured per-pixel costs"

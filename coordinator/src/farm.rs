@@ -122,6 +122,8 @@ pub struct FarmReport {
 struct Shared {
     scheduler: Mutex<Scheduler>,
     job: pb::Job,
+    /// The job without its scene text, for workers that have built the scene.
+    job_without_text: pb::Job,
     token: Option<String>,
     heartbeat: Duration,
     /// Set to true when the frame completes.
@@ -159,6 +161,39 @@ impl Service {
     fn scheduler(&self) -> std::sync::MutexGuard<'_, Scheduler> {
         // A panic while holding the lock would be a bug; the state is still usable.
         self.0.scheduler.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The scheduler's answer on the wire (for GetWork, and the next unit in a
+    /// SubmitTile reply). The scene text is left out when the worker has built
+    /// that scene already.
+    fn work(&self, next: Next, known_scene_hash: u64) -> pb::GetWorkResult {
+        let outcome = match next {
+            Next::Assign {
+                assignment_id,
+                unit,
+            } => {
+                self.0
+                    .first_assignment
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get_or_insert_with(Instant::now);
+                let job = if known_scene_hash == self.0.job.scene_hash {
+                    &self.0.job_without_text
+                } else {
+                    &self.0.job
+                };
+                Outcome::Assignment(pb::Assignment {
+                    assignment_id,
+                    job: Some(job.clone()),
+                    unit: Some(convert::unit_to_wire(&unit)),
+                })
+            }
+            Next::Wait => Outcome::RetryAfterMs(50),
+            Next::Finished => Outcome::Finished(true),
+        };
+        pb::GetWorkResult {
+            outcome: Some(outcome),
+        }
     }
 }
 
@@ -216,32 +251,12 @@ impl Farm for Service {
         request: Request<pb::GetWorkParams>,
     ) -> Result<Response<pb::GetWorkResult>, Status> {
         self.authorize(&request)?;
+        let p = request.get_ref();
         let next = self
             .scheduler()
-            .next(&request.get_ref().worker_id, Instant::now())
+            .next(&p.worker_id, Instant::now())
             .map_err(refusal)?;
-        let outcome = match next {
-            Next::Assign {
-                assignment_id,
-                unit,
-            } => {
-                self.0
-                    .first_assignment
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .get_or_insert_with(Instant::now);
-                Outcome::Assignment(pb::Assignment {
-                    assignment_id,
-                    job: Some(self.0.job.clone()),
-                    unit: Some(convert::unit_to_wire(&unit)),
-                })
-            }
-            Next::Wait => Outcome::RetryAfterMs(50),
-            Next::Finished => Outcome::Finished(true),
-        };
-        Ok(Response::new(pb::GetWorkResult {
-            outcome: Some(outcome),
-        }))
+        Ok(Response::new(self.work(next, p.known_scene_hash)))
     }
 
     async fn submit_tile(
@@ -250,8 +265,9 @@ impl Farm for Service {
     ) -> Result<Response<pb::SubmitTileResult>, Status> {
         self.authorize(&request)?;
         let p = request.into_inner();
-        let accepted = {
+        let (accepted, next) = {
             let mut s = self.scheduler();
+            let now = Instant::now();
             let accepted = s
                 .submit(
                     &p.worker_id,
@@ -259,7 +275,7 @@ impl Farm for Service {
                     p.unit.as_ref(),
                     &p.samples,
                     p.render_cpu_micros,
-                    Instant::now(),
+                    now,
                 )
                 .map_err(|r| {
                     tracing::warn!("refused a tile from {}: {r}", p.worker_id);
@@ -268,12 +284,20 @@ impl Farm for Service {
             if s.finished() {
                 let _ = self.0.finished.send(true);
             }
-            accepted
+            let next = if p.want_next {
+                Some(s.next(&p.worker_id, now).map_err(refusal)?)
+            } else {
+                None
+            };
+            (accepted, next)
         };
         self.0
             .tile_bytes
             .fetch_add(p.samples.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        Ok(Response::new(pb::SubmitTileResult { accepted }))
+        Ok(Response::new(pb::SubmitTileResult {
+            accepted,
+            next: next.map(|n| self.work(n, p.known_scene_hash)),
+        }))
     }
 
     async fn heartbeat(
@@ -332,26 +356,31 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     let unit_count = units.len();
     let (finished_tx, mut finished_rx) = watch::channel(false);
     let heartbeat = (config.lease / 4).max(Duration::from_millis(50));
+    let wire_job = pb::Job {
+        scene_hash: convert::scene_hash(
+            &job.scene_text,
+            job.width,
+            job.height,
+            job.spp.unwrap_or(0),
+            convert::quality_to_wire(job.quality) as i32,
+            &job.knobs,
+        ),
+        scene_text: job.scene_text.clone(),
+        scene_name: job.scene_name.clone(),
+        width: job.width,
+        height: job.height,
+        frame: job.frame,
+        spp: job.spp.unwrap_or(0),
+        quality: convert::quality_to_wire(job.quality) as i32,
+        knobs: convert::knobs_to_wire(&job.knobs),
+    };
     let shared = Arc::new(Shared {
         scheduler: Mutex::new(Scheduler::new(units, job.width, job.height, config.lease)),
-        job: pb::Job {
-            scene_hash: convert::scene_hash(
-                &job.scene_text,
-                job.width,
-                job.height,
-                job.spp.unwrap_or(0),
-                convert::quality_to_wire(job.quality) as i32,
-                &job.knobs,
-            ),
-            scene_text: job.scene_text.clone(),
-            scene_name: job.scene_name.clone(),
-            width: job.width,
-            height: job.height,
-            frame: job.frame,
-            spp: job.spp.unwrap_or(0),
-            quality: convert::quality_to_wire(job.quality) as i32,
-            knobs: convert::knobs_to_wire(&job.knobs),
+        job_without_text: pb::Job {
+            scene_text: String::new(),
+            ..wire_job.clone()
         },
+        job: wire_job,
         token: token.clone(),
         heartbeat,
         finished: finished_tx,
@@ -416,6 +445,8 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     let start = Instant::now();
     let bar = crate::progress::FarmProgress::new(config.progress, unit_count as u64);
     let mut last_preview = Instant::now();
+    // A preview being encoded and written, off the thread that serves the workers.
+    let mut writing_preview: Option<tokio::task::JoinHandle<()>> = None;
     let mut no_worker_since = Some(Instant::now());
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let outcome = loop {
@@ -430,8 +461,11 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
                 tracing::warn!("worker {name} stopped answering: its units go to others");
             }
             bar.update(&s, now);
+            let writing = writing_preview.as_ref().is_some_and(|t| !t.is_finished());
             let preview = match (config.preview_every, &config.preview_path) {
-                (Some(every), Some(_)) if now - last_preview >= every && !s.finished() => {
+                (Some(every), Some(_))
+                    if now - last_preview >= every && !s.finished() && !writing =>
+                {
                     Some(s.preview())
                 }
                 _ => None,
@@ -440,9 +474,12 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         };
         if let (Some(film), Some(path)) = (preview, &config.preview_path) {
             last_preview = now;
-            if let Err(e) = crate::output::write_image(&film, path) {
-                tracing::warn!("preview: {e}");
-            }
+            let path = path.clone();
+            writing_preview = Some(tokio::task::spawn_blocking(move || {
+                if let Err(e) = crate::output::write_image(&film, &path) {
+                    tracing::warn!("preview: {e}");
+                }
+            }));
         }
         if done {
             break Ok(());
@@ -469,6 +506,10 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         }
     };
     bar.finish();
+    if let Some(task) = writing_preview {
+        // The final image replaces the preview: let the preview finish first.
+        let _ = task.await;
+    }
     let render_time = shared
         .first_assignment
         .lock()
@@ -489,11 +530,11 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     outcome?;
 
     let tile_bytes = shared.tile_bytes.load(std::sync::atomic::Ordering::Relaxed);
-    let scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
+    let mut scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
     let mut workers: Vec<_> = scheduler.workers().cloned().collect();
     workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
     let unit_costs = scheduler.unit_costs().to_vec();
-    let film = scheduler.film().clone();
+    let film = scheduler.take_film();
     drop(scheduler);
     Ok(FarmReport {
         film,

@@ -275,8 +275,9 @@ pub fn render_on_farm(
         interleave: options.interleave,
         progress: config.progress,
     };
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+    // One thread serves the farm: per unit it only checks and stores a tile, and
+    // any thread more competes with the render threads of local workers.
+    let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;

@@ -248,10 +248,12 @@ impl Scheduler {
             _ if self.done[issued_unit] => return Ok(false),
             _ => return Err(Refusal::NotHeld(assignment_id)),
         }
-        // Checked: write it.
+        // Checked (the samples come out only after the whole tile passed): write it.
+        let film = self.film.pixels_mut();
         for ((x, y), sample) in claimed.pixels(width).zip(samples) {
-            self.film.set(x, y, sample);
-            self.rendered[(y * width + x) as usize] = true;
+            let i = (y * width + x) as usize;
+            film[i] = sample;
+            self.rendered[i] = true;
         }
         self.done[issued_unit] = true;
         self.remaining -= 1;
@@ -345,9 +347,10 @@ impl Scheduler {
         &self.film
     }
 
-    /// Takes the image.
-    pub fn into_film(self) -> Film {
-        self.film
+    /// Takes the image (the frame is over: no copy of 36 bytes a pixel), leaving
+    /// an empty one.
+    pub fn take_film(&mut self) -> Film {
+        std::mem::replace(&mut self.film, Film::new(0, 0))
     }
 
     /// The image so far with each missing pixel filled from the nearest rendered
@@ -386,7 +389,7 @@ mod tests {
 
     fn tile(unit: &WorkUnit, width: u32, value: f32) -> Vec<u8> {
         let samples = vec![Sample::from_array([value; Sample::CHANNELS]); unit.pixel_count(width)];
-        convert::samples_to_wire(&samples)
+        convert::samples_to_wire(&samples).to_vec()
     }
 
     fn assign(s: &mut Scheduler, w: &str, now: Instant) -> (u64, WorkUnit) {

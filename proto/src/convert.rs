@@ -3,7 +3,7 @@
 use hypertexture::interleave::{PixelSet, WorkUnit};
 use hypertexture::{Quality, Sample};
 
-use crate::pb;
+use crate::{Bytes, pb};
 
 /// Why a wire message could not be turned into a program type.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -98,18 +98,23 @@ pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUn
 pub const SAMPLE_BYTES: usize = Sample::CHANNELS * 4;
 
 /// The samples of a tile as little-endian bytes (36 per pixel).
-pub fn samples_to_wire(samples: &[Sample]) -> Vec<u8> {
+pub fn samples_to_wire(samples: &[Sample]) -> Bytes {
     let mut bytes = Vec::with_capacity(samples.len() * SAMPLE_BYTES);
     for s in samples {
         for v in s.to_array() {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
-    bytes
+    bytes.into()
 }
 
 /// The samples of a tile from the wire: exactly `pixels` samples, all finite.
-pub fn samples_from_wire(bytes: &[u8], pixels: usize) -> Result<Vec<Sample>, WireError> {
+/// The whole tile is checked before the first sample comes out, and nothing is
+/// allocated: the caller stores the samples where they go.
+pub fn samples_from_wire(
+    bytes: &[u8],
+    pixels: usize,
+) -> Result<impl ExactSizeIterator<Item = Sample> + '_, WireError> {
     let expected = pixels * SAMPLE_BYTES;
     if bytes.len() != expected {
         return Err(WireError::TileLength {
@@ -119,26 +124,20 @@ pub fn samples_from_wire(bytes: &[u8], pixels: usize) -> Result<Vec<Sample>, Wir
             bytes_per_pixel: SAMPLE_BYTES,
         });
     }
-    let mut samples = Vec::with_capacity(pixels);
-    for (p, chunk) in bytes.chunks_exact(SAMPLE_BYTES).enumerate() {
-        let mut a = [0.0f32; Sample::CHANNELS];
-        for (c, v) in a.iter_mut().enumerate() {
-            *v = f32::from_le_bytes([
-                chunk[4 * c],
-                chunk[4 * c + 1],
-                chunk[4 * c + 2],
-                chunk[4 * c + 3],
-            ]);
-            if !v.is_finite() {
-                return Err(WireError::NotFinite {
-                    index: p * Sample::CHANNELS + c,
-                    value: *v,
-                });
-            }
-        }
-        samples.push(Sample::from_array(a));
+    let value = |chunk: &[u8]| f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+    if let Some(index) = bytes.chunks_exact(4).position(|c| !value(c).is_finite()) {
+        return Err(WireError::NotFinite {
+            index,
+            value: value(&bytes[4 * index..]),
+        });
     }
-    Ok(samples)
+    Ok(bytes.chunks_exact(SAMPLE_BYTES).map(move |chunk| {
+        let mut a = [0.0f32; Sample::CHANNELS];
+        for (v, c) in a.iter_mut().zip(chunk.chunks_exact(4)) {
+            *v = value(c);
+        }
+        Sample::from_array(a)
+    }))
 }
 
 /// The content hash of a job: FNV-1a over the scene text, then the size, the
@@ -254,8 +253,11 @@ mod tests {
         let samples: Vec<Sample> = (0..3)
             .map(|i| Sample::from_array([i as f32; Sample::CHANNELS]))
             .collect();
-        let wire = samples_to_wire(&samples);
-        assert_eq!(samples_from_wire(&wire, 3).unwrap(), samples);
+        let wire = samples_to_wire(&samples).to_vec();
+        assert_eq!(
+            samples_from_wire(&wire, 3).unwrap().collect::<Vec<_>>(),
+            samples
+        );
         assert!(matches!(
             samples_from_wire(&wire, 4),
             Err(WireError::TileLength { .. })

@@ -6,6 +6,9 @@
 
 pub mod convert;
 
+/// A tile's samples on the wire (a slice of the received buffer, not a copy).
+pub use prost::bytes::Bytes;
+
 /// The code generated from `hypertexture.proto`.
 #[allow(clippy::all, clippy::pedantic, missing_docs)]
 pub mod pb {
@@ -13,7 +16,9 @@ pub mod pb {
 }
 
 /// Bumped whenever the protocol changes incompatibly; checked at registration.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// 2: SubmitTile can hand out the next unit; assignments omit the scene text a
+/// worker already has.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// The largest message either side accepts (tonic's default is 4 MiB). A tile is
 /// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] samples

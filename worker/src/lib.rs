@@ -1,11 +1,14 @@
 //! The worker: a stateless renderer that dials the coordinator and pulls work.
 //!
-//! Each assignment carries the whole scene (a few KB) and its content hash; the
-//! worker builds the scene once per hash, renders the unit's pixels with all its
-//! threads and submits the tile. A background task heartbeats so the coordinator
-//! knows it is alive. When the coordinator goes away the worker reconnects with
-//! exponential backoff; when asked to stop (SIGTERM) it finishes the current
-//! unit, says goodbye and returns.
+//! Each assignment carries the scene's content hash, and its text (a few KB)
+//! unless the worker said it has built that scene; the worker builds the scene
+//! once per hash, renders the unit's pixels with all its threads and submits the
+//! tile. The reply to a tile brings the next unit, and one unit is always
+//! assigned ahead, so the render threads never wait for the network: while unit
+//! n renders, tile n − 1 travels and its reply brings unit n + 1. A background
+//! task heartbeats so the coordinator knows it is alive. When the coordinator
+//! goes away the worker reconnects with exponential backoff; when asked to stop
+//! (SIGTERM) it finishes the current unit, says goodbye and returns.
 
 pub mod cli;
 pub mod logging;
@@ -16,10 +19,11 @@ use std::time::Duration;
 
 use hypertexture::interleave::WorkUnit;
 use hypertexture::{Overrides, Scene};
+use hypertexture_proto::pb::GetWorkResult;
 use hypertexture_proto::pb::farm_client::FarmClient;
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
 use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
-use tokio::sync::watch;
+use tokio::sync::{oneshot, watch};
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use tonic::{Code, Status};
 
@@ -191,16 +195,14 @@ pub async fn run(
         ),
         None => None,
     });
-    let pool = Arc::new(
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(config.threads)
-            .thread_name(|i| format!("render-{i}"))
-            .build()
-            .map_err(|e| WorkerError::Threads {
-                threads: config.threads,
-                message: e.to_string(),
-            })?,
-    );
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(config.threads)
+        .thread_name(|i| format!("render-{i}"))
+        .build()
+        .map_err(|e| WorkerError::Threads {
+            threads: config.threads,
+            message: e.to_string(),
+        })?;
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::default();
     let mut backoff = Backoff(Backoff::FIRST);
@@ -303,86 +305,112 @@ enum Asked {
     Finished,
 }
 
-/// Asks for the next unit.
-async fn ask(client: &mut Client, worker_id: &str) -> Result<Asked, Status> {
-    let outcome = client
+/// Asks for the next unit, saying which scene this worker has built.
+async fn ask(client: &mut Client, worker_id: &str, known_scene_hash: u64) -> Result<Asked, Status> {
+    let work = client
         .get_work(pb::GetWorkParams {
             worker_id: worker_id.to_string(),
+            known_scene_hash,
         })
         .await?
-        .into_inner()
-        .outcome;
-    Ok(match outcome {
-        Some(Outcome::Assignment(a)) => Asked::Assignment(a),
-        Some(Outcome::RetryAfterMs(ms)) => {
-            Asked::Wait(Duration::from_millis(u64::from(ms).clamp(10, 5000)))
-        }
-        Some(Outcome::Finished(_)) => Asked::Finished,
-        None => Asked::Wait(Duration::from_millis(500)),
-    })
+        .into_inner();
+    Ok(Asked::from(work))
 }
 
-/// Pulls and renders units over one connection. While a unit renders, the next
-/// one is already requested (prefetch), so the round trip costs no render time.
+impl From<GetWorkResult> for Asked {
+    fn from(work: GetWorkResult) -> Asked {
+        match work.outcome {
+            Some(Outcome::Assignment(a)) => Asked::Assignment(a),
+            Some(Outcome::RetryAfterMs(ms)) => {
+                Asked::Wait(Duration::from_millis(u64::from(ms).clamp(10, 5000)))
+            }
+            Some(Outcome::Finished(_)) => Asked::Finished,
+            None => Asked::Wait(Duration::from_millis(500)),
+        }
+    }
+}
+
+/// A tile on its way to the coordinator; the reply may carry the next unit.
+type Sending = tokio::task::JoinHandle<Result<pb::SubmitTileResult, Status>>;
+
+/// Pulls and renders units over one connection. One unit is always assigned
+/// ahead of the one rendering: it comes in the reply to the previous tile (or,
+/// when there is none, from GetWork while the unit renders), so the render
+/// threads never wait for a round trip.
 async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
     worker_id: &str,
-    pool: &Arc<rayon::ThreadPool>,
+    pool: &rayon::ThreadPool,
     scenes: &mut SceneCache,
     report: &mut WorkerReport,
     stop: &mut watch::Receiver<bool>,
 ) -> Result<Leave, WorkerError> {
-    let mut prefetched: Option<pb::Assignment> = None;
+    // Assigned and not started yet.
+    let mut ahead: Option<pb::Assignment> = None;
     // The previous tile, on its way while the next unit renders.
-    let mut sending: Option<tokio::task::JoinHandle<Result<bool, Status>>> = None;
+    let mut sending: Option<Sending> = None;
     loop {
         if *stop.borrow() {
-            // Deliver the last tile; a prefetched unit goes back with the goodbye.
+            // Deliver the last tile; a unit assigned ahead goes back with the goodbye.
             return delivered(config, sending.take(), report)
                 .await
-                .map(|()| Leave::Done);
+                .map(|_| Leave::Done);
         }
-        let assignment = match prefetched.take() {
+        let assignment = match ahead.take() {
             Some(a) => a,
-            None => match ask(client, worker_id).await {
-                Ok(Asked::Assignment(a)) => a,
-                Ok(Asked::Wait(d)) => {
-                    if sleep_or_stop(d, stop).await {
-                        return delivered(config, sending.take(), report)
-                            .await
-                            .map(|()| Leave::Done);
+            None => {
+                // Nothing ahead: the reply to the tile in flight may bring the next
+                // unit, or say that the frame is done; otherwise ask.
+                let asked = match delivered(config, sending.take(), report).await? {
+                    Delivered::Next(asked) => Ok(asked),
+                    Delivered::Lost(status) => Err(status),
+                    Delivered::Nothing => ask(client, worker_id, scenes.known()).await,
+                };
+                match asked {
+                    Ok(Asked::Assignment(a)) => a,
+                    Ok(Asked::Wait(d)) => {
+                        if sleep_or_stop(d, stop).await {
+                            return Ok(Leave::Done);
+                        }
+                        continue;
                     }
-                    continue;
-                }
-                Ok(Asked::Finished) => {
-                    if config.exit_when_done || sleep_or_stop(Duration::from_secs(1), stop).await {
-                        return delivered(config, sending.take(), report)
-                            .await
-                            .map(|()| Leave::Done);
+                    Ok(Asked::Finished) => {
+                        if config.exit_when_done
+                            || sleep_or_stop(Duration::from_secs(1), stop).await
+                        {
+                            return Ok(Leave::Done);
+                        }
+                        continue;
                     }
-                    continue;
+                    Err(status) => return lost(config, status),
                 }
-                Err(status) => return lost(config, status),
-            },
+            }
         };
         let Some(rendering) = start_render(&assignment, pool, scenes) else {
             // A malformed assignment: not ours to fix; ask for other work.
             if sleep_or_stop(Duration::from_millis(500), stop).await {
                 return delivered(config, sending.take(), report)
                     .await
-                    .map(|()| Leave::Done);
+                    .map(|_| Leave::Done);
             }
             continue;
         };
-        delivered(config, sending.take(), report).await?;
+        // While it renders: the previous tile's reply brings the unit after this
+        // one; without one (the first unit, or a refused tile), ask.
         let mut lost_while_rendering = None;
-        if !*stop.borrow() {
-            match ask(client, worker_id).await {
-                Ok(Asked::Assignment(a)) => prefetched = Some(a),
-                Ok(Asked::Wait(_) | Asked::Finished) => {}
-                Err(status) => lost_while_rendering = Some(status),
+        match delivered(config, sending.take(), report).await? {
+            Delivered::Next(Asked::Assignment(a)) => ahead = Some(a),
+            Delivered::Next(Asked::Wait(_) | Asked::Finished) => {}
+            Delivered::Lost(status) => lost_while_rendering = Some(status),
+            Delivered::Nothing if !*stop.borrow() => {
+                match ask(client, worker_id, scenes.known()).await {
+                    Ok(Asked::Assignment(a)) => ahead = Some(a),
+                    Ok(Asked::Wait(_) | Asked::Finished) => {}
+                    Err(status) => lost_while_rendering = Some(status),
+                }
             }
+            Delivered::Nothing => {}
         }
         let Ok((unit, samples, cpu)) = rendering.await else {
             tracing::error!("a render task failed");
@@ -395,12 +423,12 @@ async fn serve(
             unit: Some(convert::unit_to_wire(&unit)),
             samples,
             render_cpu_micros: cpu,
+            // The unit after the one ahead, to render while the next tile travels.
+            want_next: !*stop.borrow() && lost_while_rendering.is_none(),
+            known_scene_hash: scenes.known(),
         };
         sending = Some(tokio::spawn(async move {
-            sender
-                .submit_tile(tile)
-                .await
-                .map(|r| r.into_inner().accepted)
+            sender.submit_tile(tile).await.map(|r| r.into_inner())
         }));
         if let Some(status) = lost_while_rendering {
             let _ = delivered(config, sending.take(), report).await;
@@ -409,28 +437,41 @@ async fn serve(
     }
 }
 
+/// What became of a tile in flight.
+enum Delivered {
+    /// No tile was in flight, it was refused, or the reply carried no next unit.
+    Nothing,
+    /// Delivered; the reply's next unit (or wait, or finished).
+    Next(Asked),
+    /// The connection failed, or the coordinator forgot this worker: reconnect.
+    Lost(Status),
+}
+
 /// Waits for a tile in flight. A refused tile is logged (the unit was taken back
-/// or is malformed: not fatal); a lost connection surfaces as `Reconnect` on the
-/// next call, so only refusals of the worker itself are returned as errors.
+/// or is malformed: not fatal); only refusals of the worker itself are errors.
 async fn delivered(
     config: &WorkerConfig,
-    sending: Option<tokio::task::JoinHandle<Result<bool, Status>>>,
+    sending: Option<Sending>,
     report: &mut WorkerReport,
-) -> Result<(), WorkerError> {
+) -> Result<Delivered, WorkerError> {
     let Some(task) = sending else {
-        return Ok(());
+        return Ok(Delivered::Nothing);
     };
-    match task.await {
-        Ok(Ok(accepted)) => {
-            if accepted {
+    Ok(match task.await {
+        Ok(Ok(result)) => {
+            if result.accepted {
                 report.units += 1;
             }
+            result
+                .next
+                .map_or(Delivered::Nothing, |next| Delivered::Next(next.into()))
         }
         Ok(Err(status))
             if status.code() == Code::InvalidArgument
                 || status.code() == Code::FailedPrecondition =>
         {
             tracing::warn!("tile refused: {}", status.message());
+            Delivered::Nothing
         }
         Ok(Err(status)) => {
             if is_refusal(&status) {
@@ -441,10 +482,13 @@ async fn delivered(
                 config.coordinator,
                 status.message()
             );
+            Delivered::Lost(status)
         }
-        Err(e) => tracing::error!("the tile sender failed: {e}"),
-    }
-    Ok(())
+        Err(e) => {
+            tracing::error!("the tile sender failed: {e}");
+            Delivered::Nothing
+        }
+    })
 }
 
 /// What to do after a failed call: give up on refusal, otherwise reconnect.
@@ -468,13 +512,14 @@ fn is_refusal(status: &Status) -> bool {
     )
 }
 
-/// Starts rendering an assignment on the pool, off the async threads (so
-/// heartbeats and the prefetch go on); `None` for a malformed assignment.
+/// Starts rendering an assignment on the pool (the async thread goes on with
+/// heartbeats and tiles); `None` for a malformed assignment. The result comes
+/// straight from the render thread; a render that panics drops the sender.
 fn start_render(
     assignment: &pb::Assignment,
-    pool: &Arc<rayon::ThreadPool>,
+    pool: &rayon::ThreadPool,
     scenes: &mut SceneCache,
-) -> Option<tokio::task::JoinHandle<(WorkUnit, Vec<u8>, u64)>> {
+) -> Option<oneshot::Receiver<(WorkUnit, hypertexture_proto::Bytes, u64)>> {
     let job = assignment.job.as_ref()?;
     let scene = match scenes.get(job) {
         Ok(s) => s,
@@ -495,25 +540,50 @@ fn start_render(
             return None;
         }
     };
-    let pool = Arc::clone(pool);
     let frame = job.frame;
-    Some(tokio::task::spawn_blocking(move || {
-        let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
-        let before = process_cpu_micros();
-        let samples = pool.install(|| hypertexture::render::render_pixels(&scene, frame, &pixels));
-        let cpu = process_cpu_micros().saturating_sub(before);
-        (unit, convert::samples_to_wire(&samples), cpu)
-    }))
+    let (done, result) = oneshot::channel();
+    pool.spawn(move || {
+        let render = || {
+            let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
+            let before = process_cpu_micros();
+            let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
+            let cpu = process_cpu_micros().saturating_sub(before);
+            (unit, convert::samples_to_wire(&samples), cpu)
+        };
+        if let Ok(tile) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render)) {
+            let _ = done.send(tile);
+        }
+    });
+    Some(result)
 }
 
 /// Scenes built from assignments, by content hash (a worker holds a few at most).
 #[derive(Default)]
-struct SceneCache(HashMap<u64, Arc<Scene>>);
+struct SceneCache {
+    scenes: HashMap<u64, Arc<Scene>>,
+    /// The hash of the scene used last (0: none): the coordinator leaves its
+    /// text out of the assignments that follow.
+    last: u64,
+}
 
 impl SceneCache {
     const CAPACITY: usize = 4;
 
+    /// The hash of a scene this worker has built (0: none).
+    fn known(&self) -> u64 {
+        self.last
+    }
+
     fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, String> {
+        if job.scene_text.is_empty() {
+            // Left out by the coordinator: this worker said it has the scene.
+            return self.scenes.get(&job.scene_hash).cloned().ok_or_else(|| {
+                format!(
+                    "the assignment leaves out the text of scene {:016x}, which this worker has not built",
+                    job.scene_hash
+                )
+            });
+        }
         let knobs = convert::knobs_from_wire(&job.knobs);
         let hash = convert::scene_hash(
             &job.scene_text,
@@ -529,7 +599,8 @@ impl SceneCache {
                 job.scene_hash
             ));
         }
-        if let Some(scene) = self.0.get(&hash) {
+        if let Some(scene) = self.scenes.get(&hash) {
+            self.last = hash;
             return Ok(Arc::clone(scene));
         }
         let scene = Scene::from_text(
@@ -544,11 +615,12 @@ impl SceneCache {
             },
         )
         .map_err(|e| e.to_string())?;
-        if self.0.len() >= Self::CAPACITY {
-            self.0.clear();
+        if self.scenes.len() >= Self::CAPACITY {
+            self.scenes.clear();
         }
         let scene = Arc::new(scene);
-        self.0.insert(hash, Arc::clone(&scene));
+        self.scenes.insert(hash, Arc::clone(&scene));
+        self.last = hash;
         Ok(scene)
     }
 }
@@ -609,4 +681,51 @@ fn error_chain(e: &dyn std::error::Error) -> String {
         source = cause.source();
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(text: &str) -> pb::Job {
+        pb::Job {
+            scene_hash: convert::scene_hash(text, 8, 8, 0, 0, &[]),
+            scene_text: text.to_string(),
+            scene_name: "test.ron".into(),
+            width: 8,
+            height: 8,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_scene_is_built_once_and_then_needs_no_text() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenes/noisy_sphere.ron"
+        ))
+        .unwrap();
+        let mut scenes = SceneCache::default();
+        assert_eq!(scenes.known(), 0);
+        let full = job(&text);
+        let without_text = pb::Job {
+            scene_text: String::new(),
+            ..full.clone()
+        };
+        assert!(
+            scenes.get(&without_text).is_err(),
+            "no text and never built: refused"
+        );
+        let built = scenes.get(&full).unwrap();
+        assert_eq!(scenes.known(), full.scene_hash);
+        assert!(Arc::ptr_eq(&built, &scenes.get(&without_text).unwrap()));
+        let forged = pb::Job {
+            scene_hash: full.scene_hash ^ 1,
+            ..full
+        };
+        assert!(
+            scenes.get(&forged).is_err(),
+            "a hash that does not match the text"
+        );
+    }
 }
