@@ -312,6 +312,37 @@ impl Program {
     /// both branches run with the lanes that did not take one masked: an
     /// operation's result is kept only in the lanes whose path runs it.
     pub fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3] {
+        match isa {
+            Isa::Scalar => {
+                let mut out = [[0.0; LANES]; 3];
+                for l in 0..LANES {
+                    let v = self.eval(
+                        Inputs {
+                            x: x.get(l),
+                            d: d[l],
+                        },
+                        field,
+                    );
+                    for c in 0..3 {
+                        out[c][l] = v[c];
+                    }
+                }
+                out
+            }
+            // SAFETY: a scene only carries a path that `Isa::available` reported.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::run_sse41(self, x, d, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::run_avx2(self, x, d, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => self.eval_lanes(x, d, field, Isa::Scalar),
+        }
+    }
+
+    /// [`Program::eval_lanes`] on a SIMD path, inlined into one copy per
+    /// instruction set (`x86` below) with the noise and power kernels.
+    #[inline(always)]
+    fn run_simd(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3] {
         if self.template.len() <= 32 {
             self.run_lanes::<32>(x, d, field, isa)
         } else if self.template.len() <= 64 {
@@ -322,6 +353,7 @@ impl Program {
     }
 
     #[allow(clippy::needless_range_loop)] // lane loops index several arrays at once
+    #[inline(always)]
     fn run_lanes<const N: usize>(
         &self,
         x: &Points,
@@ -393,7 +425,10 @@ impl Program {
                     continue;
                 }
                 Op::JumpIfZero(c, target) => {
-                    let zero = r[c as usize].map(|v| v == 0.0);
+                    let mut zero = [false; LANES];
+                    for l in 0..LANES {
+                        zero[l] = r[c as usize][l] == 0.0;
+                    }
                     if all_active && zero.iter().all(|&z| z) {
                         pc = usize::from(target);
                     } else {
@@ -410,7 +445,12 @@ impl Program {
             }
             // The lanes that do not run this operation keep their registers.
             let written = op.written();
-            let saved = (!all_active).then(|| written.map(|w| w.map(|w| r[usize::from(w)])));
+            let mut saved = [None; 3];
+            if !all_active {
+                for (s, w) in saved.iter_mut().zip(written) {
+                    *s = w.map(|w| r[usize::from(w)]);
+                }
+            }
             macro_rules! lanewise {
                 ($d:expr, |$l:ident| $e:expr) => {{
                     let mut out = [0.0f32; LANES];
@@ -444,15 +484,15 @@ impl Program {
                 Op::Not(d, a) => lanewise!(d, |l| truth(g!(a, l) == 0.0)),
                 Op::F1(f, d, a) => lanewise!(d, |l| fn1(f, g!(a, l))),
                 Op::F2(f, d, a, b) => lanewise!(d, |l| fn2(f, g!(a, l), g!(b, l))),
-                Op::BiasK(d, a, b) => r[d as usize] = b.apply_lanes(&r[a as usize], isa),
-                Op::GainK(d, a, g) => r[d as usize] = g.apply_lanes(&r[a as usize], isa),
+                Op::BiasK(d, a, b) => r[d as usize] = b.apply_simd(&r[a as usize]),
+                Op::GainK(d, a, g) => r[d as usize] = g.apply_simd(&r[a as usize]),
                 Op::Clamp(d, a, lo, hi) => lanewise!(d, |l| clamp(g!(a, l), g!(lo, l), g!(hi, l))),
                 Op::Smoothstep(d, e0, e1, a) => {
                     lanewise!(d, |l| smoothstep(g!(e0, l), g!(e1, l), g!(a, l)))
                 }
                 Op::Noise(d, p) => {
                     let q = points(&r, p);
-                    r[d as usize] = isa.noise(field.noise, &q.x, &q.y, &q.z);
+                    r[d as usize] = field.noise.noise_lanes(&q.x, &q.y, &q.z);
                 }
                 Op::Density(d, i, p) => {
                     let q = points(&r, p);
@@ -463,7 +503,10 @@ impl Program {
                 }
                 Op::Project(d, p) => {
                     let q = points(&r, p);
-                    let q = self.surface.as_ref().map_or(q, |s| s.project_lanes(&q));
+                    let q = match &self.surface {
+                        Some(s) => s.project_lanes(&q),
+                        None => q,
+                    };
                     r[d[0] as usize] = q.x;
                     r[d[1] as usize] = q.y;
                     r[d[2] as usize] = q.z;
@@ -471,7 +514,7 @@ impl Program {
                 Op::VNoise(d, p) => {
                     // Noise::vnoise: noise at x − c, x, x + c.
                     let q = points(&r, p);
-                    let noise = |q: &Points| isa.noise(field.noise, &q.x, &q.y, &q.z);
+                    let noise = |q: &Points| field.noise.noise_lanes(&q.x, &q.y, &q.z);
                     let a = noise(&q.map(|q| q - VNOISE_OFFSET));
                     let b = noise(&q);
                     let c = noise(&q.map(|q| q + VNOISE_OFFSET));
@@ -487,7 +530,7 @@ impl Program {
                         let mut scale = 1.0f32;
                         for _ in 0..o[0] {
                             let s = q.map(|q| q * scale);
-                            let n = isa.noise(field.noise, &s.x, &s.y, &s.z);
+                            let n = field.noise.noise_lanes(&s.x, &s.y, &s.z);
                             for l in 0..LANES {
                                 let v = if absolute { n[l].abs() } else { n[l] };
                                 sum[l] += v / scale;
@@ -534,7 +577,7 @@ impl Program {
                 }
                 Op::Jump(_) | Op::JumpIfZero(..) => unreachable!("control flow is handled above"),
             }
-            if let Some(saved) = saved {
+            if !all_active {
                 for (w, old) in written.iter().zip(saved) {
                     if let (Some(w), Some(old)) = (w, old) {
                         let reg = &mut r[usize::from(*w)];
@@ -551,6 +594,22 @@ impl Program {
             Result3::Scalar(a) => [r[a as usize]; 3],
             Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
         }
+    }
+}
+
+/// The copies of [`Program::run_simd`] per instruction set.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn run_avx2(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
+        p.run_simd(x, d, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn run_sse41(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
+        p.run_simd(x, d, field, Isa::Sse41)
     }
 }
 
