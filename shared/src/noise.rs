@@ -812,6 +812,15 @@ mod tests {
         for (p, o) in pts.iter().zip(&out) {
             assert_eq!(perlin(*p).to_bits(), o.to_bits());
         }
+        // Every remainder of the 8- and 4-point batches; `out` may be longer.
+        for n in 0..20 {
+            let mut out = vec![7.0; n + 3];
+            perlin_batch(&pts[..n], &mut out);
+            for (p, o) in pts[..n].iter().zip(&out) {
+                assert_eq!(perlin(*p).to_bits(), o.to_bits());
+            }
+            assert_eq!(out[n..], [7.0; 3]);
+        }
     }
 
     #[test]
