@@ -1,8 +1,11 @@
 //! The instruction sets the hot kernels are compiled for, chosen at run time.
 //!
 //! Each kernel (noise, `pow`) is written once, lane-parallel over [`LANES`]
-//! points, and compiled here for AVX2 and SSE4.1 behind `#[target_feature]`; the
-//! rest of the program is built for the x86-64 baseline (SSE2). Every path does
+//! points (noise with SSE intrinsics, 8 lanes in AVX registers on AVX2), and
+//! compiled here for AVX2 and SSE4.1 behind `#[target_feature]`. The hot paths
+//! that call them have their own `#[target_feature]` copies with the kernels
+//! inlined (`density::x86`, `march::x86`); the rest of the program is built for
+//! the x86-64 baseline (SSE2). Every path does
 //! the same IEEE operations in the same order per lane (no FMA: Rust never
 //! contracts `a * b + c`), so [`Isa::Scalar`], [`Isa::Sse41`] and [`Isa::Avx2`]
 //! give the same bits; `tests/` renders whole images on each and compares them.
