@@ -520,16 +520,17 @@ fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
 
 impl Field<'_> {
     /// `noise` at the points: the lane kernel itself, inlined into the
-    /// per-instruction-set copy of [`Density::eval_lanes`].
+    /// per-instruction-set copy of [`Density::eval_lanes`] (`isa` is a
+    /// constant there).
     #[inline(always)]
-    fn noise_lanes(&self, p: &Points) -> Lanes {
-        self.noise.noise_lanes(&p.x, &p.y, &p.z)
+    fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
+        self.noise.noise_lanes_on(isa, &p.x, &p.y, &p.z)
     }
 
     /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
     #[inline(always)]
-    fn noise_at(&self, frequency: f32, x: &Points) -> Lanes {
-        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency))
+    fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
+        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
     }
 }
 
@@ -651,7 +652,7 @@ impl Hypertexture {
     fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         let mut p = *x;
         for w in &self.warps {
-            p = w.apply_lanes(&p, field);
+            p = w.apply_lanes(&p, field, isa);
         }
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
@@ -664,7 +665,7 @@ impl Hypertexture {
             let next = match m {
                 Modulation::Bias(b) => b.apply_simd(&v),
                 Modulation::Gain(g) => g.apply_simd(&v),
-                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field),
+                Modulation::Fur(f) => f.apply_lanes(&v, &p, &self.object, field, isa),
             };
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
@@ -676,7 +677,7 @@ impl Hypertexture {
 impl Warp {
     /// [`Warp::apply`] at each point (on a SIMD path).
     #[inline(always)]
-    fn apply_lanes(&self, x: &Points, field: &Field) -> Points {
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
         let scale_about = |centre: Vec3, s: &Lanes| {
             let mut out = Points::default();
             for (l, &s) in s.iter().enumerate() {
@@ -690,7 +691,7 @@ impl Warp {
                 amplitude,
                 centre,
             } => {
-                let n = field.noise_at(frequency, x);
+                let n = field.noise_at(frequency, x, isa);
                 scale_about(centre, &n.map(|n| 1.0 + amplitude * n))
             }
             Warp::FractalRadius {
@@ -702,7 +703,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut f = frequency;
                 for _ in 0..octaves {
-                    let n = field.noise_at(f, x);
+                    let n = field.noise_at(f, x, isa);
                     sum = zip(&sum, &n, |s, n| s + n / f);
                     f *= 2.0;
                 }
@@ -724,7 +725,7 @@ impl Warp {
                     q.y[l] = ((x.y[l] - o.y) * stretch) * frequency;
                     q.z[l] = (x.z[l] - o.z) * frequency;
                 }
-                let n = field.noise_lanes(&q);
+                let n = field.noise_lanes(&q, isa);
                 let mut out = *x;
                 for (l, &n) in n.iter().enumerate() {
                     let y = x.y[l];
@@ -744,7 +745,7 @@ impl Warp {
                 let mut sum = [0.0; LANES];
                 let mut scale = 1.0f32;
                 for _ in 0..octaves {
-                    let n = field.noise_lanes(&q.map(|p| p * scale));
+                    let n = field.noise_lanes(&q.map(|p| p * scale), isa);
                     sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
                     scale *= 2.0;
                 }
@@ -757,12 +758,19 @@ impl Warp {
 impl Fur {
     /// [`Fur::apply`] at each point (on a SIMD path).
     #[inline(always)]
-    fn apply_lanes(&self, d: &Lanes, x: &Points, object: &Density, field: &Field) -> Lanes {
+    fn apply_lanes(
+        &self,
+        d: &Lanes,
+        x: &Points,
+        object: &Density,
+        field: &Field,
+        isa: Isa,
+    ) -> Lanes {
         let x = if self.curliness > 0.0 {
             let q = x.map(|x| x - field.offset);
-            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET));
-            let b = field.noise_lanes(&q);
-            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET));
+            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
+            let b = field.noise_lanes(&q, isa);
+            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET), isa);
             let curl = self.curl_gain.apply_simd(&d.map(|d| 1.0 - d));
             let mut out = Points::default();
             for l in 0..LANES {
@@ -774,7 +782,7 @@ impl Fur {
             *x
         };
         let s = field
-            .noise_at(self.frequency, &object.project_lanes(&x))
+            .noise_at(self.frequency, &object.project_lanes(&x), isa)
             .map(|n| 0.5 * (1.0 + n));
         let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
         zip(&shaped, d, |f, d| f * d)

@@ -1,8 +1,11 @@
 //! The instruction sets the hot kernels are compiled for, chosen at run time.
 //!
 //! Each kernel (noise, `pow`) is written once, lane-parallel over [`LANES`]
-//! points, and compiled here for AVX2 and SSE4.1 behind `#[target_feature]`; the
-//! rest of the program is built for the x86-64 baseline (SSE2). Every path does
+//! points (noise with SSE intrinsics, 8 lanes in AVX registers on AVX2), and
+//! compiled here for AVX2 and SSE4.1 behind `#[target_feature]`. The hot paths
+//! that call them have their own `#[target_feature]` copies with the kernels
+//! inlined (`density::x86`, `march::x86`); the rest of the program is built for
+//! the x86-64 baseline (SSE2). Every path does
 //! the same IEEE operations in the same order per lane (no FMA: Rust never
 //! contracts `a * b + c`), so [`Isa::Scalar`], [`Isa::Sse41`] and [`Isa::Avx2`]
 //! give the same bits; `tests/` renders whole images on each and compares them.
@@ -138,40 +141,58 @@ pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
     out
 }
 
+/// The x, y and z of 4 `Vec3`s (3 loads and 6 shuffles).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn deinterleave(
+    p: &[Vec3],
+) -> (
+    std::arch::x86_64::__m128,
+    std::arch::x86_64::__m128,
+    std::arch::x86_64::__m128,
+) {
+    use std::arch::x86_64::*;
+    const _: () = assert!(std::mem::size_of::<Vec3>() == 12);
+    assert!(p.len() == 4);
+    // SAFETY: 4 `Vec3`s are 12 contiguous f32 (glam's `Vec3` is `repr(C)` of
+    // 3 f32), loaded as 3 unaligned vectors. SSE is part of the x86-64 baseline.
+    unsafe {
+        let f = p.as_ptr().cast::<f32>();
+        let (a, b, c) = (
+            _mm_loadu_ps(f),
+            _mm_loadu_ps(f.add(4)),
+            _mm_loadu_ps(f.add(8)),
+        );
+        // a = x0 y0 z0 x1, b = y1 z1 x2 y2, c = z2 x3 y3 z3.
+        let x = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b11_11_00_00>(a, a),
+            _mm_shuffle_ps::<0b01_01_10_10>(b, c),
+        );
+        let y = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b00_00_01_01>(a, b),
+            _mm_shuffle_ps::<0b10_10_11_11>(b, c),
+        );
+        let z = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b01_01_10_10>(a, b),
+            _mm_shuffle_ps::<0b11_11_00_00>(c, c),
+        );
+        (x, y, z)
+    }
+}
+
 /// `noise` over a slice, 4 points at a time: 4 `Vec3`s are 3 loads, turned
 /// into x, y and z vectors by shuffles (the last batch padded).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn noise_batch_lanes(n: &Noise, points: &[Vec3], out: &mut [f32]) {
     use std::arch::x86_64::*;
-    const _: () = assert!(std::mem::size_of::<Vec3>() == 12);
     let out = &mut out[..points.len()];
     let mut quads = points.chunks_exact(4);
     let mut outs = out.chunks_exact_mut(4);
     for (p, o) in (&mut quads).zip(&mut outs) {
-        // SAFETY: 4 `Vec3`s are 12 contiguous f32 (glam's `Vec3` is
-        // `repr(C)` of 3 f32), loaded as 3 unaligned vectors; `o` holds 4 f32.
-        // SSE is part of the x86-64 baseline.
+        // SAFETY: `o` holds 4 f32; SSE is part of the x86-64 baseline.
         unsafe {
-            let f = p.as_ptr().cast::<f32>();
-            let (a, b, c) = (
-                _mm_loadu_ps(f),
-                _mm_loadu_ps(f.add(4)),
-                _mm_loadu_ps(f.add(8)),
-            );
-            // a = x0 y0 z0 x1, b = y1 z1 x2 y2, c = z2 x3 y3 z3.
-            let x = _mm_shuffle_ps::<0b10_00_10_00>(
-                _mm_shuffle_ps::<0b11_11_00_00>(a, a),
-                _mm_shuffle_ps::<0b01_01_10_10>(b, c),
-            );
-            let y = _mm_shuffle_ps::<0b10_00_10_00>(
-                _mm_shuffle_ps::<0b00_00_01_01>(a, b),
-                _mm_shuffle_ps::<0b10_10_11_11>(b, c),
-            );
-            let z = _mm_shuffle_ps::<0b10_00_10_00>(
-                _mm_shuffle_ps::<0b01_01_10_10>(a, b),
-                _mm_shuffle_ps::<0b11_11_00_00>(c, c),
-            );
+            let (x, y, z) = deinterleave(p);
             _mm_storeu_ps(o.as_mut_ptr(), n.noise4(x, y, z));
         }
     }
@@ -187,11 +208,29 @@ fn noise_batch_lanes(n: &Noise, points: &[Vec3], out: &mut [f32]) {
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
+    use std::arch::x86_64::*;
+
     use super::*;
 
     #[target_feature(enable = "avx2")]
     pub(super) fn noise_batch_avx2(n: &Noise, points: &[Vec3], out: &mut [f32]) {
-        noise_batch_lanes(n, points, out)
+        let out = &mut out[..points.len()];
+        let mut eights = points.chunks_exact(8);
+        let mut outs = out.chunks_exact_mut(8);
+        for (p, o) in (&mut eights).zip(&mut outs) {
+            let ((x0, y0, z0), (x1, y1, z1)) = (deinterleave(&p[..4]), deinterleave(&p[4..]));
+            // SAFETY: this function is compiled for AVX2 (and only called on
+            // CPUs that have it); `o` holds 8 f32.
+            unsafe {
+                let n = n.noise8(
+                    _mm256_set_m128(x1, x0),
+                    _mm256_set_m128(y1, y0),
+                    _mm256_set_m128(z1, z0),
+                );
+                _mm256_storeu_ps(o.as_mut_ptr(), n);
+            }
+        }
+        noise_batch_lanes(n, eights.remainder(), outs.into_remainder())
     }
 
     #[target_feature(enable = "sse4.1")]
@@ -201,7 +240,7 @@ mod x86 {
 
     #[target_feature(enable = "avx2")]
     pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        n.noise_lanes(x, y, z)
+        n.noise_lanes_on(Isa::Avx2, x, y, z)
     }
 
     #[target_feature(enable = "sse4.1")]
