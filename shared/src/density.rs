@@ -896,6 +896,7 @@ impl Density {
             Density::Hypertexture(h) => h.support_ball(),
             // In object space, like `support`.
             Density::Moving(d) => d.support_ball(),
+            Density::Expression(p) => p.support_ball(),
             _ => None,
         }
     }

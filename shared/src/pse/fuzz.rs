@@ -124,13 +124,16 @@ fn lanes_agree(program: &super::Program, field: &Field) {
     }
 }
 
-/// Outside the box [`super::Program::support`] finds, the density is 0.
+/// Outside the box [`super::Program::support`] finds, and outside its ball,
+/// the density is 0.
 fn support_holds(program: &super::Program, field: &Field) {
     let Some((lo, hi)) = program.support() else {
         return;
     };
+    let ball = program.support_ball();
     for x in POINTS {
-        if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+        let outside_ball = ball.is_some_and(|(c, r)| (x - c).length() > r);
+        if x.cmplt(lo).any() || x.cmpgt(hi).any() || outside_ball {
             let f = crate::shaping::clamp01(program.eval_scalar(x, 0.0, field));
             assert!(f == 0.0, "{f} at {x}, outside the support {lo} {hi}");
         }

@@ -26,19 +26,66 @@ use glam::Vec3;
 use super::eval::{Fn1, Fn2, INPUTS, Op, Program, REG_D, REG_FRAME, REG_T, REG_X, Result3};
 use crate::density::{Aabb, Density};
 
-/// Where a value can be non-zero: `None` anywhere, or inside a box (an empty
-/// box: nowhere, the value is always 0).
-type Support = Option<Aabb>;
+/// Where a value can be non-zero: `None` anywhere, or inside a box and, when
+/// known, a ball (an empty box: nowhere, the value is always 0).
+type Support = Option<Region>;
 
-const NOWHERE: Aabb = (Vec3::INFINITY, Vec3::NEG_INFINITY);
+/// A box, and a ball when one is known; the value is 0 outside either.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Region {
+    aabb: Aabb,
+    ball: Option<(Vec3, f32)>,
+}
+
+const NOWHERE: Region = Region {
+    aabb: (Vec3::INFINITY, Vec3::NEG_INFINITY),
+    ball: None,
+};
+
+fn is_empty(r: &Region) -> bool {
+    r.aabb.0.cmpgt(r.aabb.1).any()
+}
+
+/// The smallest ball holding both balls.
+fn enclosing((c, r): (Vec3, f32), (d, q): (Vec3, f32)) -> (Vec3, f32) {
+    let gap = (d - c).length();
+    if gap + q <= r {
+        (c, r)
+    } else if gap + r <= q {
+        (d, q)
+    } else {
+        let radius = (gap + r + q) * 0.5;
+        // From c towards d, so that both balls touch the new one's surface;
+        // a little more for rounding.
+        let centre = c + (d - c) * ((radius - r) / gap);
+        (centre, radius * (1.0 + 1e-6) + 1e-6)
+    }
+}
 
 fn union(a: Support, b: Support) -> Support {
-    Some((a?.0.min(b?.0), a?.1.max(b?.1)))
+    let (a, b) = (a?, b?);
+    if is_empty(&a) {
+        return Some(b);
+    }
+    if is_empty(&b) {
+        return Some(a);
+    }
+    Some(Region {
+        aabb: (a.aabb.0.min(b.aabb.0), a.aabb.1.max(b.aabb.1)),
+        ball: a.ball.zip(b.ball).map(|(x, y)| enclosing(x, y)),
+    })
 }
 
 fn meet(a: Support, b: Support) -> Support {
     match (a, b) {
-        (Some(a), Some(b)) => Some((a.0.max(b.0), a.1.min(b.1))),
+        (Some(a), Some(b)) => Some(Region {
+            aabb: (a.aabb.0.max(b.aabb.0), a.aabb.1.min(b.aabb.1)),
+            // Either ball holds the intersection: the smaller.
+            ball: match (a.ball, b.ball) {
+                (Some(x), Some(y)) => Some(if x.1 <= y.1 { x } else { y }),
+                (x, y) => x.or(y),
+            },
+        }),
         (Some(a), None) | (None, Some(a)) => Some(a),
         (None, None) => None,
     }
@@ -100,6 +147,17 @@ impl Program {
     /// A box outside which the (scalar) value of the program is 0 for certain,
     /// or `None` when it may be non-zero anywhere.
     pub fn support(&self) -> Option<Aabb> {
+        self.region().map(|r| r.aabb)
+    }
+
+    /// A ball outside which the value is 0 for certain, when one is known
+    /// (`D(x)` of a sphere or torus, and what keeps its zeros).
+    pub fn support_ball(&self) -> Option<(Vec3, f32)> {
+        self.region()
+            .and_then(|r| if is_empty(&r) { None } else { r.ball })
+    }
+
+    fn region(&self) -> Option<Region> {
         let Result3::Scalar(result) = self.result else {
             return None;
         };
@@ -275,7 +333,12 @@ impl Program {
                 let at_x = (0..3u8).all(|i| s.point[usize::from(p[usize::from(i)])] == Some(i));
                 let object = self.objects.get(usize::from(object));
                 let support = if at_x {
-                    object.and_then(Density::support)
+                    object.and_then(|o| {
+                        Some(Region {
+                            aabb: o.support()?,
+                            ball: o.support_ball(),
+                        })
+                    })
                 } else {
                     None
                 };
@@ -400,6 +463,50 @@ mod tests {
         let (lo, hi) = support("D(x) * ball(x)").expect("bounded");
         let inside = |b: Aabb| lo.cmpge(b.0).all() && hi.cmple(b.1).all();
         assert!(inside(D) || inside(BALL), "{lo} {hi}");
+    }
+
+    #[test]
+    fn balls_follow_the_boxes() {
+        let ball = |src: &str| {
+            let knobs = BTreeMap::new();
+            let objects = vec![
+                (
+                    "D".to_string(),
+                    object("Sphere(centre: (1, 0, 0), radius: 1, softness: 0.5)"),
+                ),
+                (
+                    "ball".to_string(),
+                    object("Sphere(centre: (-2, 0, 0), radius: 0.5, softness: 0)"),
+                ),
+            ];
+            let ctx = Context {
+                knobs: &knobs,
+                functions: &[],
+                objects: &objects,
+                surface: None,
+                colour_map: None,
+            };
+            compile_expression(src, Kind::Density, &ctx)
+                .unwrap()
+                .support_ball()
+        };
+        let d = Some((Vec3::new(1.0, 0.0, 0.0), 1.25));
+        assert_eq!(ball("D(x)"), d);
+        assert_eq!(
+            ball("let d = D(x); if d > 0 { d * noise(x) } else { 0 }"),
+            d
+        );
+        assert_eq!(
+            ball("D(x) * ball(x)"),
+            Some((Vec3::new(-2.0, 0.0, 0.0), 0.5))
+        );
+        // Both spheres inside the enclosing ball, from x = -2.5 to 2.25.
+        let (c, r) = ball("D(x) + ball(x)").unwrap();
+        assert!(
+            (c.x - (-0.125)).abs() < 1e-5 && (r - 2.375).abs() < 1e-4,
+            "{c} {r}"
+        );
+        assert_eq!(ball("noise(x)"), None);
     }
 
     #[test]
