@@ -66,7 +66,8 @@ fn any_number_of_workers_gives_the_in_process_bytes() {
 fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
     let dir = scratch("farm-kill");
     let reference = dir.join("reference.png");
-    in_process("fur", 160, &reference);
+    // Big enough that one render thread is still busy when it is killed.
+    in_process("fur", 256, &reference);
     let out = dir.join("farm.png");
     let mut coord = Running::coordinator(&[
         "--scene",
@@ -74,9 +75,9 @@ fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
         "--out",
         out.to_str().unwrap(),
         "--width",
-        "160",
+        "256",
         "--height",
-        "160",
+        "256",
         "--local-workers",
         "0",
         "--lease-timeout",
