@@ -69,6 +69,9 @@ pub enum FarmError {
     /// No worker came, or all left, for the whole worker time-out.
     #[error("{0}")]
     NoWorkers(String),
+    /// Workers could not render a unit, again and again, or none can build the scene.
+    #[error("{0}")]
+    GaveUp(crate::scheduler::GiveUp),
     /// The gRPC server failed.
     #[error("the farm's server failed: {0}")]
     Server(String),
@@ -205,9 +208,10 @@ fn refusal(r: Refusal) -> Status {
     match r {
         Refusal::UnknownWorker(_) => Status::not_found(r.to_string()),
         Refusal::NotHeld(_) => Status::failed_precondition(r.to_string()),
-        Refusal::NeverAssigned(_) | Refusal::WrongUnit(_) | Refusal::Malformed { .. } => {
-            Status::invalid_argument(r.to_string())
-        }
+        Refusal::NeverAssigned(_)
+        | Refusal::WrongUnit(_)
+        | Refusal::Malformed { .. }
+        | Refusal::BadReport(_) => Status::invalid_argument(r.to_string()),
     }
 }
 
@@ -321,6 +325,45 @@ impl Farm for Service {
             .goodbye(&p.worker_id, p.process_cpu_micros)
             .map_err(refusal)?;
         Ok(Response::new(pb::GoodbyeResult {}))
+    }
+
+    async fn report_failure(
+        &self,
+        request: Request<pb::ReportFailureParams>,
+    ) -> Result<Response<pb::ReportFailureResult>, Status> {
+        self.authorize(&request)?;
+        let p = request.into_inner();
+        let kind =
+            convert::failure_kind_from_wire(p.kind).map_err(|e| refusal(Refusal::BadReport(e)))?;
+        let reason = convert::reason_from_wire(&p.reason);
+        let mut s = self.scheduler();
+        let counted = s
+            .fail(&p.worker_id, p.assignment_id, kind, &reason, Instant::now())
+            .map_err(refusal)?;
+        if let Some(c) = &counted {
+            if kind == hypertexture_proto::FailureKind::Scene {
+                tracing::error!(
+                    "worker {} cannot build the scene, it gets no more units: {reason}",
+                    c.worker
+                );
+            } else {
+                tracing::warn!(
+                    "worker {} could not render unit {} ({}), failure {} of at most {}: {kind}: {reason}",
+                    c.worker,
+                    c.index,
+                    crate::scheduler::describe(&c.unit),
+                    c.failures,
+                    crate::scheduler::MAX_FAILURES
+                );
+            }
+        }
+        if s.gave_up().is_some() {
+            // Wake the run loop: it stops the render.
+            let _ = self.0.finished.send(true);
+        }
+        Ok(Response::new(pb::ReportFailureResult {
+            counted: counted.is_some(),
+        }))
     }
 }
 
@@ -470,7 +513,10 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
                 }
                 _ => None,
             };
-            (s.finished(), s.alive(), preview)
+            if let Some(why) = s.gave_up() {
+                break Err(FarmError::GaveUp(why.clone()));
+            }
+            (s.finished(), s.able(), preview)
         };
         if let (Some(film), Some(path)) = (preview, &config.preview_path) {
             last_preview = now;
@@ -489,13 +535,19 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         } else {
             let since = *no_worker_since.get_or_insert(now);
             if now - since >= config.worker_timeout {
-                let (complete, total) = shared
-                    .scheduler
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .progress();
+                let s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
+                let (complete, total) = s.progress();
+                let unable = s.alive() - s.able();
+                let unable = if unable > 0 {
+                    format!(
+                        " ({unable} connected worker{} cannot build the scene)",
+                        if unable == 1 { "" } else { "s" }
+                    )
+                } else {
+                    String::new()
+                };
                 break Err(FarmError::NoWorkers(format!(
-                    "no worker has been connected for {:.0} s ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
+                    "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
                     config.worker_timeout.as_secs_f64(),
                     addr.port()
                 )));
@@ -517,8 +569,14 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         .map_or(Duration::ZERO, |t| t.elapsed())
         .min(start.elapsed());
 
-    // Local workers see `finished` on their next call and exit; give them a moment.
-    locals.stop(Duration::from_secs(10)).await;
+    // Local workers see `finished` on their next call and exit; give them a
+    // moment. After a failure they are told nothing more: stop them now.
+    let grace = if outcome.is_ok() {
+        Duration::from_secs(10)
+    } else {
+        Duration::ZERO
+    };
+    locals.stop(grace).await;
     let _ = stop_server.send(());
     // Graceful shutdown waits for open connections: daemon workers keep theirs
     // (they wait for the next frame), so give them a moment, then stop serving.

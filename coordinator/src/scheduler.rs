@@ -6,6 +6,12 @@
 //! queue is empty, idle workers get speculative duplicates of units still out
 //! (first tile wins — results are identical by construction). A tile is checked
 //! completely before it touches the film.
+//!
+//! A worker that cannot render a unit reports it ([`Scheduler::fail`]): the unit
+//! goes back to the queue, preferably to a worker that has not failed it; a
+//! worker whose scene does not build gets no more units; and the render is
+//! given up ([`GiveUp`]) when a unit has failed [`MAX_FAILURES`] times or no
+//! worker present can build the scene, instead of retrying forever.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -13,10 +19,14 @@ use std::time::{Duration, Instant};
 use hypertexture::interleave::WorkUnit;
 use hypertexture::{Film, Sample};
 use hypertexture_proto::convert::{self, WireError};
-use hypertexture_proto::pb;
+use hypertexture_proto::{FailureKind, pb};
 
 /// At most this many workers hold the same unit at once.
 const MAX_HOLDERS: usize = 2;
+
+/// A unit that fails to render this many times (on different workers when
+/// there are any) stops the render.
+pub const MAX_FAILURES: usize = 3;
 
 /// What a worker is told when it asks for work.
 #[derive(Clone, Debug, PartialEq)]
@@ -44,6 +54,9 @@ pub enum Refusal {
     /// The tile's unit differs from the assignment's.
     #[error("assignment {0} is for another unit")]
     WrongUnit(u64),
+    /// A failure report is malformed.
+    #[error("malformed failure report: {0}")]
+    BadReport(WireError),
     /// The tile itself is malformed.
     #[error("malformed tile for assignment {id}: {error}")]
     Malformed {
@@ -52,6 +65,94 @@ pub enum Refusal {
         /// What is wrong.
         error: WireError,
     },
+}
+
+/// One worker's failure to render a unit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UnitFailure {
+    /// The worker's name.
+    pub worker: String,
+    /// What kind of failure.
+    pub kind: FailureKind,
+    /// What the worker said.
+    pub reason: String,
+}
+
+impl std::fmt::Display for UnitFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "worker {} ({}): {}", self.worker, self.kind, self.reason)
+    }
+}
+
+/// Why the render was given up.
+#[derive(Clone, Debug, PartialEq)]
+pub enum GiveUp {
+    /// A unit failed [`MAX_FAILURES`] times.
+    Unit {
+        /// The unit's index in the frame's unit list.
+        index: usize,
+        /// The unit.
+        unit: WorkUnit,
+        /// Each failure, oldest first.
+        failures: Vec<UnitFailure>,
+    },
+    /// Every worker present failed to build the scene.
+    Scene {
+        /// One failure per worker that cannot build it.
+        failures: Vec<UnitFailure>,
+    },
+}
+
+impl std::fmt::Display for GiveUp {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let list = |failures: &[UnitFailure]| {
+            failures
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join("; ")
+        };
+        match self {
+            GiveUp::Unit {
+                index,
+                unit,
+                failures,
+            } => write!(
+                f,
+                "unit {index} ({}) failed {} times, giving up: {}",
+                describe(unit),
+                failures.len(),
+                list(failures)
+            ),
+            GiveUp::Scene { failures } => write!(
+                f,
+                "no worker present can build the scene, giving up: {}",
+                list(failures)
+            ),
+        }
+    }
+}
+
+/// A unit in words: its pixel set and rows.
+pub fn describe(unit: &WorkUnit) -> String {
+    let b = unit.set.interleave;
+    format!(
+        "pixel set {} of {b}×{b}, set rows {} + i·{} for i < {}",
+        unit.set.index, unit.first_row, unit.row_stride, unit.row_count
+    )
+}
+
+/// A failure report that counted: what the coordinator logs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Counted {
+    /// The reporting worker's name.
+    pub worker: String,
+    /// The unit's index.
+    pub index: usize,
+    /// The unit given back.
+    pub unit: WorkUnit,
+    /// The unit's failures so far (scene failures are the worker's, not the unit's).
+    pub failures: usize,
 }
 
 /// What the coordinator knows of a worker.
@@ -75,6 +176,9 @@ pub struct WorkerState {
     pub process_cpu_micros: Option<u64>,
     /// Still part of the farm.
     pub alive: bool,
+    /// Why the scene does not build on this worker, if it said so: it gets no
+    /// more units.
+    pub cannot_build: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -101,6 +205,10 @@ pub struct Scheduler {
     rendered: Vec<bool>,
     /// Per unit: the CPU microseconds the accepted tile cost.
     unit_cpu: Vec<u64>,
+    /// Per unit: the workers (by id) that failed it, and how.
+    failures: Vec<Vec<(u64, UnitFailure)>>,
+    /// Set when the render cannot go on.
+    gave_up: Option<GiveUp>,
 }
 
 impl Scheduler {
@@ -120,6 +228,8 @@ impl Scheduler {
             film: Film::new(width, height),
             rendered: vec![false; width as usize * height as usize],
             unit_cpu: vec![0; n],
+            failures: vec![Vec::new(); n],
+            gave_up: None,
             units,
         }
     }
@@ -140,6 +250,7 @@ impl Scheduler {
                 render_cpu_micros: 0,
                 process_cpu_micros: None,
                 alive: true,
+                cannot_build: None,
             },
         );
         format!("w{id}")
@@ -167,10 +278,14 @@ impl Scheduler {
     pub fn next(&mut self, worker_id: &str, now: Instant) -> Result<Next, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
+        let cannot_build = w.cannot_build.is_some();
         if self.remaining == 0 {
             return Ok(Next::Finished);
         }
-        let unit = match self.pending.pop_front() {
+        if cannot_build || self.gave_up.is_some() {
+            return Ok(Next::Wait);
+        }
+        let unit = match self.pending_for(wid) {
             Some(u) => Some(u),
             None => self.speculative(wid),
         };
@@ -189,8 +304,29 @@ impl Scheduler {
         })
     }
 
-    /// The oldest outstanding unit this worker does not hold, held by fewer than
-    /// [`MAX_HOLDERS`] workers.
+    /// Takes the first pending unit this worker has not failed, or that no other
+    /// worker could take instead (so a lone worker retries, up to the limit).
+    fn pending_for(&mut self, worker: u64) -> Option<usize> {
+        let position = self
+            .pending
+            .iter()
+            .position(|&u| !self.failed_by(u, worker) || !self.another_could_take(u, worker))?;
+        self.pending.remove(position)
+    }
+
+    fn failed_by(&self, unit: usize, worker: u64) -> bool {
+        self.failures[unit].iter().any(|(w, _)| *w == worker)
+    }
+
+    /// Whether a worker other than `worker`, able to render, has not failed `unit`.
+    fn another_could_take(&self, unit: usize, worker: u64) -> bool {
+        self.workers.iter().any(|(&id, w)| {
+            id != worker && w.alive && w.cannot_build.is_none() && !self.failed_by(unit, id)
+        })
+    }
+
+    /// The oldest outstanding unit this worker does not hold and has not failed,
+    /// held by fewer than [`MAX_HOLDERS`] workers.
     fn speculative(&self, worker: u64) -> Option<usize> {
         let mut holders: HashMap<usize, (usize, u64, bool)> = HashMap::new();
         for (&id, lease) in &self.leases {
@@ -201,7 +337,9 @@ impl Scheduler {
         }
         holders
             .into_iter()
-            .filter(|&(unit, (count, _, mine))| !mine && count < MAX_HOLDERS && !self.done[unit])
+            .filter(|&(unit, (count, _, mine))| {
+                !mine && count < MAX_HOLDERS && !self.done[unit] && !self.failed_by(unit, worker)
+            })
             .min_by_key(|&(_, (_, oldest, _))| oldest)
             .map(|(unit, _)| unit)
     }
@@ -267,6 +405,93 @@ impl Scheduler {
         Ok(true)
     }
 
+    /// A worker gives back an assignment it could not render. The unit goes back
+    /// to the front of the queue; a worker whose scene does not build gives back
+    /// everything it holds and gets nothing more. `Ok(None)`: the assignment was
+    /// no longer this worker's, nothing changed. The render is given up
+    /// ([`Scheduler::gave_up`]) when the unit has failed [`MAX_FAILURES`] times,
+    /// or no worker present can build the scene.
+    pub fn fail(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        kind: FailureKind,
+        reason: &str,
+        now: Instant,
+    ) -> Result<Option<Counted>, Refusal> {
+        let (wid, w) = self.worker_mut(worker_id)?;
+        w.last_seen = now;
+        let name = w.name.clone();
+        let Some(&unit) = assignment_id
+            .checked_sub(1)
+            .and_then(|i| self.issued.get(i as usize))
+        else {
+            return Err(Refusal::NeverAssigned(assignment_id));
+        };
+        match self.leases.get(&assignment_id) {
+            Some(lease) if lease.worker == wid => {}
+            _ => return Ok(None),
+        }
+        let failure = UnitFailure {
+            worker: name.clone(),
+            kind,
+            reason: reason.to_string(),
+        };
+        self.leases.remove(&assignment_id);
+        if kind == FailureKind::Scene {
+            // Deterministic on this worker: every unit it holds would fail too.
+            let w = self.workers.get_mut(&wid).expect("checked above");
+            w.cannot_build = Some(reason.to_string());
+            self.release(wid);
+        } else {
+            self.failures[unit].push((wid, failure));
+        }
+        let held = self.leases.values().any(|l| l.unit == unit);
+        if !self.done[unit] && !held && !self.pending.contains(&unit) {
+            self.pending.push_front(unit);
+        }
+        if self.gave_up.is_none() {
+            if self.failures[unit].len() >= MAX_FAILURES {
+                self.gave_up = Some(GiveUp::Unit {
+                    index: unit,
+                    unit: self.units[unit],
+                    failures: self.failures[unit].iter().map(|(_, f)| f.clone()).collect(),
+                });
+            } else if kind == FailureKind::Scene && self.able() == 0 {
+                let mut failures: Vec<(Instant, UnitFailure)> = self
+                    .workers
+                    .values()
+                    .filter_map(|w| {
+                        let reason = w.cannot_build.clone()?;
+                        Some((
+                            w.joined,
+                            UnitFailure {
+                                worker: w.name.clone(),
+                                kind: FailureKind::Scene,
+                                reason,
+                            },
+                        ))
+                    })
+                    .collect();
+                failures.sort_by_key(|f| f.0);
+                self.gave_up = Some(GiveUp::Scene {
+                    failures: failures.into_iter().map(|(_, f)| f).collect(),
+                });
+            }
+        }
+        Ok(Some(Counted {
+            worker: name,
+            index: unit,
+            unit: self.units[unit],
+            failures: self.failures[unit].len(),
+        }))
+    }
+
+    /// Why the render cannot go on, once it cannot.
+    pub fn gave_up(&self) -> Option<&GiveUp> {
+        self.gave_up.as_ref()
+    }
+
     /// A worker leaves cleanly; anything it still held goes back to the queue.
     pub fn goodbye(&mut self, worker_id: &str, process_cpu_micros: u64) -> Result<(), Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
@@ -330,6 +555,14 @@ impl Scheduler {
     /// Workers still in the farm.
     pub fn alive(&self) -> usize {
         self.workers.values().filter(|w| w.alive).count()
+    }
+
+    /// Workers still in the farm that can build the scene.
+    pub fn able(&self) -> usize {
+        self.workers
+            .values()
+            .filter(|w| w.alive && w.cannot_build.is_none())
+            .count()
     }
 
     /// Every worker that ever joined.
@@ -548,5 +781,143 @@ mod tests {
         assert_eq!(assign(&mut s, &b, now).1, second);
         // After the first set alone, the preview is complete at 1/8 resolution.
         assert!(s.preview().pixels().iter().all(|p| p.rgba[0] == 0.75));
+    }
+
+    fn fail(
+        s: &mut Scheduler,
+        w: &str,
+        id: u64,
+        kind: FailureKind,
+        now: Instant,
+    ) -> Option<Counted> {
+        s.fail(w, id, kind, &format!("{w} broke"), now).unwrap()
+    }
+
+    #[test]
+    fn a_failed_unit_goes_to_another_worker_and_three_failures_give_up() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let (a, b, c) = (
+            s.register("a", 1, now),
+            s.register("b", 1, now),
+            s.register("c", 1, now),
+        );
+        let (id, unit) = assign(&mut s, &a, now);
+        let counted = fail(&mut s, &a, id, FailureKind::Render, now).unwrap();
+        assert_eq!(
+            (counted.worker.as_str(), counted.index, counted.failures),
+            ("a", 0, 1)
+        );
+        // a is not given the unit it failed while others could take it.
+        assert_ne!(assign(&mut s, &a, now).1, unit);
+        let (id, again) = assign(&mut s, &b, now);
+        assert_eq!(
+            again, unit,
+            "the failed unit comes back first, to another worker"
+        );
+        fail(&mut s, &b, id, FailureKind::Assignment, now).unwrap();
+        assert!(s.gave_up().is_none());
+        let (id, again) = assign(&mut s, &c, now);
+        assert_eq!(again, unit);
+        fail(&mut s, &c, id, FailureKind::Render, now).unwrap();
+        let given_up = s.gave_up().expect("three failures stop the render");
+        let message = given_up.to_string();
+        assert!(
+            matches!(given_up, GiveUp::Unit { index: 0, .. }),
+            "{message}"
+        );
+        for needle in [
+            "unit 0",
+            "pixel set 0 of 8×8",
+            "failed 3 times",
+            "worker a (render): w1 broke",
+            "worker b (assignment): w2 broke",
+            "worker c",
+        ] {
+            assert!(message.contains(needle), "{needle}: {message}");
+        }
+        assert_eq!(
+            s.next(&a, now),
+            Ok(Next::Wait),
+            "nothing more is handed out"
+        );
+    }
+
+    #[test]
+    fn a_lone_worker_retries_a_failed_unit_up_to_the_limit() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        let mut ids = Vec::new();
+        let mut first = None;
+        // The unit is assigned again and again (nobody else could take it).
+        for attempt in 1..=MAX_FAILURES {
+            let (id, unit) = assign(&mut s, &a, now);
+            assert_eq!(*first.get_or_insert(unit), unit);
+            ids.push(id);
+            assert_eq!(
+                fail(&mut s, &a, id, FailureKind::Render, now)
+                    .unwrap()
+                    .failures,
+                attempt
+            );
+        }
+        assert!(matches!(s.gave_up(), Some(GiveUp::Unit { .. })));
+        // A report for an assignment no longer held changes nothing; a forged one is refused.
+        assert_eq!(
+            s.fail(&a, ids[0], FailureKind::Render, "again", now),
+            Ok(None)
+        );
+        assert_eq!(
+            s.fail(&a, 999, FailureKind::Render, "forged", now),
+            Err(Refusal::NeverAssigned(999))
+        );
+    }
+
+    #[test]
+    fn a_worker_whose_scene_does_not_build_gets_nothing_more() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let (first_id, first) = assign(&mut s, &a, now);
+        let (ahead_id, ahead) = assign(&mut s, &a, now);
+        fail(&mut s, &a, first_id, FailureKind::Scene, now).unwrap();
+        assert_eq!(s.able(), 1);
+        assert_eq!(s.next(&a, now), Ok(Next::Wait));
+        // Its unit assigned ahead went back with the first: its report changes nothing.
+        assert_eq!(fail(&mut s, &a, ahead_id, FailureKind::Scene, now), None);
+        assert!(s.gave_up().is_none(), "b can still render");
+        let mut got = Vec::new();
+        for _ in 0..n {
+            let (id, unit) = assign(&mut s, &b, now);
+            got.push(unit);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&b, id, Some(&wire), &tile(&unit, 16, 0.5), 1, now),
+                Ok(true)
+            );
+        }
+        assert_eq!(
+            &got[..2],
+            &[first, ahead],
+            "given back in order, first in line"
+        );
+        assert!(s.finished());
+
+        // When no worker present can build the scene, the render stops at once.
+        let mut s = Scheduler::new(work_units(8, 8, 8, 4096), 8, 8, Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        let (id, _) = assign(&mut s, &a, now);
+        fail(&mut s, &a, id, FailureKind::Scene, now).unwrap();
+        let message = s.gave_up().expect("nobody can render").to_string();
+        assert!(
+            message.contains("can build the scene")
+                && message.contains("worker a (scene): w1 broke"),
+            "{message}"
+        );
     }
 }
