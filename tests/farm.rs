@@ -861,3 +861,63 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
         assert!(log.contains(needle), "{needle}:\n{log}");
     }
 }
+
+/// `--frames` on the farm is one session: one server, the local workers started
+/// once and kept for every frame (each assignment says its frame; the scene is
+/// built once per worker), and every numbered file byte-identical to the
+/// in-process sequence.
+#[test]
+fn a_sequence_is_one_farm_session_with_the_in_process_bytes() {
+    let dir = scratch("farm-sequence");
+    let scene_path = scene("pse/spinning_marble");
+    let render = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "--scene",
+            scene_path.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--frames",
+            "0..3",
+        ];
+        args.extend_from_slice(extra);
+        args.iter().map(|a| a.to_string()).collect::<Vec<_>>()
+    };
+    let reference = dir.join("reference.png");
+    let o = coordinator(
+        &render(&reference, &["--in-process", "--quiet"])
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("farm.png");
+    let coord = Running::coordinator(
+        &render(&out, &["--local-workers", "2"])
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    let (status, log) = coord.finish(120);
+    assert!(status.success(), "{}", log.join("\n"));
+    for frame in 0..3 {
+        let name = |stem: &str| dir.join(format!("{stem}_{frame:04}.png"));
+        same_bytes(&name("reference"), &name("farm"));
+    }
+    assert_ne!(
+        std::fs::read(dir.join("reference_0000.png")).unwrap(),
+        std::fs::read(dir.join("reference_0001.png")).unwrap(),
+        "the scene moves"
+    );
+    let count = |needle: &str| log.iter().filter(|l| l.contains(needle)).count();
+    let log_text = log.join("\n");
+    assert_eq!(count("farm listening on"), 1, "{log_text}");
+    assert_eq!(count("started 2 local worker processes"), 1, "{log_text}");
+    assert_eq!(count("worker local-0 joined"), 1, "{log_text}");
+    assert_eq!(count("worker local-1 joined"), 1, "{log_text}");
+    assert_eq!(count("rendered "), 3, "{log_text}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -7,6 +7,12 @@
 //! (first tile wins — results are identical by construction). A tile is checked
 //! completely before it touches the film.
 //!
+//! A sequence of frames is one session: the workers stay, and the tile that
+//! completes a frame moves its image to [`Scheduler::take_completed`] and starts
+//! the next frame at once (its first unit goes out in that tile's reply).
+//! Assignment ids run on across frames; a late tile of an earlier frame is
+//! valid and unused.
+//!
 //! A worker that cannot render a unit reports it ([`Scheduler::fail`]): the unit
 //! goes back to the queue, preferably to a worker that has not failed it; a
 //! worker whose scene does not build gets no more units; and the render is
@@ -31,11 +37,15 @@ pub const MAX_FAILURES: usize = 3;
 /// What a worker is told when it asks for work.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Next {
-    /// Render this unit under this assignment id.
-    Assign { assignment_id: u64, unit: WorkUnit },
+    /// Render this unit of this frame under this assignment id.
+    Assign {
+        assignment_id: u64,
+        unit: WorkUnit,
+        frame: u32,
+    },
     /// Nothing to hand out now; ask again later.
     Wait,
-    /// The frame is complete.
+    /// Every frame is complete.
     Finished,
 }
 
@@ -155,6 +165,19 @@ pub struct Counted {
     pub failures: usize,
 }
 
+/// A frame whose every unit is in.
+#[derive(Clone, Debug)]
+pub struct CompletedFrame {
+    /// The frame number.
+    pub frame: u32,
+    /// Its image.
+    pub film: Film,
+    /// The CPU microseconds each unit's accepted tile cost.
+    pub unit_costs: Vec<u64>,
+    /// From its first unit handed out to its last tile in.
+    pub render_time: Duration,
+}
+
 /// What the coordinator knows of a worker.
 #[derive(Clone, Debug)]
 pub struct WorkerState {
@@ -187,16 +210,24 @@ struct Lease {
     worker: u64,
 }
 
-/// The state of one frame's render.
+/// The state of a render: one frame, or a sequence rendered one after another.
 pub struct Scheduler {
+    /// The frame numbers, in order, and the index of the one rendering.
+    frames: Vec<u32>,
+    current: usize,
+    /// When the current frame's first unit went out.
+    frame_started: Option<Instant>,
+    /// Frames complete and not yet taken.
+    completed: Vec<CompletedFrame>,
     units: Vec<WorkUnit>,
     pending: VecDeque<usize>,
     done: Vec<bool>,
     remaining: usize,
     /// Outstanding assignments.
     leases: HashMap<u64, Lease>,
-    /// The unit of every assignment ever issued (to tell late duplicates from forgeries).
-    issued: Vec<usize>,
+    /// The frame (index into `frames`) and unit of every assignment ever issued
+    /// (to tell late duplicates from forgeries).
+    issued: Vec<(usize, usize)>,
     workers: HashMap<u64, WorkerState>,
     next_worker: u64,
     lease: Duration,
@@ -217,6 +248,10 @@ impl Scheduler {
     pub fn new(units: Vec<WorkUnit>, width: u32, height: u32, lease: Duration) -> Scheduler {
         let n = units.len();
         Scheduler {
+            frames: vec![0],
+            current: 0,
+            frame_started: None,
+            completed: Vec::new(),
             pending: (0..n).collect(),
             done: vec![false; n],
             remaining: n,
@@ -232,6 +267,18 @@ impl Scheduler {
             gave_up: None,
             units,
         }
+    }
+
+    /// Renders these frames (in order, at least one) instead of frame 0.
+    pub fn with_frames(mut self, frames: Vec<u32>) -> Scheduler {
+        assert!(!frames.is_empty(), "a render has at least one frame");
+        self.frames = frames;
+        self
+    }
+
+    /// The frame rendering now.
+    pub fn frame(&self) -> u32 {
+        self.frames[self.current]
     }
 
     /// Registers a worker; returns its id.
@@ -292,12 +339,14 @@ impl Scheduler {
         Ok(match unit {
             Some(unit) => {
                 let assignment_id = self.issued.len() as u64 + 1;
-                self.issued.push(unit);
+                self.issued.push((self.current, unit));
                 self.leases
                     .insert(assignment_id, Lease { unit, worker: wid });
+                self.frame_started.get_or_insert(now);
                 Next::Assign {
                     assignment_id,
                     unit: self.units[unit],
+                    frame: self.frame(),
                 }
             }
             None => Next::Wait,
@@ -356,12 +405,16 @@ impl Scheduler {
     ) -> Result<bool, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
-        let Some(&issued_unit) = assignment_id
+        let Some(&(issued_frame, issued_unit)) = assignment_id
             .checked_sub(1)
             .and_then(|i| self.issued.get(i as usize))
         else {
             return Err(Refusal::NeverAssigned(assignment_id));
         };
+        if issued_frame != self.current {
+            // A duplicate of a unit of a frame that is complete.
+            return Ok(false);
+        }
         let (width, height) = (self.film.width(), self.film.height());
         let unit_of = |u: Option<&pb::Unit>| {
             u.ok_or(WireError::Missing("unit"))
@@ -402,7 +455,48 @@ impl Scheduler {
         w.units += 1;
         w.pixels += claimed.pixel_count(width) as u64;
         w.render_cpu_micros += render_cpu_micros;
+        if self.remaining == 0 {
+            self.complete_frame(now);
+        }
         Ok(true)
+    }
+
+    /// Moves the complete frame's image out and starts the next frame, if any.
+    fn complete_frame(&mut self, now: Instant) {
+        let n = self.units.len();
+        let (width, height) = (self.film.width(), self.film.height());
+        let last = self.current + 1 == self.frames.len();
+        self.completed.push(CompletedFrame {
+            frame: self.frame(),
+            // A blank film of the same size: late duplicates are still checked against it.
+            film: std::mem::replace(&mut self.film, Film::new(width, height)),
+            unit_costs: std::mem::replace(&mut self.unit_cpu, vec![0; n]),
+            render_time: self
+                .frame_started
+                .take()
+                .map_or(Duration::ZERO, |t| now.saturating_duration_since(t)),
+        });
+        if last {
+            return;
+        }
+        self.current += 1;
+        self.pending = (0..n).collect();
+        self.done = vec![false; n];
+        self.remaining = n;
+        // Duplicates still out belong to the frame just completed.
+        self.leases.clear();
+        self.rendered.fill(false);
+        self.failures = vec![Vec::new(); n];
+    }
+
+    /// Whether a frame is complete and not yet taken.
+    pub fn has_completed(&self) -> bool {
+        !self.completed.is_empty()
+    }
+
+    /// The frames completed since the last call, in order.
+    pub fn take_completed(&mut self) -> Vec<CompletedFrame> {
+        std::mem::take(&mut self.completed)
     }
 
     /// A worker gives back an assignment it could not render. The unit goes back
@@ -422,14 +516,14 @@ impl Scheduler {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
         let name = w.name.clone();
-        let Some(&unit) = assignment_id
+        let Some(&(frame, unit)) = assignment_id
             .checked_sub(1)
             .and_then(|i| self.issued.get(i as usize))
         else {
             return Err(Refusal::NeverAssigned(assignment_id));
         };
         match self.leases.get(&assignment_id) {
-            Some(lease) if lease.worker == wid => {}
+            Some(lease) if lease.worker == wid && frame == self.current => {}
             _ => return Ok(None),
         }
         let failure = UnitFailure {
@@ -542,14 +636,15 @@ impl Scheduler {
         }
     }
 
-    /// Whether every unit is complete.
+    /// Whether every unit of every frame is complete.
     pub fn finished(&self) -> bool {
         self.remaining == 0
     }
 
-    /// Units complete and in all.
+    /// Units complete and in all, over every frame.
     pub fn progress(&self) -> (usize, usize) {
-        (self.units.len() - self.remaining, self.units.len())
+        let n = self.units.len();
+        (self.current * n + n - self.remaining, self.frames.len() * n)
     }
 
     /// Workers still in the farm.
@@ -570,20 +665,9 @@ impl Scheduler {
         self.workers.values()
     }
 
-    /// The CPU cost of each unit's accepted tile, in microseconds.
-    pub fn unit_costs(&self) -> &[u64] {
-        &self.unit_cpu
-    }
-
-    /// The image so far.
+    /// The image of the frame rendering, so far.
     pub fn film(&self) -> &Film {
         &self.film
-    }
-
-    /// Takes the image (the frame is over: no copy of 36 bytes a pixel), leaving
-    /// an empty one.
-    pub fn take_film(&mut self) -> Film {
-        std::mem::replace(&mut self.film, Film::new(0, 0))
     }
 
     /// The image so far with each missing pixel filled from the nearest rendered
@@ -630,6 +714,7 @@ mod tests {
             Next::Assign {
                 assignment_id,
                 unit,
+                ..
             } => (assignment_id, unit),
             other => panic!("expected an assignment, got {other:?}"),
         }
@@ -652,7 +737,63 @@ mod tests {
         }
         assert!(s.finished());
         assert_eq!(s.next(&w, now), Ok(Next::Finished));
-        assert!(s.film().pixels().iter().all(|p| p.rgba[0] == 0.5));
+        let completed = s.take_completed();
+        assert_eq!(completed.len(), 1);
+        assert_eq!(completed[0].frame, 0);
+        assert!(completed[0].film.pixels().iter().all(|p| p.rgba[0] == 0.5));
+    }
+
+    #[test]
+    fn a_sequence_starts_the_next_frame_with_the_tile_that_completes_one() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5)).with_frames(vec![3, 4]);
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let mut first_frame = Vec::new();
+        for _ in 0..n {
+            match s.next(&a, now).unwrap() {
+                Next::Assign {
+                    assignment_id,
+                    unit,
+                    frame,
+                } => {
+                    assert_eq!(frame, 3);
+                    first_frame.push((assignment_id, unit));
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        // b holds a speculative duplicate of frame 3's first unit.
+        let (dup_id, dup) = assign(&mut s, &b, now);
+        assert_eq!(dup, first_frame[0].1);
+        for (id, unit) in &first_frame {
+            let wire = convert::unit_to_wire(unit);
+            assert_eq!(
+                s.submit(&a, *id, Some(&wire), &tile(unit, 8, 0.3), 1, now),
+                Ok(true)
+            );
+        }
+        assert!(!s.finished(), "frame 4 follows");
+        assert_eq!(s.progress(), (n, 2 * n));
+        let done = s.take_completed();
+        assert_eq!((done.len(), done[0].frame), (1, 3));
+        assert!(done[0].film.pixels().iter().all(|p| p.rgba[0] == 0.3));
+        // The next unit out is frame 4's first; the late duplicate of frame 3 is unused.
+        match s.next(&a, now).unwrap() {
+            Next::Assign { unit, frame, .. } => assert_eq!((frame, unit), (4, first_frame[0].1)),
+            other => panic!("{other:?}"),
+        }
+        let wire = convert::unit_to_wire(&dup);
+        assert_eq!(
+            s.submit(&b, dup_id, Some(&wire), &tile(&dup, 8, 9.0), 1, now),
+            Ok(false)
+        );
+        assert!(s.film().pixels().iter().all(|p| *p == Sample::default()));
+        assert_eq!(
+            s.fail(&b, dup_id, FailureKind::Render, "late", now),
+            Ok(None)
+        );
     }
 
     #[test]
