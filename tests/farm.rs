@@ -622,3 +622,303 @@ fn supersampled_farm_renders_equal_in_process_ones() {
         std::fs::read(&reference).unwrap()
     );
 }
+
+/// Runs `worker::run` in this process (the library the binary calls) with a
+/// fault injected, on a runtime of its own; returns the stop switch and the task.
+fn faulty_worker(
+    url: &str,
+    name: &str,
+    fault: worker::Fault,
+) -> (
+    tokio::runtime::Runtime,
+    tokio::sync::watch::Sender<bool>,
+    tokio::task::JoinHandle<Result<worker::WorkerReport, worker::WorkerError>>,
+) {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let config = worker::WorkerConfig {
+        coordinator: url.to_string(),
+        threads: 1,
+        token: None,
+        name: name.to_string(),
+        ca: None,
+        exit_when_done: false,
+        fault: Some(fault),
+    };
+    let task = runtime.spawn(worker::run(config, stopped));
+    (runtime, stop, task)
+}
+
+/// A worker on which the scene does not build says so instead of holding its
+/// unit; alone, it makes the coordinator stop at once with the reason, instead
+/// of hanging (the worker heartbeats, so its lease never runs out).
+#[test]
+fn a_worker_whose_scene_does_not_build_stops_the_render_at_once() {
+    let dir = scratch("farm-scene-fails");
+    let out = dir.join("never.png");
+    let coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--worker-timeout",
+        "60",
+        "--lease-timeout",
+        "60",
+    ]);
+    let mut coord = coord;
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let started = std::time::Instant::now();
+    let (runtime, stop, task) = faulty_worker(&url, "broken", worker::Fault::Scene);
+    let (status, log) = coord.finish(30);
+    let log = log.join("\n");
+    assert!(!status.success(), "{log}");
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(20),
+        "not after a time-out: {log}"
+    );
+    assert!(
+        log.contains("worker broken cannot build the scene"),
+        "{log}"
+    );
+    assert!(
+        log.contains(
+            "error: no worker present can build the scene, giving up: worker broken (scene):"
+        ) && log.contains("fails to build on purpose"),
+        "{log}"
+    );
+    assert!(!out.exists(), "no image");
+    // The worker itself never crashed: it outlives the coordinator and stops when told.
+    stop.send(true).unwrap();
+    let report = runtime.block_on(async {
+        tokio::time::timeout(std::time::Duration::from_secs(30), task)
+            .await
+            .expect("the worker stops")
+            .unwrap()
+    });
+    assert!(report.is_ok(), "{report:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A worker whose renders panic gives each unit back with the panic's message;
+/// another worker renders it, and the image is exactly the in-process one.
+#[test]
+fn units_a_worker_fails_to_render_go_to_another_and_nothing_is_lost() {
+    let dir = scratch("farm-panics");
+    // Long enough (8 samples a pixel) for the second worker to join mid-frame.
+    let args = |out: &Path, extra: &[&'static str]| {
+        let mut args = vec![
+            "--scene".to_string(),
+            scene("fur").to_str().unwrap().to_string(),
+            "--out".into(),
+            out.to_str().unwrap().to_string(),
+        ];
+        for a in ["--width", "128", "--height", "128", "--spp", "8"]
+            .iter()
+            .chain(extra)
+        {
+            args.push(a.to_string());
+        }
+        args
+    };
+    let reference = dir.join("reference.png");
+    let reference_args = args(&reference, &["--in-process", "--quiet"]);
+    let o = coordinator(
+        &reference_args
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("farm.png");
+    let farm_args = args(&out, &["--local-workers", "0", "--lease-timeout", "60"]);
+    let mut coord = Running::coordinator(&farm_args.iter().map(String::as_str).collect::<Vec<_>>());
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    // The good worker first: a failed unit always has somewhere else to go.
+    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
+    coord.wait_for("worker good joined", 30);
+    let (runtime, stop, task) = faulty_worker(&url, "flaky", worker::Fault::Panic);
+    let (status, log) = coord.finish(120);
+    let log = log.join("\n");
+    assert!(status.success(), "{log}");
+    assert!(
+        log.contains("worker flaky could not render unit")
+            && log.contains("render: the render panicked: the render panics on purpose"),
+        "{log}"
+    );
+    same_bytes(&reference, &out);
+    stop.send(true).unwrap();
+    runtime.block_on(async {
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(30), task).await;
+    });
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A unit that fails on three workers stops the coordinator with a message
+/// naming the unit, the workers and what each said (a client speaking the
+/// protocol plays the three workers).
+#[test]
+fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        "/tmp/hypertexture-never-written.png",
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "60",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let mut client = FarmClient::connect(url.clone()).await.unwrap();
+        let mut ids = Vec::new();
+        for name in ["alpha", "beta", "gamma"] {
+            ids.push(
+                client
+                    .register(pb::RegisterParams {
+                        protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+                        name: name.into(),
+                        threads: 1,
+                    })
+                    .await
+                    .unwrap()
+                    .into_inner()
+                    .worker_id,
+            );
+        }
+        // A report must name a kind.
+        let refused = client
+            .report_failure(pb::ReportFailureParams {
+                worker_id: ids[0].clone(),
+                assignment_id: 1,
+                kind: 0,
+                reason: "?".into(),
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+        let mut unit = None;
+        for (i, id) in ids.iter().enumerate() {
+            let work = client
+                .get_work(pb::GetWorkParams {
+                    worker_id: id.clone(),
+                    known_scene_hash: 0,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            let Some(Outcome::Assignment(a)) = work.outcome else {
+                panic!("expected an assignment")
+            };
+            // The unit given back comes first, to a worker that has not failed it.
+            assert_eq!(*unit.get_or_insert(a.unit), a.unit);
+            let counted = client
+                .report_failure(pb::ReportFailureParams {
+                    worker_id: id.clone(),
+                    assignment_id: a.assignment_id,
+                    kind: pb::FailureKind::Render as i32,
+                    reason: format!("out of memory on node {i}\nsecond line"),
+                })
+                .await
+                .unwrap()
+                .into_inner()
+                .counted;
+            assert!(counted);
+        }
+    });
+    let (status, log) = coord.finish(30);
+    let log = log.join("\n");
+    assert!(!status.success(), "{log}");
+    for needle in [
+        "error: unit 0 (pixel set 0 of 8×8",
+        "failed 3 times, giving up",
+        "worker alpha (render): out of memory on node 0 second line",
+        "worker beta (render): out of memory on node 1",
+        "worker gamma (render): out of memory on node 2",
+    ] {
+        assert!(log.contains(needle), "{needle}:\n{log}");
+    }
+}
+
+/// `--frames` on the farm is one session: one server, the local workers started
+/// once and kept for every frame (each assignment says its frame; the scene is
+/// built once per worker), and every numbered file byte-identical to the
+/// in-process sequence.
+#[test]
+fn a_sequence_is_one_farm_session_with_the_in_process_bytes() {
+    let dir = scratch("farm-sequence");
+    let scene_path = scene("pse/spinning_marble");
+    let render = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "--scene",
+            scene_path.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--frames",
+            "0..3",
+        ];
+        args.extend_from_slice(extra);
+        args.iter().map(|a| a.to_string()).collect::<Vec<_>>()
+    };
+    let reference = dir.join("reference.png");
+    let o = coordinator(
+        &render(&reference, &["--in-process", "--quiet"])
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("farm.png");
+    let coord = Running::coordinator(
+        &render(&out, &["--local-workers", "2"])
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    let (status, log) = coord.finish(120);
+    assert!(status.success(), "{}", log.join("\n"));
+    for frame in 0..3 {
+        let name = |stem: &str| dir.join(format!("{stem}_{frame:04}.png"));
+        same_bytes(&name("reference"), &name("farm"));
+    }
+    assert_ne!(
+        std::fs::read(dir.join("reference_0000.png")).unwrap(),
+        std::fs::read(dir.join("reference_0001.png")).unwrap(),
+        "the scene moves"
+    );
+    let count = |needle: &str| log.iter().filter(|l| l.contains(needle)).count();
+    let log_text = log.join("\n");
+    assert_eq!(count("farm listening on"), 1, "{log_text}");
+    assert_eq!(count("started 2 local worker processes"), 1, "{log_text}");
+    assert_eq!(count("worker local-0 joined"), 1, "{log_text}");
+    assert_eq!(count("worker local-1 joined"), 1, "{log_text}");
+    assert_eq!(count("rendered "), 3, "{log_text}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -3,7 +3,9 @@
 //! Workers dial in, register, pull units and push tiles back; the
 //! [`Scheduler`](crate::scheduler::Scheduler) decides everything else. This file is
 //! the gRPC edge: authentication, conversion of refusals to `tonic::Status`, the
-//! run loop (lease expiry, progress, previews, time-outs) and the local workers.
+//! run loop (lease expiry, progress, previews, time-outs, finished frames) and
+//! the local workers. A sequence of frames is one session: one server, the same
+//! workers, each frame handed over as soon as it is complete.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -35,10 +37,8 @@ pub struct FarmConfig {
     pub local_workers: usize,
     /// Threads per local worker.
     pub local_threads: usize,
-    /// Rewrite the partial image this often.
+    /// Rewrite the partial image (at the frame's output path) this often.
     pub preview_every: Option<Duration>,
-    /// Where previews go (the output path).
-    pub preview_path: Option<PathBuf>,
     /// TLS certificate and key (PEM).
     pub tls: Option<(Vec<u8>, Vec<u8>)>,
     /// The pixel-set interleave B.
@@ -66,9 +66,15 @@ pub enum FarmError {
     /// TLS set-up failed.
     #[error("TLS: {0}")]
     Tls(String),
+    /// The caller stopped taking finished frames (their images cannot be written).
+    #[error("{0}")]
+    Stopped(String),
     /// No worker came, or all left, for the whole worker time-out.
     #[error("{0}")]
     NoWorkers(String),
+    /// Workers could not render a unit, again and again, or none can build the scene.
+    #[error("{0}")]
+    GaveUp(crate::scheduler::GiveUp),
     /// The gRPC server failed.
     #[error("the farm's server failed: {0}")]
     Server(String),
@@ -82,7 +88,16 @@ pub enum FarmError {
     },
 }
 
-/// One frame to render.
+/// A frame of a render, and where its image goes (previews are written there).
+#[derive(Clone, Debug)]
+pub struct FrameOut {
+    /// The frame number.
+    pub frame: u32,
+    /// The output image.
+    pub out: PathBuf,
+}
+
+/// What to render: one scene, one frame or a sequence.
 #[derive(Clone, Debug)]
 pub struct FrameJob {
     /// The scene's RON text.
@@ -93,8 +108,8 @@ pub struct FrameJob {
     pub width: u32,
     /// Image height.
     pub height: u32,
-    /// Frame number.
-    pub frame: u32,
+    /// The frames, rendered in this order (at least one).
+    pub frames: Vec<FrameOut>,
     /// Samples per pixel override (`--spp`).
     pub spp: Option<u32>,
     /// Quality preset (`--quality`).
@@ -103,7 +118,27 @@ pub struct FrameJob {
     pub knobs: Vec<(String, f64)>,
 }
 
-/// What the farm reports when the frame is done.
+/// A frame the farm has finished.
+#[derive(Clone, Debug)]
+pub struct FrameDone {
+    /// The frame, its image, its units' costs and render time.
+    pub frame: crate::scheduler::CompletedFrame,
+    /// Where its image goes.
+    pub out: PathBuf,
+}
+
+/// What the farm reports when every frame is done.
+#[derive(Clone, Debug)]
+pub struct SessionReport {
+    /// Wall time from the first unit handed out to the last tile.
+    pub render_time: Duration,
+    /// One line per worker: name, units, pixels, CPU.
+    pub workers: Vec<crate::scheduler::WorkerState>,
+    /// Bytes of tiles received.
+    pub tile_bytes: u64,
+}
+
+/// What the farm reports when a single frame is done ([`render`]).
 #[derive(Clone, Debug)]
 pub struct FarmReport {
     /// The image.
@@ -121,12 +156,13 @@ pub struct FarmReport {
 /// The shared state behind the gRPC service.
 struct Shared {
     scheduler: Mutex<Scheduler>,
+    /// The job of every frame; each assignment sets its frame.
     job: pb::Job,
     /// The job without its scene text, for workers that have built the scene.
     job_without_text: pb::Job,
     token: Option<String>,
     heartbeat: Duration,
-    /// Set to true when the frame completes.
+    /// Notified when a frame completes or the render is given up.
     finished: watch::Sender<bool>,
     tile_bytes: std::sync::atomic::AtomicU64,
     first_assignment: Mutex<Option<Instant>>,
@@ -171,6 +207,7 @@ impl Service {
             Next::Assign {
                 assignment_id,
                 unit,
+                frame,
             } => {
                 self.0
                     .first_assignment
@@ -184,7 +221,10 @@ impl Service {
                 };
                 Outcome::Assignment(pb::Assignment {
                     assignment_id,
-                    job: Some(job.clone()),
+                    job: Some(pb::Job {
+                        frame,
+                        ..job.clone()
+                    }),
                     unit: Some(convert::unit_to_wire(&unit)),
                 })
             }
@@ -205,9 +245,10 @@ fn refusal(r: Refusal) -> Status {
     match r {
         Refusal::UnknownWorker(_) => Status::not_found(r.to_string()),
         Refusal::NotHeld(_) => Status::failed_precondition(r.to_string()),
-        Refusal::NeverAssigned(_) | Refusal::WrongUnit(_) | Refusal::Malformed { .. } => {
-            Status::invalid_argument(r.to_string())
-        }
+        Refusal::NeverAssigned(_)
+        | Refusal::WrongUnit(_)
+        | Refusal::Malformed { .. }
+        | Refusal::BadReport(_) => Status::invalid_argument(r.to_string()),
     }
 }
 
@@ -281,7 +322,7 @@ impl Farm for Service {
                     tracing::warn!("refused a tile from {}: {r}", p.worker_id);
                     refusal(r)
                 })?;
-            if s.finished() {
+            if s.has_completed() {
                 let _ = self.0.finished.send(true);
             }
             let next = if p.want_next {
@@ -322,11 +363,80 @@ impl Farm for Service {
             .map_err(refusal)?;
         Ok(Response::new(pb::GoodbyeResult {}))
     }
+
+    async fn report_failure(
+        &self,
+        request: Request<pb::ReportFailureParams>,
+    ) -> Result<Response<pb::ReportFailureResult>, Status> {
+        self.authorize(&request)?;
+        let p = request.into_inner();
+        let kind =
+            convert::failure_kind_from_wire(p.kind).map_err(|e| refusal(Refusal::BadReport(e)))?;
+        let reason = convert::reason_from_wire(&p.reason);
+        let mut s = self.scheduler();
+        let counted = s
+            .fail(&p.worker_id, p.assignment_id, kind, &reason, Instant::now())
+            .map_err(refusal)?;
+        if let Some(c) = &counted {
+            if kind == hypertexture_proto::FailureKind::Scene {
+                tracing::error!(
+                    "worker {} cannot build the scene, it gets no more units: {reason}",
+                    c.worker
+                );
+            } else {
+                tracing::warn!(
+                    "worker {} could not render unit {} ({}), failure {} of at most {}: {kind}: {reason}",
+                    c.worker,
+                    c.index,
+                    crate::scheduler::describe(&c.unit),
+                    c.failures,
+                    crate::scheduler::MAX_FAILURES
+                );
+            }
+        }
+        if s.gave_up().is_some() {
+            // Wake the run loop: it stops the render.
+            let _ = self.0.finished.send(true);
+        }
+        Ok(Response::new(pb::ReportFailureResult {
+            counted: counted.is_some(),
+        }))
+    }
 }
 
-/// Renders one frame on the farm: serves workers (starting local ones) until every
-/// unit is in, then stops the local workers and the server.
-pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
+/// Renders one frame on the farm (the first of `job.frames`) and returns its image.
+pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
+    job.frames.truncate(1);
+    let mut done = None;
+    let session = render_frames(job, config, &mut |frame| {
+        done = Some(frame);
+        Ok(())
+    })
+    .await?;
+    let frame = done
+        .ok_or_else(|| FarmError::Stopped("the farm finished without a frame".into()))?
+        .frame;
+    Ok(FarmReport {
+        film: frame.film,
+        render_time: frame.render_time,
+        workers: session.workers,
+        unit_costs: frame.unit_costs,
+        tile_bytes: session.tile_bytes,
+    })
+}
+
+/// Renders every frame of `job` on the farm, one after another, as one session:
+/// serves workers (starting local ones once) and hands each frame to `on_frame`
+/// as soon as its last tile is in; when every frame is done, stops the local
+/// workers and the server. An error from `on_frame` stops the render.
+pub async fn render_frames(
+    job: FrameJob,
+    config: FarmConfig,
+    on_frame: &mut dyn FnMut(FrameDone) -> Result<(), FarmError>,
+) -> Result<SessionReport, FarmError> {
+    if job.frames.is_empty() {
+        return Err(FarmError::Stopped("no frame to render".into()));
+    }
     let loopback = config.listen.ip().is_loopback();
     if !loopback && config.token.is_none() {
         return Err(FarmError::TokenRequired(config.listen));
@@ -369,13 +479,16 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         scene_name: job.scene_name.clone(),
         width: job.width,
         height: job.height,
-        frame: job.frame,
+        frame: job.frames[0].frame,
         spp: job.spp.unwrap_or(0),
         quality: convert::quality_to_wire(job.quality) as i32,
         knobs: convert::knobs_to_wire(&job.knobs),
     };
     let shared = Arc::new(Shared {
-        scheduler: Mutex::new(Scheduler::new(units, job.width, job.height, config.lease)),
+        scheduler: Mutex::new(
+            Scheduler::new(units, job.width, job.height, config.lease)
+                .with_frames(job.frames.iter().map(|f| f.frame).collect()),
+        ),
         job_without_text: pb::Job {
             scene_text: String::new(),
             ..wire_job.clone()
@@ -442,8 +555,16 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     );
     let mut locals = crate::local::LocalWorkers::start(&config, &local_url, token.as_deref())?;
 
+    let out_of = |frame: u32| {
+        job.frames
+            .iter()
+            .find(|f| f.frame == frame)
+            .map(|f| f.out.clone())
+            .unwrap_or_default()
+    };
     let start = Instant::now();
-    let bar = crate::progress::FarmProgress::new(config.progress, unit_count as u64);
+    let bar =
+        crate::progress::FarmProgress::new(config.progress, (unit_count * job.frames.len()) as u64);
     let mut last_preview = Instant::now();
     // A preview being encoded and written, off the thread that serves the workers.
     let mut writing_preview: Option<tokio::task::JoinHandle<()>> = None;
@@ -455,26 +576,42 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
             _ = finished_rx.changed() => {}
         }
         let now = Instant::now();
-        let (done, alive, preview) = {
+        let (done, alive, preview, completed) = {
             let mut s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
             for name in s.expire(now) {
                 tracing::warn!("worker {name} stopped answering: its units go to others");
             }
             bar.update(&s, now);
+            let completed = s.take_completed();
             let writing = writing_preview.as_ref().is_some_and(|t| !t.is_finished());
-            let preview = match (config.preview_every, &config.preview_path) {
-                (Some(every), Some(_))
-                    if now - last_preview >= every && !s.finished() && !writing =>
-                {
-                    Some(s.preview())
+            let preview = match config.preview_every {
+                Some(every) if now - last_preview >= every && !s.finished() && !writing => {
+                    Some((s.preview(), s.frame()))
                 }
                 _ => None,
             };
-            (s.finished(), s.alive(), preview)
+            if let Some(why) = s.gave_up() {
+                break Err(FarmError::GaveUp(why.clone()));
+            }
+            (s.finished(), s.able(), preview, completed)
         };
-        if let (Some(film), Some(path)) = (preview, &config.preview_path) {
+        if !completed.is_empty()
+            && let Some(task) = writing_preview.take()
+        {
+            // The final image replaces the preview: let the preview finish first.
+            let _ = task.await;
+        }
+        let mut handed = Ok(());
+        for frame in completed {
+            let out = out_of(frame.frame);
+            handed = handed.and_then(|()| on_frame(FrameDone { frame, out }));
+        }
+        if let Err(e) = handed {
+            break Err(e);
+        }
+        if let Some((film, frame)) = preview {
             last_preview = now;
-            let path = path.clone();
+            let path = out_of(frame);
             writing_preview = Some(tokio::task::spawn_blocking(move || {
                 if let Err(e) = crate::output::write_image(&film, &path) {
                     tracing::warn!("preview: {e}");
@@ -489,13 +626,19 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         } else {
             let since = *no_worker_since.get_or_insert(now);
             if now - since >= config.worker_timeout {
-                let (complete, total) = shared
-                    .scheduler
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .progress();
+                let s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
+                let (complete, total) = s.progress();
+                let unable = s.alive() - s.able();
+                let unable = if unable > 0 {
+                    format!(
+                        " ({unable} connected worker{} cannot build the scene)",
+                        if unable == 1 { "" } else { "s" }
+                    )
+                } else {
+                    String::new()
+                };
                 break Err(FarmError::NoWorkers(format!(
-                    "no worker has been connected for {:.0} s ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
+                    "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
                     config.worker_timeout.as_secs_f64(),
                     addr.port()
                 )));
@@ -517,8 +660,14 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
         .map_or(Duration::ZERO, |t| t.elapsed())
         .min(start.elapsed());
 
-    // Local workers see `finished` on their next call and exit; give them a moment.
-    locals.stop(Duration::from_secs(10)).await;
+    // Local workers see `finished` on their next call and exit; give them a
+    // moment. After a failure they are told nothing more: stop them now.
+    let grace = if outcome.is_ok() {
+        Duration::from_secs(10)
+    } else {
+        Duration::ZERO
+    };
+    locals.stop(grace).await;
     let _ = stop_server.send(());
     // Graceful shutdown waits for open connections: daemon workers keep theirs
     // (they wait for the next frame), so give them a moment, then stop serving.
@@ -530,17 +679,13 @@ pub async fn render(job: FrameJob, config: FarmConfig) -> Result<FarmReport, Far
     outcome?;
 
     let tile_bytes = shared.tile_bytes.load(std::sync::atomic::Ordering::Relaxed);
-    let mut scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
+    let scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
     let mut workers: Vec<_> = scheduler.workers().cloned().collect();
-    workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
-    let unit_costs = scheduler.unit_costs().to_vec();
-    let film = scheduler.take_film();
     drop(scheduler);
-    Ok(FarmReport {
-        film,
+    workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
+    Ok(SessionReport {
         render_time,
         workers,
-        unit_costs,
         tile_bytes,
     })
 }

@@ -155,28 +155,24 @@ pub fn frame_path(out: &std::path::Path, frame: u32) -> PathBuf {
 }
 
 /// Renders every frame of `config.frames` (or the single `config.frame`) and writes
-/// each image; a sequence goes to numbered files beside `config.out`.
+/// each image; a sequence goes to numbered files beside `config.out`. On the
+/// farm a sequence is one session: the server and workers stay up from the
+/// first frame to the last, and each image is written as soon as it is complete.
 pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
-    let Some((first, last)) = config.frames else {
-        return Ok(vec![run(config)?]);
-    };
-    output::ImageFormat::from_path(&config.out)?;
-    (first..=last)
-        .map(|frame| {
-            run(Config {
-                frame,
-                frames: None,
-                out: frame_path(&config.out, frame),
-                ..config.clone()
-            })
-        })
-        .collect()
-}
-
-/// Loads the scene, renders it (on the farm, or in-process) and writes the image.
-pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
     output::ImageFormat::from_path(&config.out)?;
+    let frames: Vec<farm::FrameOut> = match config.frames {
+        None => vec![farm::FrameOut {
+            frame: config.frame,
+            out: config.out.clone(),
+        }],
+        Some((first, last)) => (first..=last)
+            .map(|frame| farm::FrameOut {
+                frame,
+                out: frame_path(&config.out, frame),
+            })
+            .collect(),
+    };
     let scene_text = hypertexture::scene::read_text(&config.scene)?;
     let scene = Scene::from_text(
         &scene_text,
@@ -189,65 +185,67 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
             knobs: config.knobs.clone(),
         },
     )?;
-    let (film, render_time, how) = match &config.farm {
-        None => {
-            let threads = config.threads.map_or_else(
-                || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
-                NonZeroUsize::get,
-            );
-            let (film, time) = render_in_process(&scene, config.frame, threads, config.progress)?;
-            (
-                film,
-                time,
-                format!("{threads} thread{}", if threads == 1 { "" } else { "s" }),
-            )
-        }
-        Some(options) => {
-            let report = render_on_farm(&config, options, &scene, scene_text)?;
-            for w in &report.workers {
-                tracing::info!(
-                    "worker {}: {} units, {} pixels, render cpu {:.3} s{}",
-                    w.name,
-                    w.units,
-                    w.pixels,
-                    w.render_cpu_micros as f64 / 1e6,
-                    w.process_cpu_micros.map_or_else(String::new, |c| format!(
-                        ", process cpu {:.3} s",
-                        c as f64 / 1e6
-                    ))
-                );
-            }
-            let n = report.workers.len();
-            (
-                report.film,
-                report.render_time,
-                format!("{n} worker{}", if n == 1 { "" } else { "s" }),
-            )
-        }
+    let Some(options) = &config.farm else {
+        let threads = config.threads.map_or_else(
+            || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+            NonZeroUsize::get,
+        );
+        let how = format!("{threads} thread{}", if threads == 1 { "" } else { "s" });
+        return frames
+            .into_iter()
+            .map(|f| {
+                let (film, time) = render_in_process(&scene, f.frame, threads, config.progress)?;
+                write_frame(&config, &scene, &film, f.frame, time, &f.out, &how)
+            })
+            .collect();
     };
-    output::write_image(&film, &config.out)?;
+    render_on_farm(&config, options, &scene, scene_text, frames)
+}
+
+/// Renders the one frame `config.frame` (see [`run_all`]).
+pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
+    let mut summaries = run_all(Config {
+        frames: None,
+        ..config
+    })?;
+    Ok(summaries.remove(0))
+}
+
+/// Writes a frame's image and says so.
+fn write_frame(
+    config: &Config,
+    scene: &Scene,
+    film: &Film,
+    frame: u32,
+    render_time: Duration,
+    out: &std::path::Path,
+    how: &str,
+) -> Result<Summary, CoordinatorError> {
+    output::write_image(film, out)?;
     tracing::info!(
-        "rendered {} ({}×{}, frame {}) with {how} in {:.3} s → {}",
+        "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",
         config.scene.display(),
         scene.width(),
         scene.height(),
-        config.frame,
         render_time.as_secs_f64(),
-        config.out.display()
+        out.display()
     );
     Ok(Summary {
         render_time,
-        out: config.out,
+        out: out.to_path_buf(),
     })
 }
 
-/// Renders the frame on the farm (starting local workers as configured).
+/// Renders `frames` on the farm as one session (starting local workers as
+/// configured), writing each image, on a thread of its own, as soon as its
+/// frame is complete.
 pub fn render_on_farm(
     config: &Config,
     options: &FarmOptions,
     scene: &Scene,
     scene_text: String,
-) -> Result<farm::FarmReport, CoordinatorError> {
+    frames: Vec<farm::FrameOut>,
+) -> Result<Vec<Summary>, CoordinatorError> {
     let tls = match &options.tls {
         Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
         None => None,
@@ -257,7 +255,7 @@ pub fn render_on_farm(
         scene_name: config.scene.display().to_string(),
         width: scene.width(),
         height: scene.height(),
-        frame: config.frame,
+        frames,
         spp: config.spp,
         quality: config.quality,
         knobs: config.knobs.clone(),
@@ -270,7 +268,6 @@ pub fn render_on_farm(
         local_workers: options.local_workers,
         local_threads: config.threads.map_or(1, NonZeroUsize::get),
         preview_every: options.preview_every,
-        preview_path: options.preview_every.map(|_| config.out.clone()),
         tls,
         interleave: options.interleave,
         progress: config.progress,
@@ -281,7 +278,61 @@ pub fn render_on_farm(
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;
-    Ok(runtime.block_on(farm::render(job, farm_config))?)
+    // Encoding an image takes a while: not on the thread that serves the workers.
+    let (to_writer, finished) = std::sync::mpsc::channel::<farm::FrameDone>();
+    let session = std::thread::scope(|scope| {
+        let writer = scope.spawn(move || {
+            finished
+                .into_iter()
+                .map(|done| {
+                    let f = done.frame;
+                    write_frame(
+                        config,
+                        scene,
+                        &f.film,
+                        f.frame,
+                        f.render_time,
+                        &done.out,
+                        "the farm",
+                    )
+                })
+                .collect::<Result<Vec<Summary>, CoordinatorError>>()
+        });
+        let session = runtime.block_on(farm::render_frames(job, farm_config, &mut |done| {
+            to_writer.send(done).map_err(|_| {
+                farm::FarmError::Stopped("an image could not be written: stopping".into())
+            })
+        }));
+        drop(to_writer);
+        // The writer's error says what went wrong; the farm's only that it stopped.
+        let written = writer
+            .join()
+            .unwrap_or_else(|p| std::panic::resume_unwind(p))?;
+        Ok::<_, CoordinatorError>((session?, written))
+    });
+    let (session, written) = session?;
+    for w in &session.workers {
+        tracing::info!(
+            "worker {}: {} units, {} pixels, render cpu {:.3} s{}",
+            w.name,
+            w.units,
+            w.pixels,
+            w.render_cpu_micros as f64 / 1e6,
+            w.process_cpu_micros.map_or_else(String::new, |c| format!(
+                ", process cpu {:.3} s",
+                c as f64 / 1e6
+            ))
+        );
+    }
+    let n = session.workers.len();
+    tracing::info!(
+        "{} frame{} on {n} worker{} in {:.3} s",
+        written.len(),
+        if written.len() == 1 { "" } else { "s" },
+        if n == 1 { "" } else { "s" },
+        session.render_time.as_secs_f64()
+    );
+    Ok(written)
 }
 
 /// `coordinator eval`: the value of `expression` at `at` (see [`hypertexture::pse::surface::probe`]).

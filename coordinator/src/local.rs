@@ -84,6 +84,7 @@ impl LocalWorkers {
                             name: format!("in-process-{i}"),
                             ca: ca.clone(),
                             exit_when_done: true,
+                            fault: None,
                         };
                         tokio::spawn(worker::run(cfg, stopped.clone()))
                     })
@@ -113,7 +114,8 @@ impl LocalWorkers {
         None
     }
 
-    /// Waits up to `grace` for the workers to leave, then stops the rest.
+    /// Waits up to `grace` for the workers to leave, then stops the rest (at
+    /// once, and quietly, with no grace).
     pub async fn stop(self, grace: Duration) {
         match self {
             LocalWorkers::Processes(children) => {
@@ -121,7 +123,9 @@ impl LocalWorkers {
                     match tokio::time::timeout(grace, child.wait()).await {
                         Ok(_) => {}
                         Err(_) => {
-                            tracing::warn!("local worker {name} did not leave: stopping it");
+                            if !grace.is_zero() {
+                                tracing::warn!("local worker {name} did not leave: stopping it");
+                            }
                             let _ = child.kill().await;
                         }
                     }
@@ -130,7 +134,7 @@ impl LocalWorkers {
             LocalWorkers::InProcess { stop, tasks } => {
                 let _ = stop.send(true);
                 for task in tasks {
-                    if tokio::time::timeout(grace, task).await.is_err() {
+                    if tokio::time::timeout(grace, task).await.is_err() && !grace.is_zero() {
                         tracing::warn!("an in-process worker did not stop in time");
                     }
                 }

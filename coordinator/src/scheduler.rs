@@ -6,6 +6,18 @@
 //! queue is empty, idle workers get speculative duplicates of units still out
 //! (first tile wins — results are identical by construction). A tile is checked
 //! completely before it touches the film.
+//!
+//! A sequence of frames is one session: the workers stay, and the tile that
+//! completes a frame moves its image to [`Scheduler::take_completed`] and starts
+//! the next frame at once (its first unit goes out in that tile's reply).
+//! Assignment ids run on across frames; a late tile of an earlier frame is
+//! valid and unused.
+//!
+//! A worker that cannot render a unit reports it ([`Scheduler::fail`]): the unit
+//! goes back to the queue, preferably to a worker that has not failed it; a
+//! worker whose scene does not build gets no more units; and the render is
+//! given up ([`GiveUp`]) when a unit has failed [`MAX_FAILURES`] times or no
+//! worker present can build the scene, instead of retrying forever.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -13,19 +25,27 @@ use std::time::{Duration, Instant};
 use hypertexture::interleave::WorkUnit;
 use hypertexture::{Film, Sample};
 use hypertexture_proto::convert::{self, WireError};
-use hypertexture_proto::pb;
+use hypertexture_proto::{FailureKind, pb};
 
 /// At most this many workers hold the same unit at once.
 const MAX_HOLDERS: usize = 2;
 
+/// A unit that fails to render this many times (on different workers when
+/// there are any) stops the render.
+pub const MAX_FAILURES: usize = 3;
+
 /// What a worker is told when it asks for work.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Next {
-    /// Render this unit under this assignment id.
-    Assign { assignment_id: u64, unit: WorkUnit },
+    /// Render this unit of this frame under this assignment id.
+    Assign {
+        assignment_id: u64,
+        unit: WorkUnit,
+        frame: u32,
+    },
     /// Nothing to hand out now; ask again later.
     Wait,
-    /// The frame is complete.
+    /// Every frame is complete.
     Finished,
 }
 
@@ -44,6 +64,9 @@ pub enum Refusal {
     /// The tile's unit differs from the assignment's.
     #[error("assignment {0} is for another unit")]
     WrongUnit(u64),
+    /// A failure report is malformed.
+    #[error("malformed failure report: {0}")]
+    BadReport(WireError),
     /// The tile itself is malformed.
     #[error("malformed tile for assignment {id}: {error}")]
     Malformed {
@@ -52,6 +75,107 @@ pub enum Refusal {
         /// What is wrong.
         error: WireError,
     },
+}
+
+/// One worker's failure to render a unit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UnitFailure {
+    /// The worker's name.
+    pub worker: String,
+    /// What kind of failure.
+    pub kind: FailureKind,
+    /// What the worker said.
+    pub reason: String,
+}
+
+impl std::fmt::Display for UnitFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "worker {} ({}): {}", self.worker, self.kind, self.reason)
+    }
+}
+
+/// Why the render was given up.
+#[derive(Clone, Debug, PartialEq)]
+pub enum GiveUp {
+    /// A unit failed [`MAX_FAILURES`] times.
+    Unit {
+        /// The unit's index in the frame's unit list.
+        index: usize,
+        /// The unit.
+        unit: WorkUnit,
+        /// Each failure, oldest first.
+        failures: Vec<UnitFailure>,
+    },
+    /// Every worker present failed to build the scene.
+    Scene {
+        /// One failure per worker that cannot build it.
+        failures: Vec<UnitFailure>,
+    },
+}
+
+impl std::fmt::Display for GiveUp {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let list = |failures: &[UnitFailure]| {
+            failures
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join("; ")
+        };
+        match self {
+            GiveUp::Unit {
+                index,
+                unit,
+                failures,
+            } => write!(
+                f,
+                "unit {index} ({}) failed {} times, giving up: {}",
+                describe(unit),
+                failures.len(),
+                list(failures)
+            ),
+            GiveUp::Scene { failures } => write!(
+                f,
+                "no worker present can build the scene, giving up: {}",
+                list(failures)
+            ),
+        }
+    }
+}
+
+/// A unit in words: its pixel set and rows.
+pub fn describe(unit: &WorkUnit) -> String {
+    let b = unit.set.interleave;
+    format!(
+        "pixel set {} of {b}×{b}, set rows {} + i·{} for i < {}",
+        unit.set.index, unit.first_row, unit.row_stride, unit.row_count
+    )
+}
+
+/// A failure report that counted: what the coordinator logs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Counted {
+    /// The reporting worker's name.
+    pub worker: String,
+    /// The unit's index.
+    pub index: usize,
+    /// The unit given back.
+    pub unit: WorkUnit,
+    /// The unit's failures so far (scene failures are the worker's, not the unit's).
+    pub failures: usize,
+}
+
+/// A frame whose every unit is in.
+#[derive(Clone, Debug)]
+pub struct CompletedFrame {
+    /// The frame number.
+    pub frame: u32,
+    /// Its image.
+    pub film: Film,
+    /// The CPU microseconds each unit's accepted tile cost.
+    pub unit_costs: Vec<u64>,
+    /// From its first unit handed out to its last tile in.
+    pub render_time: Duration,
 }
 
 /// What the coordinator knows of a worker.
@@ -75,6 +199,9 @@ pub struct WorkerState {
     pub process_cpu_micros: Option<u64>,
     /// Still part of the farm.
     pub alive: bool,
+    /// Why the scene does not build on this worker, if it said so: it gets no
+    /// more units.
+    pub cannot_build: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -83,16 +210,24 @@ struct Lease {
     worker: u64,
 }
 
-/// The state of one frame's render.
+/// The state of a render: one frame, or a sequence rendered one after another.
 pub struct Scheduler {
+    /// The frame numbers, in order, and the index of the one rendering.
+    frames: Vec<u32>,
+    current: usize,
+    /// When the current frame's first unit went out.
+    frame_started: Option<Instant>,
+    /// Frames complete and not yet taken.
+    completed: Vec<CompletedFrame>,
     units: Vec<WorkUnit>,
     pending: VecDeque<usize>,
     done: Vec<bool>,
     remaining: usize,
     /// Outstanding assignments.
     leases: HashMap<u64, Lease>,
-    /// The unit of every assignment ever issued (to tell late duplicates from forgeries).
-    issued: Vec<usize>,
+    /// The frame (index into `frames`) and unit of every assignment ever issued
+    /// (to tell late duplicates from forgeries).
+    issued: Vec<(usize, usize)>,
     workers: HashMap<u64, WorkerState>,
     next_worker: u64,
     lease: Duration,
@@ -101,6 +236,10 @@ pub struct Scheduler {
     rendered: Vec<bool>,
     /// Per unit: the CPU microseconds the accepted tile cost.
     unit_cpu: Vec<u64>,
+    /// Per unit: the workers (by id) that failed it, and how.
+    failures: Vec<Vec<(u64, UnitFailure)>>,
+    /// Set when the render cannot go on.
+    gave_up: Option<GiveUp>,
 }
 
 impl Scheduler {
@@ -109,6 +248,10 @@ impl Scheduler {
     pub fn new(units: Vec<WorkUnit>, width: u32, height: u32, lease: Duration) -> Scheduler {
         let n = units.len();
         Scheduler {
+            frames: vec![0],
+            current: 0,
+            frame_started: None,
+            completed: Vec::new(),
             pending: (0..n).collect(),
             done: vec![false; n],
             remaining: n,
@@ -120,8 +263,22 @@ impl Scheduler {
             film: Film::new(width, height),
             rendered: vec![false; width as usize * height as usize],
             unit_cpu: vec![0; n],
+            failures: vec![Vec::new(); n],
+            gave_up: None,
             units,
         }
+    }
+
+    /// Renders these frames (in order, at least one) instead of frame 0.
+    pub fn with_frames(mut self, frames: Vec<u32>) -> Scheduler {
+        assert!(!frames.is_empty(), "a render has at least one frame");
+        self.frames = frames;
+        self
+    }
+
+    /// The frame rendering now.
+    pub fn frame(&self) -> u32 {
+        self.frames[self.current]
     }
 
     /// Registers a worker; returns its id.
@@ -140,6 +297,7 @@ impl Scheduler {
                 render_cpu_micros: 0,
                 process_cpu_micros: None,
                 alive: true,
+                cannot_build: None,
             },
         );
         format!("w{id}")
@@ -167,30 +325,57 @@ impl Scheduler {
     pub fn next(&mut self, worker_id: &str, now: Instant) -> Result<Next, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
+        let cannot_build = w.cannot_build.is_some();
         if self.remaining == 0 {
             return Ok(Next::Finished);
         }
-        let unit = match self.pending.pop_front() {
+        if cannot_build || self.gave_up.is_some() {
+            return Ok(Next::Wait);
+        }
+        let unit = match self.pending_for(wid) {
             Some(u) => Some(u),
             None => self.speculative(wid),
         };
         Ok(match unit {
             Some(unit) => {
                 let assignment_id = self.issued.len() as u64 + 1;
-                self.issued.push(unit);
+                self.issued.push((self.current, unit));
                 self.leases
                     .insert(assignment_id, Lease { unit, worker: wid });
+                self.frame_started.get_or_insert(now);
                 Next::Assign {
                     assignment_id,
                     unit: self.units[unit],
+                    frame: self.frame(),
                 }
             }
             None => Next::Wait,
         })
     }
 
-    /// The oldest outstanding unit this worker does not hold, held by fewer than
-    /// [`MAX_HOLDERS`] workers.
+    /// Takes the first pending unit this worker has not failed, or that no other
+    /// worker could take instead (so a lone worker retries, up to the limit).
+    fn pending_for(&mut self, worker: u64) -> Option<usize> {
+        let position = self
+            .pending
+            .iter()
+            .position(|&u| !self.failed_by(u, worker) || !self.another_could_take(u, worker))?;
+        self.pending.remove(position)
+    }
+
+    fn failed_by(&self, unit: usize, worker: u64) -> bool {
+        self.failures[unit].iter().any(|(w, _)| *w == worker)
+    }
+
+    /// Whether a worker other than `worker`, able to render, has not failed `unit`.
+    fn another_could_take(&self, unit: usize, worker: u64) -> bool {
+        self.workers.iter().any(|(&id, w)| {
+            id != worker && w.alive && w.cannot_build.is_none() && !self.failed_by(unit, id)
+        })
+    }
+
+    /// The oldest outstanding unit this worker does not hold and has not failed,
+    /// held by fewer than [`MAX_HOLDERS`] workers.
     fn speculative(&self, worker: u64) -> Option<usize> {
         let mut holders: HashMap<usize, (usize, u64, bool)> = HashMap::new();
         for (&id, lease) in &self.leases {
@@ -201,7 +386,9 @@ impl Scheduler {
         }
         holders
             .into_iter()
-            .filter(|&(unit, (count, _, mine))| !mine && count < MAX_HOLDERS && !self.done[unit])
+            .filter(|&(unit, (count, _, mine))| {
+                !mine && count < MAX_HOLDERS && !self.done[unit] && !self.failed_by(unit, worker)
+            })
             .min_by_key(|&(_, (_, oldest, _))| oldest)
             .map(|(unit, _)| unit)
     }
@@ -218,12 +405,16 @@ impl Scheduler {
     ) -> Result<bool, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
-        let Some(&issued_unit) = assignment_id
+        let Some(&(issued_frame, issued_unit)) = assignment_id
             .checked_sub(1)
             .and_then(|i| self.issued.get(i as usize))
         else {
             return Err(Refusal::NeverAssigned(assignment_id));
         };
+        if issued_frame != self.current {
+            // A duplicate of a unit of a frame that is complete.
+            return Ok(false);
+        }
         let (width, height) = (self.film.width(), self.film.height());
         let unit_of = |u: Option<&pb::Unit>| {
             u.ok_or(WireError::Missing("unit"))
@@ -264,7 +455,135 @@ impl Scheduler {
         w.units += 1;
         w.pixels += claimed.pixel_count(width) as u64;
         w.render_cpu_micros += render_cpu_micros;
+        if self.remaining == 0 {
+            self.complete_frame(now);
+        }
         Ok(true)
+    }
+
+    /// Moves the complete frame's image out and starts the next frame, if any.
+    fn complete_frame(&mut self, now: Instant) {
+        let n = self.units.len();
+        let (width, height) = (self.film.width(), self.film.height());
+        let last = self.current + 1 == self.frames.len();
+        self.completed.push(CompletedFrame {
+            frame: self.frame(),
+            // A blank film of the same size: late duplicates are still checked against it.
+            film: std::mem::replace(&mut self.film, Film::new(width, height)),
+            unit_costs: std::mem::replace(&mut self.unit_cpu, vec![0; n]),
+            render_time: self
+                .frame_started
+                .take()
+                .map_or(Duration::ZERO, |t| now.saturating_duration_since(t)),
+        });
+        if last {
+            return;
+        }
+        self.current += 1;
+        self.pending = (0..n).collect();
+        self.done = vec![false; n];
+        self.remaining = n;
+        // Duplicates still out belong to the frame just completed.
+        self.leases.clear();
+        self.rendered.fill(false);
+        self.failures = vec![Vec::new(); n];
+    }
+
+    /// Whether a frame is complete and not yet taken.
+    pub fn has_completed(&self) -> bool {
+        !self.completed.is_empty()
+    }
+
+    /// The frames completed since the last call, in order.
+    pub fn take_completed(&mut self) -> Vec<CompletedFrame> {
+        std::mem::take(&mut self.completed)
+    }
+
+    /// A worker gives back an assignment it could not render. The unit goes back
+    /// to the front of the queue; a worker whose scene does not build gives back
+    /// everything it holds and gets nothing more. `Ok(None)`: the assignment was
+    /// no longer this worker's, nothing changed. The render is given up
+    /// ([`Scheduler::gave_up`]) when the unit has failed [`MAX_FAILURES`] times,
+    /// or no worker present can build the scene.
+    pub fn fail(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        kind: FailureKind,
+        reason: &str,
+        now: Instant,
+    ) -> Result<Option<Counted>, Refusal> {
+        let (wid, w) = self.worker_mut(worker_id)?;
+        w.last_seen = now;
+        let name = w.name.clone();
+        let Some(&(frame, unit)) = assignment_id
+            .checked_sub(1)
+            .and_then(|i| self.issued.get(i as usize))
+        else {
+            return Err(Refusal::NeverAssigned(assignment_id));
+        };
+        match self.leases.get(&assignment_id) {
+            Some(lease) if lease.worker == wid && frame == self.current => {}
+            _ => return Ok(None),
+        }
+        let failure = UnitFailure {
+            worker: name.clone(),
+            kind,
+            reason: reason.to_string(),
+        };
+        self.leases.remove(&assignment_id);
+        if kind == FailureKind::Scene {
+            // Deterministic on this worker: every unit it holds would fail too.
+            let w = self.workers.get_mut(&wid).expect("checked above");
+            w.cannot_build = Some(reason.to_string());
+            self.release(wid);
+        } else {
+            self.failures[unit].push((wid, failure));
+        }
+        let held = self.leases.values().any(|l| l.unit == unit);
+        if !self.done[unit] && !held && !self.pending.contains(&unit) {
+            self.pending.push_front(unit);
+        }
+        if self.gave_up.is_none() {
+            if self.failures[unit].len() >= MAX_FAILURES {
+                self.gave_up = Some(GiveUp::Unit {
+                    index: unit,
+                    unit: self.units[unit],
+                    failures: self.failures[unit].iter().map(|(_, f)| f.clone()).collect(),
+                });
+            } else if kind == FailureKind::Scene && self.able() == 0 {
+                let mut failures: Vec<(Instant, UnitFailure)> = self
+                    .workers
+                    .values()
+                    .filter_map(|w| {
+                        let reason = w.cannot_build.clone()?;
+                        Some((
+                            w.joined,
+                            UnitFailure {
+                                worker: w.name.clone(),
+                                kind: FailureKind::Scene,
+                                reason,
+                            },
+                        ))
+                    })
+                    .collect();
+                failures.sort_by_key(|f| f.0);
+                self.gave_up = Some(GiveUp::Scene {
+                    failures: failures.into_iter().map(|(_, f)| f).collect(),
+                });
+            }
+        }
+        Ok(Some(Counted {
+            worker: name,
+            index: unit,
+            unit: self.units[unit],
+            failures: self.failures[unit].len(),
+        }))
+    }
+
+    /// Why the render cannot go on, once it cannot.
+    pub fn gave_up(&self) -> Option<&GiveUp> {
+        self.gave_up.as_ref()
     }
 
     /// A worker leaves cleanly; anything it still held goes back to the queue.
@@ -317,14 +636,15 @@ impl Scheduler {
         }
     }
 
-    /// Whether every unit is complete.
+    /// Whether every unit of every frame is complete.
     pub fn finished(&self) -> bool {
         self.remaining == 0
     }
 
-    /// Units complete and in all.
+    /// Units complete and in all, over every frame.
     pub fn progress(&self) -> (usize, usize) {
-        (self.units.len() - self.remaining, self.units.len())
+        let n = self.units.len();
+        (self.current * n + n - self.remaining, self.frames.len() * n)
     }
 
     /// Workers still in the farm.
@@ -332,25 +652,22 @@ impl Scheduler {
         self.workers.values().filter(|w| w.alive).count()
     }
 
+    /// Workers still in the farm that can build the scene.
+    pub fn able(&self) -> usize {
+        self.workers
+            .values()
+            .filter(|w| w.alive && w.cannot_build.is_none())
+            .count()
+    }
+
     /// Every worker that ever joined.
     pub fn workers(&self) -> impl Iterator<Item = &WorkerState> {
         self.workers.values()
     }
 
-    /// The CPU cost of each unit's accepted tile, in microseconds.
-    pub fn unit_costs(&self) -> &[u64] {
-        &self.unit_cpu
-    }
-
-    /// The image so far.
+    /// The image of the frame rendering, so far.
     pub fn film(&self) -> &Film {
         &self.film
-    }
-
-    /// Takes the image (the frame is over: no copy of 36 bytes a pixel), leaving
-    /// an empty one.
-    pub fn take_film(&mut self) -> Film {
-        std::mem::replace(&mut self.film, Film::new(0, 0))
     }
 
     /// The image so far with each missing pixel filled from the nearest rendered
@@ -397,6 +714,7 @@ mod tests {
             Next::Assign {
                 assignment_id,
                 unit,
+                ..
             } => (assignment_id, unit),
             other => panic!("expected an assignment, got {other:?}"),
         }
@@ -419,7 +737,63 @@ mod tests {
         }
         assert!(s.finished());
         assert_eq!(s.next(&w, now), Ok(Next::Finished));
-        assert!(s.film().pixels().iter().all(|p| p.rgba[0] == 0.5));
+        let completed = s.take_completed();
+        assert_eq!(completed.len(), 1);
+        assert_eq!(completed[0].frame, 0);
+        assert!(completed[0].film.pixels().iter().all(|p| p.rgba[0] == 0.5));
+    }
+
+    #[test]
+    fn a_sequence_starts_the_next_frame_with_the_tile_that_completes_one() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5)).with_frames(vec![3, 4]);
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let mut first_frame = Vec::new();
+        for _ in 0..n {
+            match s.next(&a, now).unwrap() {
+                Next::Assign {
+                    assignment_id,
+                    unit,
+                    frame,
+                } => {
+                    assert_eq!(frame, 3);
+                    first_frame.push((assignment_id, unit));
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        // b holds a speculative duplicate of frame 3's first unit.
+        let (dup_id, dup) = assign(&mut s, &b, now);
+        assert_eq!(dup, first_frame[0].1);
+        for (id, unit) in &first_frame {
+            let wire = convert::unit_to_wire(unit);
+            assert_eq!(
+                s.submit(&a, *id, Some(&wire), &tile(unit, 8, 0.3), 1, now),
+                Ok(true)
+            );
+        }
+        assert!(!s.finished(), "frame 4 follows");
+        assert_eq!(s.progress(), (n, 2 * n));
+        let done = s.take_completed();
+        assert_eq!((done.len(), done[0].frame), (1, 3));
+        assert!(done[0].film.pixels().iter().all(|p| p.rgba[0] == 0.3));
+        // The next unit out is frame 4's first; the late duplicate of frame 3 is unused.
+        match s.next(&a, now).unwrap() {
+            Next::Assign { unit, frame, .. } => assert_eq!((frame, unit), (4, first_frame[0].1)),
+            other => panic!("{other:?}"),
+        }
+        let wire = convert::unit_to_wire(&dup);
+        assert_eq!(
+            s.submit(&b, dup_id, Some(&wire), &tile(&dup, 8, 9.0), 1, now),
+            Ok(false)
+        );
+        assert!(s.film().pixels().iter().all(|p| *p == Sample::default()));
+        assert_eq!(
+            s.fail(&b, dup_id, FailureKind::Render, "late", now),
+            Ok(None)
+        );
     }
 
     #[test]
@@ -548,5 +922,143 @@ mod tests {
         assert_eq!(assign(&mut s, &b, now).1, second);
         // After the first set alone, the preview is complete at 1/8 resolution.
         assert!(s.preview().pixels().iter().all(|p| p.rgba[0] == 0.75));
+    }
+
+    fn fail(
+        s: &mut Scheduler,
+        w: &str,
+        id: u64,
+        kind: FailureKind,
+        now: Instant,
+    ) -> Option<Counted> {
+        s.fail(w, id, kind, &format!("{w} broke"), now).unwrap()
+    }
+
+    #[test]
+    fn a_failed_unit_goes_to_another_worker_and_three_failures_give_up() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let (a, b, c) = (
+            s.register("a", 1, now),
+            s.register("b", 1, now),
+            s.register("c", 1, now),
+        );
+        let (id, unit) = assign(&mut s, &a, now);
+        let counted = fail(&mut s, &a, id, FailureKind::Render, now).unwrap();
+        assert_eq!(
+            (counted.worker.as_str(), counted.index, counted.failures),
+            ("a", 0, 1)
+        );
+        // a is not given the unit it failed while others could take it.
+        assert_ne!(assign(&mut s, &a, now).1, unit);
+        let (id, again) = assign(&mut s, &b, now);
+        assert_eq!(
+            again, unit,
+            "the failed unit comes back first, to another worker"
+        );
+        fail(&mut s, &b, id, FailureKind::Assignment, now).unwrap();
+        assert!(s.gave_up().is_none());
+        let (id, again) = assign(&mut s, &c, now);
+        assert_eq!(again, unit);
+        fail(&mut s, &c, id, FailureKind::Render, now).unwrap();
+        let given_up = s.gave_up().expect("three failures stop the render");
+        let message = given_up.to_string();
+        assert!(
+            matches!(given_up, GiveUp::Unit { index: 0, .. }),
+            "{message}"
+        );
+        for needle in [
+            "unit 0",
+            "pixel set 0 of 8×8",
+            "failed 3 times",
+            "worker a (render): w1 broke",
+            "worker b (assignment): w2 broke",
+            "worker c",
+        ] {
+            assert!(message.contains(needle), "{needle}: {message}");
+        }
+        assert_eq!(
+            s.next(&a, now),
+            Ok(Next::Wait),
+            "nothing more is handed out"
+        );
+    }
+
+    #[test]
+    fn a_lone_worker_retries_a_failed_unit_up_to_the_limit() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        let mut ids = Vec::new();
+        let mut first = None;
+        // The unit is assigned again and again (nobody else could take it).
+        for attempt in 1..=MAX_FAILURES {
+            let (id, unit) = assign(&mut s, &a, now);
+            assert_eq!(*first.get_or_insert(unit), unit);
+            ids.push(id);
+            assert_eq!(
+                fail(&mut s, &a, id, FailureKind::Render, now)
+                    .unwrap()
+                    .failures,
+                attempt
+            );
+        }
+        assert!(matches!(s.gave_up(), Some(GiveUp::Unit { .. })));
+        // A report for an assignment no longer held changes nothing; a forged one is refused.
+        assert_eq!(
+            s.fail(&a, ids[0], FailureKind::Render, "again", now),
+            Ok(None)
+        );
+        assert_eq!(
+            s.fail(&a, 999, FailureKind::Render, "forged", now),
+            Err(Refusal::NeverAssigned(999))
+        );
+    }
+
+    #[test]
+    fn a_worker_whose_scene_does_not_build_gets_nothing_more() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let (first_id, first) = assign(&mut s, &a, now);
+        let (ahead_id, ahead) = assign(&mut s, &a, now);
+        fail(&mut s, &a, first_id, FailureKind::Scene, now).unwrap();
+        assert_eq!(s.able(), 1);
+        assert_eq!(s.next(&a, now), Ok(Next::Wait));
+        // Its unit assigned ahead went back with the first: its report changes nothing.
+        assert_eq!(fail(&mut s, &a, ahead_id, FailureKind::Scene, now), None);
+        assert!(s.gave_up().is_none(), "b can still render");
+        let mut got = Vec::new();
+        for _ in 0..n {
+            let (id, unit) = assign(&mut s, &b, now);
+            got.push(unit);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&b, id, Some(&wire), &tile(&unit, 16, 0.5), 1, now),
+                Ok(true)
+            );
+        }
+        assert_eq!(
+            &got[..2],
+            &[first, ahead],
+            "given back in order, first in line"
+        );
+        assert!(s.finished());
+
+        // When no worker present can build the scene, the render stops at once.
+        let mut s = Scheduler::new(work_units(8, 8, 8, 4096), 8, 8, Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        let (id, _) = assign(&mut s, &a, now);
+        fail(&mut s, &a, id, FailureKind::Scene, now).unwrap();
+        let message = s.gave_up().expect("nobody can render").to_string();
+        assert!(
+            message.contains("can build the scene")
+                && message.contains("worker a (scene): w1 broke"),
+            "{message}"
+        );
     }
 }

@@ -3,7 +3,7 @@
 use hypertexture::interleave::{PixelSet, WorkUnit};
 use hypertexture::{Quality, Sample};
 
-use crate::{Bytes, pb};
+use crate::{Bytes, FailureKind, pb};
 
 /// Why a wire message could not be turned into a program type.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -29,6 +29,9 @@ pub enum WireError {
     /// A job names a quality this build does not know.
     #[error("unknown quality {0}")]
     UnknownQuality(i32),
+    /// A failure report names no kind, or one this build does not know.
+    #[error("unknown failure kind {0}")]
+    UnknownFailureKind(i32),
     /// A tile value is NaN or infinite.
     #[error("tile value {index} is not finite ({value})")]
     NotFinite {
@@ -195,6 +198,44 @@ pub fn quality_from_wire(quality: i32) -> Result<Option<Quality>, WireError> {
     }
 }
 
+/// A failure kind on the wire.
+pub fn failure_kind_to_wire(kind: FailureKind) -> pb::FailureKind {
+    match kind {
+        FailureKind::Scene => pb::FailureKind::Scene,
+        FailureKind::Assignment => pb::FailureKind::Assignment,
+        FailureKind::Render => pb::FailureKind::Render,
+    }
+}
+
+/// A failure kind from the wire (`kind` is the raw enum value; unspecified is refused).
+pub fn failure_kind_from_wire(kind: i32) -> Result<FailureKind, WireError> {
+    match pb::FailureKind::try_from(kind) {
+        Ok(pb::FailureKind::Scene) => Ok(FailureKind::Scene),
+        Ok(pb::FailureKind::Assignment) => Ok(FailureKind::Assignment),
+        Ok(pb::FailureKind::Render) => Ok(FailureKind::Render),
+        Ok(pb::FailureKind::Unspecified) | Err(_) => Err(WireError::UnknownFailureKind(kind)),
+    }
+}
+
+/// The longest failure reason kept (in characters); the rest is cut.
+pub const MAX_REASON_CHARS: usize = 1000;
+
+/// A failure reason from the wire as one printable line, at most
+/// [`MAX_REASON_CHARS`] characters (it goes into logs and error messages).
+pub fn reason_from_wire(reason: &str) -> String {
+    let line: String = reason
+        .chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .take(MAX_REASON_CHARS)
+        .collect();
+    let line = line.trim();
+    if line.is_empty() {
+        "no reason given".into()
+    } else {
+        line.to_string()
+    }
+}
+
 /// Samples per pixel from the wire: 0 means the scene's own.
 pub fn spp_from_wire(spp: u32) -> Option<u32> {
     (spp != 0).then_some(spp)
@@ -296,12 +337,33 @@ mod tests {
     }
 
     #[test]
-    fn quality_round_trips() {
+    fn quality_failure_kinds_and_reasons_round_trip() {
         for q in [None, Some(Quality::Interactive), Some(Quality::High)] {
             assert_eq!(quality_from_wire(quality_to_wire(q) as i32), Ok(q));
         }
         assert_eq!(quality_from_wire(7), Err(WireError::UnknownQuality(7)));
         assert_eq!(spp_from_wire(0), None);
+        for k in [
+            FailureKind::Scene,
+            FailureKind::Assignment,
+            FailureKind::Render,
+        ] {
+            assert_eq!(
+                failure_kind_from_wire(failure_kind_to_wire(k) as i32),
+                Ok(k)
+            );
+        }
+        assert_eq!(
+            failure_kind_from_wire(0),
+            Err(WireError::UnknownFailureKind(0))
+        );
+        assert_eq!(
+            failure_kind_from_wire(9),
+            Err(WireError::UnknownFailureKind(9))
+        );
+        assert_eq!(reason_from_wire(" a\nb\u{1b} "), "a b");
+        assert_eq!(reason_from_wire(""), "no reason given");
+        assert_eq!(reason_from_wire(&"x".repeat(5000)).len(), MAX_REASON_CHARS);
         assert_eq!(spp_from_wire(4), Some(4));
     }
 }

@@ -17,8 +17,32 @@ pub mod pb {
 
 /// Bumped whenever the protocol changes incompatibly; checked at registration.
 /// 2: SubmitTile can hand out the next unit; assignments omit the scene text a
-/// worker already has.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// worker already has. 3: ReportFailure (a worker gives back a unit it cannot
+/// render, with the reason).
+pub const PROTOCOL_VERSION: u32 = 3;
+
+/// Why a worker could not render an assignment (the program's side of
+/// `pb::FailureKind`; see [`convert::failure_kind_to_wire`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FailureKind {
+    /// The scene does not build on this worker: every unit of the job would fail
+    /// there too (deterministic), so the worker gets no more of them.
+    Scene,
+    /// The assignment itself was unusable; another try may succeed.
+    Assignment,
+    /// Rendering the unit failed (a panic caught by the worker).
+    Render,
+}
+
+impl std::fmt::Display for FailureKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FailureKind::Scene => "scene",
+            FailureKind::Assignment => "assignment",
+            FailureKind::Render => "render",
+        })
+    }
+}
 
 /// The largest message either side accepts (tonic's default is 4 MiB). A tile is
 /// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] samples

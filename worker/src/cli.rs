@@ -61,6 +61,7 @@ impl Cli {
             name: self.name.unwrap_or_else(default_name),
             ca,
             exit_when_done: self.exit_when_done,
+            fault: None,
         })
     }
 }

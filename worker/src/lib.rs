@@ -3,7 +3,9 @@
 //! Each assignment carries the scene's content hash, and its text (a few KB)
 //! unless the worker said it has built that scene; the worker builds the scene
 //! once per hash, renders the unit's pixels with all its threads and submits the
-//! tile. The reply to a tile brings the next unit, and one unit is always
+//! tile. A unit it cannot render (the scene does not build here, the assignment
+//! is unusable, the render panics) goes back to the coordinator with the reason
+//! (ReportFailure), never held in silence. The reply to a tile brings the next unit, and one unit is always
 //! assigned ahead, so the render threads never wait for the network: while unit
 //! n renders, tile n − 1 travels and its reply brings unit n + 1. A background
 //! task heartbeats so the coordinator knows it is alive. When the coordinator
@@ -22,7 +24,7 @@ use hypertexture::{Overrides, Scene};
 use hypertexture_proto::pb::GetWorkResult;
 use hypertexture_proto::pb::farm_client::FarmClient;
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
-use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
+use hypertexture_proto::{FailureKind, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
 use tokio::sync::{oneshot, watch};
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use tonic::{Code, Status};
@@ -42,6 +44,17 @@ pub struct WorkerConfig {
     pub ca: Option<Vec<u8>>,
     /// Return when the frame is finished instead of waiting for the next one.
     pub exit_when_done: bool,
+    /// Fail on purpose (tests of the failure path only; `None` in every binary).
+    pub fault: Option<Fault>,
+}
+
+/// A failure a test asks a worker to have, to exercise what follows it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fault {
+    /// Every scene fails to build.
+    Scene,
+    /// Every render panics.
+    Panic,
 }
 
 /// Why a worker gave up. Network trouble is not here: it is retried forever.
@@ -387,14 +400,19 @@ async fn serve(
                 }
             }
         };
-        let Some(rendering) = start_render(&assignment, pool, scenes) else {
-            // A malformed assignment: not ours to fix; ask for other work.
-            if sleep_or_stop(Duration::from_millis(500), stop).await {
-                return delivered(config, sending.take(), report)
-                    .await
-                    .map(|_| Leave::Done);
+        let rendering = match start_render(&assignment, pool, scenes, config.fault) {
+            Ok(rendering) => rendering,
+            Err((kind, reason)) => {
+                // Give the unit back at once, with the reason: holding it would
+                // hang the frame (the heartbeat keeps the lease alive).
+                if let Err(status) =
+                    report_failure(client, worker_id, &assignment, kind, &reason).await
+                {
+                    let _ = delivered(config, sending.take(), report).await;
+                    return lost(config, status);
+                }
+                continue;
             }
-            continue;
         };
         // While it renders: the previous tile's reply brings the unit after this
         // one; without one (the first unit, or a refused tile), ask.
@@ -412,9 +430,23 @@ async fn serve(
             }
             Delivered::Nothing => {}
         }
-        let Ok((unit, samples, cpu)) = rendering.await else {
-            tracing::error!("a render task failed");
-            continue;
+        let rendered = rendering
+            .await
+            .unwrap_or_else(|_| Err("the render task ended without a result".into()));
+        let (unit, samples, cpu) = match rendered {
+            Ok(tile) => tile,
+            Err(reason) => {
+                if let Some(status) = lost_while_rendering {
+                    return lost(config, status);
+                }
+                if let Err(status) =
+                    report_failure(client, worker_id, &assignment, FailureKind::Render, &reason)
+                        .await
+                {
+                    return lost(config, status);
+                }
+                continue;
+            }
         };
         let mut sender = client.clone();
         let tile = pb::SubmitTileParams {
@@ -435,6 +467,31 @@ async fn serve(
             return lost(config, status);
         }
     }
+}
+
+/// Gives an assignment back to the coordinator with the reason it could not be
+/// rendered (logged here too). Errors are the call's own (connection lost, or
+/// the coordinator forgot this worker).
+async fn report_failure(
+    client: &mut Client,
+    worker_id: &str,
+    assignment: &pb::Assignment,
+    kind: FailureKind,
+    reason: &str,
+) -> Result<(), Status> {
+    tracing::error!(
+        "cannot render assignment {} ({kind}): {reason}",
+        assignment.assignment_id
+    );
+    client
+        .report_failure(pb::ReportFailureParams {
+            worker_id: worker_id.to_string(),
+            assignment_id: assignment.assignment_id,
+            kind: convert::failure_kind_to_wire(kind) as i32,
+            reason: reason.to_string(),
+        })
+        .await
+        .map(|_| ())
 }
 
 /// What became of a tile in flight.
@@ -512,49 +569,66 @@ fn is_refusal(status: &Status) -> bool {
     )
 }
 
+/// A rendered tile: the unit, its samples on the wire, the CPU microseconds.
+type Tile = (WorkUnit, hypertexture_proto::Bytes, u64);
+
 /// Starts rendering an assignment on the pool (the async thread goes on with
-/// heartbeats and tiles); `None` for a malformed assignment. The result comes
-/// straight from the render thread; a render that panics drops the sender.
+/// heartbeats and tiles). The result comes straight from the render thread: the
+/// tile, or the message of a panic. An assignment that cannot be started (its
+/// scene does not build here, it is malformed) is an error with its kind.
 fn start_render(
     assignment: &pb::Assignment,
     pool: &rayon::ThreadPool,
     scenes: &mut SceneCache,
-) -> Option<oneshot::Receiver<(WorkUnit, hypertexture_proto::Bytes, u64)>> {
-    let job = assignment.job.as_ref()?;
-    let scene = match scenes.get(job) {
-        Ok(s) => s,
-        Err(e) => {
-            tracing::error!("cannot use the assigned scene {}: {e}", job.scene_name);
-            return None;
-        }
-    };
-    let unit = match assignment
+    fault: Option<Fault>,
+) -> Result<oneshot::Receiver<Result<Tile, String>>, (FailureKind, String)> {
+    let job = assignment
+        .job
+        .as_ref()
+        .ok_or((FailureKind::Assignment, "the assignment has no job".into()))?;
+    let scene = match fault {
+        Some(Fault::Scene) => Err((
+            FailureKind::Scene,
+            format!(
+                "{}: the scene fails to build on purpose (fault injection)",
+                job.scene_name
+            ),
+        )),
+        _ => scenes.get(job),
+    }?;
+    let unit = assignment
         .unit
         .as_ref()
         .ok_or(convert::WireError::Missing("unit"))
         .and_then(|u| convert::unit_from_wire(u, scene.width(), scene.height()))
-    {
-        Ok(u) => u,
-        Err(e) => {
-            tracing::error!("assignment {}: {e}", assignment.assignment_id);
-            return None;
-        }
-    };
+        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let frame = job.frame;
     let (done, result) = oneshot::channel();
     pool.spawn(move || {
         let render = || {
+            if fault == Some(Fault::Panic) {
+                panic!("the render panics on purpose (fault injection)");
+            }
             let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
             let before = process_cpu_micros();
             let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
             let cpu = process_cpu_micros().saturating_sub(before);
             (unit, convert::samples_to_wire(&samples), cpu)
         };
-        if let Ok(tile) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render)) {
-            let _ = done.send(tile);
-        }
+        let tile = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render))
+            .map_err(|payload| format!("the render panicked: {}", panic_message(&*payload)));
+        let _ = done.send(tile);
     });
-    Some(result)
+    Ok(result)
+}
+
+/// The message a panic was raised with.
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
+    payload
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
 }
 
 /// Scenes built from assignments, by content hash (a worker holds a few at most).
@@ -574,16 +648,25 @@ impl SceneCache {
         self.last
     }
 
-    fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, String> {
+    /// The built scene of a job. Errors say whether the scene itself fails here
+    /// (every unit of the job would: [`FailureKind::Scene`]) or only this
+    /// assignment was unusable.
+    fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, (FailureKind, String)> {
         if job.scene_text.is_empty() {
             // Left out by the coordinator: this worker said it has the scene.
             return self.scenes.get(&job.scene_hash).cloned().ok_or_else(|| {
-                format!(
-                    "the assignment leaves out the text of scene {:016x}, which this worker has not built",
-                    job.scene_hash
+                // Say "none" from now on, so the next assignment brings the text.
+                self.last = 0;
+                (
+                    FailureKind::Assignment,
+                    format!(
+                        "the assignment leaves out the text of scene {:016x}, which this worker has not built",
+                        job.scene_hash
+                    ),
                 )
             });
         }
+        let scene_failure = |e: String| (FailureKind::Scene, e);
         let knobs = convert::knobs_from_wire(&job.knobs);
         let hash = convert::scene_hash(
             &job.scene_text,
@@ -594,10 +677,10 @@ impl SceneCache {
             &knobs,
         );
         if hash != job.scene_hash {
-            return Err(format!(
-                "content hash mismatch ({hash:016x} ≠ {:016x})",
-                job.scene_hash
-            ));
+            return Err(scene_failure(format!(
+                "{}: content hash mismatch ({hash:016x} ≠ {:016x})",
+                job.scene_name, job.scene_hash
+            )));
         }
         if let Some(scene) = self.scenes.get(&hash) {
             self.last = hash;
@@ -610,11 +693,12 @@ impl SceneCache {
                 width: Some(job.width),
                 height: Some(job.height),
                 spp: convert::spp_from_wire(job.spp),
-                quality: convert::quality_from_wire(job.quality).map_err(|e| e.to_string())?,
+                quality: convert::quality_from_wire(job.quality)
+                    .map_err(|e| scene_failure(e.to_string()))?,
                 knobs,
             },
         )
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| scene_failure(e.to_string()))?;
         if self.scenes.len() >= Self::CAPACITY {
             self.scenes.clear();
         }
