@@ -922,3 +922,49 @@ fn a_sequence_is_one_farm_session_with_the_in_process_bytes() {
     assert_eq!(count("rendered "), 3, "{log_text}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A `worker` binary left from an older build (here a script that fails as a
+/// protocol mismatch does) must not stall the render: the coordinator notices
+/// that every local worker process failed and renders with in-process workers.
+#[cfg(unix)]
+#[test]
+fn failing_local_worker_binaries_give_way_to_in_process_workers() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = scratch("farm-stale-worker");
+    let exe = dir.join("coordinator");
+    std::fs::copy(env!("CARGO_BIN_EXE_coordinator"), &exe).unwrap();
+    let fake = dir.join("worker");
+    std::fs::write(
+        &fake,
+        "#!/bin/sh\necho 'error: the coordinator refused this worker: protocol version mismatch' >&2\nexit 1\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let reference = dir.join("reference.png");
+    in_process("noisy_sphere", 48, &reference);
+    let out = dir.join("farm.png");
+    let started = std::time::Instant::now();
+    let o = std::process::Command::new(&exe)
+        .args(["--scene", scene("noisy_sphere").to_str().unwrap()])
+        .args([
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "48",
+            "--height",
+            "48",
+        ])
+        .args(["--local-workers", "2", "--worker-timeout", "30"])
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("every local worker process"), "{log}");
+    assert!(
+        started.elapsed().as_secs() < 20,
+        "no wait for a time-out: {log}"
+    );
+    same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -10,8 +10,10 @@ use crate::farm::{FarmConfig, FarmError, worker_binary};
 
 /// Local workers started for one render.
 pub enum LocalWorkers {
-    /// Child processes.
-    Processes(Vec<(String, Child)>),
+    /// Child processes, and how to start in-process workers instead should
+    /// every one of them fail (a `worker` binary left from an older build
+    /// speaks an older protocol: `cargo run -p coordinator` does not rebuild it).
+    Processes(Vec<(String, Child)>, Option<InProcessPlan>),
     /// Tasks in this process (no `worker` binary found).
     InProcess {
         /// Tells the tasks to stop.
@@ -19,6 +21,36 @@ pub enum LocalWorkers {
         /// The tasks.
         tasks: Vec<tokio::task::JoinHandle<Result<worker::WorkerReport, worker::WorkerError>>>,
     },
+}
+
+/// What in-process workers need to dial the coordinator.
+pub struct InProcessPlan {
+    count: usize,
+    threads: usize,
+    url: String,
+    token: Option<String>,
+    ca: Option<Vec<u8>>,
+}
+
+impl InProcessPlan {
+    fn start(&self) -> LocalWorkers {
+        let (stop, stopped) = watch::channel(false);
+        let tasks = (0..self.count)
+            .map(|i| {
+                let cfg = worker::WorkerConfig {
+                    coordinator: self.url.clone(),
+                    threads: self.threads,
+                    token: self.token.clone(),
+                    name: format!("in-process-{i}"),
+                    ca: self.ca.clone(),
+                    exit_when_done: true,
+                    fault: None,
+                };
+                tokio::spawn(worker::run(cfg, stopped.clone()))
+            })
+            .collect::<Vec<_>>();
+        LocalWorkers::InProcess { stop, tasks }
+    }
 }
 
 impl LocalWorkers {
@@ -29,8 +61,15 @@ impl LocalWorkers {
         token: Option<&str>,
     ) -> Result<LocalWorkers, FarmError> {
         if config.local_workers == 0 {
-            return Ok(LocalWorkers::Processes(Vec::new()));
+            return Ok(LocalWorkers::Processes(Vec::new(), None));
         }
+        let plan = InProcessPlan {
+            count: config.local_workers,
+            threads: config.local_threads,
+            url: url.to_string(),
+            token: token.map(str::to_string),
+            ca: config.tls.as_ref().map(|(cert, _)| cert.clone()),
+        };
         let ca_path =
             std::env::temp_dir().join(format!("hypertexture-ca-{}.pem", std::process::id()));
         if let Some((cert, _)) = &config.tls {
@@ -70,55 +109,55 @@ impl LocalWorkers {
                     children.len(),
                     path.display()
                 );
-                Ok(LocalWorkers::Processes(children))
+                Ok(LocalWorkers::Processes(children, Some(plan)))
             }
             None => {
-                let (stop, stopped) = watch::channel(false);
-                let ca = config.tls.as_ref().map(|(cert, _)| cert.clone());
-                let tasks = (0..config.local_workers)
-                    .map(|i| {
-                        let cfg = worker::WorkerConfig {
-                            coordinator: url.to_string(),
-                            threads: config.local_threads,
-                            token: token.map(str::to_string),
-                            name: format!("in-process-{i}"),
-                            ca: ca.clone(),
-                            exit_when_done: true,
-                            fault: None,
-                        };
-                        tokio::spawn(worker::run(cfg, stopped.clone()))
-                    })
-                    .collect::<Vec<_>>();
                 tracing::info!(
                     "no worker binary beside the coordinator: started {} in-process workers",
-                    tasks.len()
+                    plan.count
                 );
-                Ok(LocalWorkers::InProcess { stop, tasks })
+                Ok(plan.start())
             }
         }
     }
 
     /// A message if a local worker process has died (its units are reassigned).
+    ///
+    /// When every local worker process has failed, in-process workers take
+    /// their place (they are this very build, so they always speak its protocol).
     pub fn check(&mut self) -> Option<String> {
-        if let LocalWorkers::Processes(children) = self {
-            let mut message = None;
-            children.retain_mut(|(name, child)| match child.try_wait() {
-                Ok(Some(status)) if !status.success() => {
-                    message = Some(format!("local worker {name} exited with {status}"));
-                    false
-                }
-                _ => true,
-            });
-            return message;
+        let LocalWorkers::Processes(children, plan) = self else {
+            return None;
+        };
+        let mut message = None;
+        children.retain_mut(|(name, child)| match child.try_wait() {
+            Ok(Some(status)) if !status.success() => {
+                message = Some(format!("local worker {name} exited with {status}"));
+                false
+            }
+            _ => true,
+        });
+        if message.is_some()
+            && children.is_empty()
+            && let Some(plan) = plan.take()
+        {
+            let path = worker_binary().map_or_else(String::new, |p| p.display().to_string());
+            message = Some(format!(
+                "every local worker process ({path}) has failed: running {} in-process workers \
+                 instead (a worker binary from an older build speaks an older protocol; \
+                 `cargo build --release --workspace` rebuilds it)",
+                plan.count
+            ));
+            *self = plan.start();
         }
-        None
+        message
     }
 
     /// Waits up to `grace` for the workers to leave, then stops the rest (at
     /// once, and quietly, with no grace).
     pub async fn stop(self, grace: Duration) {
         match self {
-            LocalWorkers::Processes(children) => {
+            LocalWorkers::Processes(children, _) => {
                 for (name, mut child) in children {
                     match tokio::time::timeout(grace, child.wait()).await {
                         Ok(_) => {}
