@@ -80,6 +80,31 @@ fn unknown_field_names_line_and_column() {
 }
 
 #[test]
+fn a_bad_transform_is_named_where_it_is() {
+    let with = |t: &str| {
+        GOOD.replace(
+            "    object: Sphere(radius: 0.8, softness: 0.2),\n",
+            &format!("    object: Sphere(radius: 0.8, softness: 0.2),\n    transform: {t},\n"),
+        )
+    };
+    Scene::from_text(
+        &with("(velocity: (0.1, 0, 0), spin: 5)"),
+        "t.ron",
+        Overrides::default(),
+    )
+    .unwrap();
+    let (line, _, message) = error_of(&with("(spin: 5, wobble: 1)"));
+    assert_eq!(line, 6);
+    assert!(
+        message.contains("wobble") && message.contains("Transform"),
+        "{message}"
+    );
+    let (line, _, message) = error_of(&with("(axis: (0, 0, 0))"));
+    assert_eq!(line, 6);
+    assert!(message.contains("non-zero direction"), "{message}");
+}
+
+#[test]
 fn negative_radius_is_out_of_range() {
     let (line, _, message) = error_of(&GOOD.replace("radius: 0.8", "radius: -0.8"));
     assert_eq!(line, 5);

@@ -228,7 +228,7 @@ impl TryFrom<SceneFields> for SceneDesc {
 /// is at the world point `pivot + R(angle + spin·τ)(o − pivot) + translate +
 /// velocity·τ`, R the rotation about `axis` through the pivot.
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, rename = "Transform")]
 pub struct TransformDesc {
     /// Offset at frame 0.
     #[serde(default)]
