@@ -444,12 +444,20 @@ impl Parser {
             }
             Tok::Punct("[") => {
                 self.bump();
+                // A vector has exactly three components.
+                let what = "`,` (a vector is [x, y, z])";
                 let a = self.expr()?;
-                self.expect(",")?;
+                if !self.eat(",") {
+                    return Err(self.unexpected(what));
+                }
                 let b = self.expr()?;
-                self.expect(",")?;
+                if !self.eat(",") {
+                    return Err(self.unexpected(what));
+                }
                 let c = self.expr()?;
-                self.expect("]")?;
+                if !self.eat("]") {
+                    return Err(self.unexpected("`]` (a vector is [x, y, z])"));
+                }
                 self.node(ExprKind::Vector(Box::new([a, b, c])), at)
             }
             Tok::Ident(s) if s == "if" => self.if_else(),
@@ -520,6 +528,19 @@ mod tests {
             panic!()
         };
         assert!(matches!(sum.kind, ExprKind::Binary(BinOp::Add, _, _)));
+    }
+
+    #[test]
+    fn a_vector_needs_three_components() {
+        let e = parse_expression("[1, 2]").unwrap_err();
+        assert!(e.message.contains("a vector is [x, y, z]"), "{}", e.message);
+        assert_eq!(e.at, 5);
+        let e = parse_expression("[1, 2, 3, 4]").unwrap_err();
+        assert!(
+            e.message.contains("`]` (a vector is [x, y, z])"),
+            "{}",
+            e.message
+        );
     }
 
     #[test]
