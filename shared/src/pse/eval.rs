@@ -444,12 +444,11 @@ impl Program {
                 _ => {}
             }
             // The lanes that do not run this operation keep their registers.
-            let written = op.written();
+            // (Only looked up when some lane is masked.)
+            let written = if all_active { [None; 3] } else { op.written() };
             let mut saved = [None; 3];
-            if !all_active {
-                for (s, w) in saved.iter_mut().zip(written) {
-                    *s = w.map(|w| r[usize::from(w)]);
-                }
+            for (s, w) in saved.iter_mut().zip(written) {
+                *s = w.map(|w| r[usize::from(w)]);
             }
             macro_rules! lanewise {
                 ($d:expr, |$l:ident| $e:expr) => {{
