@@ -1496,28 +1496,24 @@ mod tests {
         let e = compile_expression("g(1)", Kind::Probe, &ctx).unwrap_err();
         assert!(e.message.contains("defined later"), "{}", e.message);
         // Each function doubles the size of the last: capped, not hung.
-        let mut defs = String::from("fn f0(a) { noise([a, a, a]) }");
-        for i in 1..40 {
-            defs += &format!(" fn f{i}(a) {{ f{}(a) + f{}(a + 1) }}", i - 1, i - 1);
-        }
-        let functions = parse_functions(&defs).unwrap();
-        let ctx = Context {
-            functions: &functions,
-            ..ctx
+        let doubling = |base: &str| {
+            let mut defs = format!("fn f0(a) {{ {base} }}");
+            for i in 1..40 {
+                defs += &format!(" fn f{i}(a) {{ f{}(a) + f{}(a + 1) }}", i - 1, i - 1);
+            }
+            let functions = parse_functions(&defs).unwrap();
+            let ctx = Context {
+                functions: &functions,
+                ..ctx
+            };
+            compile_expression("f39(x.x)", Kind::Probe, &ctx)
+                .unwrap_err()
+                .message
         };
-        let e = compile_expression("f39(x.x)", Kind::Probe, &ctx).unwrap_err();
-        assert!(e.message.contains("noise more than"), "{}", e.message);
-        let mut defs = String::from("fn f0(a) { a * 2 + 1 }");
-        for i in 1..40 {
-            defs += &format!(" fn f{i}(a) {{ f{}(a) + f{}(a + 1) }}", i - 1, i - 1);
-        }
-        let functions = parse_functions(&defs).unwrap();
-        let ctx = Context {
-            functions: &functions,
-            ..ctx
-        };
-        let e = compile_expression("f39(x.x)", Kind::Probe, &ctx).unwrap_err();
-        assert!(e.message.contains("operations"), "{}", e.message);
+        let e = doubling("noise([a, a, a])");
+        assert!(e.contains("noise more than"), "{e}");
+        let e = doubling("a * 2 + 1");
+        assert!(e.contains("operations"), "{e}");
         let sum = vec!["turbulence(x * 2, k)"; 100].join(" + ");
         let k = BTreeMap::from([("k".to_string(), 16.0)]);
         let heavy = Context { knobs: &k, ..ctx };
