@@ -3,12 +3,21 @@
 //! their goodbye, ≤ 1.10 × the CPU of `--in-process --threads 1`), and every
 //! worker must render a share. Coordinator included, the farm stays within 1.25×.
 //!
+//! CPU time only grows under interference (a busy neighbour, a cold cache, a
+//! slower clock), so the test runs the serial render and the farm in turn a few
+//! times and compares the least CPU each took: one run can cost 25% more than
+//! the next on a shared machine, which one pair of runs cannot tell apart from a
+//! farm that wastes work.
+//!
 //! Its own test binary: `RUSAGE_CHILDREN` counts every child this process has
 //! waited for, so no other test may run children beside it.
 
 mod support;
 
 use support::*;
+
+/// Serial and farm renders, each run this many times in turn.
+const ROUNDS: usize = 3;
 
 /// CPU seconds (user + system) of all waited-for children so far.
 fn children_cpu() -> f64 {
@@ -22,27 +31,12 @@ fn children_cpu() -> f64 {
     secs(usage.ru_utime) + secs(usage.ru_stime)
 }
 
-#[test]
-fn the_farm_costs_no_more_cpu_than_the_serial_render() {
-    let dir = scratch("speedup");
-    let fur = scene("fur");
-    let common = [
-        "--scene",
-        fur.to_str().unwrap(),
-        // Large enough that the workers' fixed costs (process start, connection,
-        // scene build) stay small beside the render, as they are at full size.
-        "--width",
-        "512",
-        "--height",
-        "512",
-    ];
-    let _ = worker_bin();
-
+/// The CPU seconds of `--in-process --threads 1`.
+fn serial(common: &[&str], out: &std::path::Path) -> f64 {
     let before = children_cpu();
-    let out = dir.join("serial.png");
     let o = coordinator(
         &[
-            &common[..],
+            common,
             &[
                 "--out",
                 out.to_str().unwrap(),
@@ -54,15 +48,18 @@ fn the_farm_costs_no_more_cpu_than_the_serial_render() {
         ]
         .concat(),
     );
-    assert!(o.status.success());
-    let serial = children_cpu() - before;
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    children_cpu() - before
+}
 
+/// The farm of two local worker processes: (the workers' own process CPU as they
+/// report it, the CPU of the coordinator and its workers together).
+fn farm(common: &[&str], out: &std::path::Path) -> (f64, f64) {
     let before = children_cpu();
-    let out = dir.join("farm.png");
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
         .args(
             [
-                &common[..],
+                common,
                 &[
                     "--out",
                     out.to_str().unwrap(),
@@ -78,7 +75,7 @@ fn the_farm_costs_no_more_cpu_than_the_serial_render() {
         .env("NO_COLOR", "1")
         .output()
         .unwrap();
-    let farm = children_cpu() - before;
+    let total = children_cpu() - before;
     let log = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{log}");
 
@@ -100,18 +97,46 @@ fn the_farm_costs_no_more_cpu_than_the_serial_render() {
             .unwrap_or_else(|| panic!("no process cpu in {line:?}"));
         workers += cpu;
     }
+    (workers, total)
+}
+
+#[test]
+fn the_farm_costs_no_more_cpu_than_the_serial_render() {
+    let dir = scratch("speedup");
+    let fur = scene("fur");
+    let common = [
+        "--scene",
+        fur.to_str().unwrap(),
+        // Large enough that the workers' fixed costs (process start, connection,
+        // scene build) stay small beside the render, as they are at full size.
+        "--width",
+        "512",
+        "--height",
+        "512",
+    ];
+    let _ = worker_bin();
+
+    let (mut best_serial, mut best_workers, mut best_farm) = (f64::MAX, f64::MAX, f64::MAX);
+    for round in 0..ROUNDS {
+        let s = serial(&common, &dir.join("serial.png"));
+        let (w, f) = farm(&common, &dir.join("farm.png"));
+        println!("round {round}: serial CPU {s:.3} s; workers {w:.3} s; farm {f:.3} s");
+        best_serial = best_serial.min(s);
+        best_workers = best_workers.min(w);
+        best_farm = best_farm.min(f);
+    }
     println!(
-        "serial CPU {serial:.3} s; workers {workers:.3} s (ratio {:.3}); with the coordinator {farm:.3} s (ratio {:.3})",
-        workers / serial,
-        farm / serial
+        "least of {ROUNDS}: serial CPU {best_serial:.3} s; workers {best_workers:.3} s (ratio {:.3}); with the coordinator {best_farm:.3} s (ratio {:.3})",
+        best_workers / best_serial,
+        best_farm / best_serial
     );
     assert!(
-        workers <= 1.10 * serial,
-        "workers' CPU {workers:.3} s > 1.10 × serial {serial:.3} s\n{log}"
+        best_workers <= 1.10 * best_serial,
+        "workers' CPU {best_workers:.3} s > 1.10 × serial {best_serial:.3} s"
     );
     assert!(
-        farm <= 1.25 * serial,
-        "farm CPU {farm:.3} s > 1.25 × serial {serial:.3} s\n{log}"
+        best_farm <= 1.25 * best_serial,
+        "farm CPU {best_farm:.3} s > 1.25 × serial {best_serial:.3} s"
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
