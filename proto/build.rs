@@ -7,7 +7,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build_client(true)
         .build_server(true)
         // Tiles as `Bytes`: decoding takes a slice of the received buffer, no copy.
-        .bytes(".hypertexture.v1.SubmitTileParams.samples")
+        .bytes(".hypertexture.v1.SubmitTileParams.pixels")
         .compile_fds(descriptors)?;
     Ok(())
 }

@@ -176,9 +176,10 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
     use tonic::Code;
 
     let dir = scratch("farm-malformed");
-    let reference = dir.join("reference.png");
+    // An EXR: the tiles carry float samples, which can be NaN or infinite.
+    let reference = dir.join("reference.exr");
     in_process("noisy_sphere", 32, &reference);
-    let out = dir.join("farm.png");
+    let out = dir.join("farm.exr");
     let mut coord = Running::coordinator(&[
         "--scene",
         scene("noisy_sphere").to_str().unwrap(),
@@ -239,6 +240,10 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         let Some(Outcome::Assignment(a)) = work.outcome else {
             panic!("expected an assignment")
         };
+        assert_eq!(
+            a.job.as_ref().unwrap().pixel_format,
+            pb::PixelFormat::Samples as i32
+        );
         let unit = a.unit.unwrap();
         let pixels = {
             let u = hypertexture_proto::convert::unit_from_wire(&unit, 32, 32).unwrap();
@@ -248,7 +253,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             worker_id: id.clone(),
             assignment_id,
             unit: Some(unit),
-            samples: samples.into(),
+            pixels: samples.into(),
             render_cpu_micros: 0,
             want_next: true,
             known_scene_hash: 0,
@@ -392,7 +397,10 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
                 worker_id: id.clone(),
                 assignment_id: first.assignment_id,
                 unit: Some(wire_unit),
-                samples: hypertexture_proto::convert::samples_to_wire(&samples),
+                pixels: hypertexture_proto::convert::tile_to_wire(
+                    &samples,
+                    hypertexture_proto::convert::pixel_format_from_wire(job.pixel_format).unwrap(),
+                ),
                 render_cpu_micros: 1,
                 want_next: true,
                 known_scene_hash: job.scene_hash,

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use hypertexture::interleave::{DEFAULT_INTERLEAVE, farm_units};
 use hypertexture::{Film, Overrides, Scene};
 
+use crate::canvas::FrameImage;
 use crate::{CoordinatorError, farm};
 
 /// What to measure.
@@ -25,6 +26,8 @@ pub struct BenchConfig {
     pub workers: Vec<usize>,
     /// Simulated farm sizes.
     pub simulate: Vec<usize>,
+    /// What the farm's tiles carry (8-bit sRGB for a PNG, every sample for an EXR).
+    pub pixel_format: hypertexture::PixelFormat,
 }
 
 /// CPU seconds (user + system) of this process, or of its waited-for children.
@@ -114,6 +117,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             spp: None,
             quality: None,
             knobs: Vec::new(),
+            pixel_format: config.pixel_format,
         };
         let farm_config = farm::FarmConfig {
             listen: "127.0.0.1:0".parse().expect("a valid address"),
@@ -163,7 +167,10 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             own * 1e3,
             report.tile_bytes,
             if mean > 0.0 { max / mean } else { 0.0 },
-            if same(&report.film, &serial_film) {
+            if match &report.image {
+                FrameImage::Film(film) => same(film, &serial_film),
+                image => image.srgb8() == serial_film.to_srgb8(),
+            } {
                 "yes"
             } else {
                 "NO"

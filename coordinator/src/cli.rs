@@ -205,6 +205,10 @@ pub struct BenchArgs {
         default_value = "8,16,64,256"
     )]
     pub simulate: Vec<usize>,
+    /// Tiles as for an EXR output (every sample, 36 bytes a pixel) instead of a
+    /// PNG's 8-bit colour (4 bytes a pixel).
+    #[arg(long)]
+    pub exr: bool,
 }
 
 impl BenchArgs {
@@ -217,6 +221,11 @@ impl BenchArgs {
             height: self.height,
             workers: self.workers.into_iter().filter(|&n| n > 0).collect(),
             simulate: self.simulate.into_iter().filter(|&n| n > 0).collect(),
+            pixel_format: if self.exr {
+                hypertexture::PixelFormat::Samples
+            } else {
+                hypertexture::PixelFormat::Srgb8
+            },
         }
     }
 }

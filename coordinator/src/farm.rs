@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use hypertexture::Film;
+use hypertexture::PixelFormat;
 use hypertexture::interleave::farm_units;
 use hypertexture_proto::pb::farm_server::{Farm, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
@@ -20,6 +20,7 @@ use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
 use tokio::sync::watch;
 use tonic::{Request, Response, Status};
 
+use crate::canvas::FrameImage;
 use crate::scheduler::{Next, Refusal, Scheduler};
 
 /// How the farm runs.
@@ -116,6 +117,9 @@ pub struct FrameJob {
     pub quality: Option<hypertexture::Quality>,
     /// Knob overrides (`--set`).
     pub knobs: Vec<(String, f64)>,
+    /// What the tiles carry: what the outputs need
+    /// ([`crate::output::pixel_format_for`]).
+    pub pixel_format: PixelFormat,
 }
 
 /// A frame the farm has finished.
@@ -142,7 +146,7 @@ pub struct SessionReport {
 #[derive(Clone, Debug)]
 pub struct FarmReport {
     /// The image.
-    pub film: Film,
+    pub image: FrameImage,
     /// Wall time from the first unit handed out to the last tile.
     pub render_time: Duration,
     /// One line per worker: name, units, pixels, CPU.
@@ -314,7 +318,7 @@ impl Farm for Service {
                     &p.worker_id,
                     p.assignment_id,
                     p.unit.as_ref(),
-                    &p.samples,
+                    &p.pixels,
                     p.render_cpu_micros,
                     now,
                 )
@@ -334,7 +338,7 @@ impl Farm for Service {
         };
         self.0
             .tile_bytes
-            .fetch_add(p.samples.len() as u64, std::sync::atomic::Ordering::Relaxed);
+            .fetch_add(p.pixels.len() as u64, std::sync::atomic::Ordering::Relaxed);
         Ok(Response::new(pb::SubmitTileResult {
             accepted,
             next: next.map(|n| self.work(n, p.known_scene_hash)),
@@ -417,7 +421,7 @@ pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport,
         .ok_or_else(|| FarmError::Stopped("the farm finished without a frame".into()))?
         .frame;
     Ok(FarmReport {
-        film: frame.film,
+        image: frame.image,
         render_time: frame.render_time,
         workers: session.workers,
         unit_costs: frame.unit_costs,
@@ -483,10 +487,11 @@ pub async fn render_frames(
         spp: job.spp.unwrap_or(0),
         quality: convert::quality_to_wire(job.quality) as i32,
         knobs: convert::knobs_to_wire(&job.knobs),
+        pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
     };
     let shared = Arc::new(Shared {
         scheduler: Mutex::new(
-            Scheduler::new(units, job.width, job.height, config.lease)
+            Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
                 .with_frames(job.frames.iter().map(|f| f.frame).collect()),
         ),
         job_without_text: pb::Job {
@@ -609,11 +614,11 @@ pub async fn render_frames(
         if let Err(e) = handed {
             break Err(e);
         }
-        if let Some((film, frame)) = preview {
+        if let Some((image, frame)) = preview {
             last_preview = now;
             let path = out_of(frame);
             writing_preview = Some(tokio::task::spawn_blocking(move || {
-                if let Err(e) = crate::output::write_image(&film, &path) {
+                if let Err(e) = crate::output::write_frame_image(&image, &path) {
                     tracing::warn!("preview: {e}");
                 }
             }));

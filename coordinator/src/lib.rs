@@ -3,6 +3,7 @@
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
 pub mod bench;
+pub mod canvas;
 pub mod cli;
 pub mod farm;
 pub mod grid;
@@ -195,7 +196,8 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
             .into_iter()
             .map(|f| {
                 let (film, time) = render_in_process(&scene, f.frame, threads, config.progress)?;
-                write_frame(&config, &scene, &film, f.frame, time, &f.out, &how)
+                let image = canvas::FrameImage::Film(film);
+                write_frame(&config, &scene, &image, f.frame, time, &f.out, &how)
             })
             .collect();
     };
@@ -215,13 +217,13 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
 fn write_frame(
     config: &Config,
     scene: &Scene,
-    film: &Film,
+    image: &canvas::FrameImage,
     frame: u32,
     render_time: Duration,
     out: &std::path::Path,
     how: &str,
 ) -> Result<Summary, CoordinatorError> {
-    output::write_image(film, out)?;
+    output::write_frame_image(image, out)?;
     tracing::info!(
         "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",
         config.scene.display(),
@@ -255,10 +257,11 @@ pub fn render_on_farm(
         scene_name: config.scene.display().to_string(),
         width: scene.width(),
         height: scene.height(),
-        frames,
         spp: config.spp,
         quality: config.quality,
         knobs: config.knobs.clone(),
+        pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
+        frames,
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,
@@ -289,7 +292,7 @@ pub fn render_on_farm(
                     write_frame(
                         config,
                         scene,
-                        &f.film,
+                        &f.image,
                         f.frame,
                         f.render_time,
                         &done.out,

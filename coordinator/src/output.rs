@@ -7,7 +7,9 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use hypertexture::Film;
+use hypertexture::{Film, PixelFormat};
+
+use crate::canvas::FrameImage;
 
 /// Image formats we write, chosen by the output file's extension.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -62,49 +64,18 @@ impl ImageFormat {
     }
 }
 
-/// The sRGB transfer function (IEC 61966-2-1) of a linear value in [0, 1].
-/// `libm::powf`, not the platform's, so every machine writes the same bytes.
-pub fn linear_to_srgb(c: f32) -> f32 {
-    if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * libm::powf(c, 1.0 / 2.4) - 0.055
-    }
-}
-
-/// A value in [0, 1] (clamped) as a byte, rounded to nearest.
-fn to_byte(v: f32) -> u8 {
-    let v = if v > 0.0 { v.min(1.0) } else { 0.0 };
-    (v * 255.0 + 0.5) as u8
-}
-
-/// The film as straight-alpha 8-bit sRGB RGBA bytes, row-major.
-pub fn srgb8(film: &Film) -> Vec<u8> {
-    let mut bytes = Vec::with_capacity(film.pixels().len() * 4);
-    for s in film.pixels() {
-        let [r, g, b, a] = s.rgba;
-        let unpremultiply = if a > 0.0 && a < 1.0 { 1.0 / a } else { 1.0 };
-        for c in [r, g, b] {
-            let c = (c * unpremultiply).clamp(0.0, 1.0);
-            bytes.push(to_byte(linear_to_srgb(c)));
-        }
-        bytes.push(to_byte(a));
-    }
-    bytes
-}
-
 /// Encodes the film as an 8-bit sRGB PNG with alpha.
 pub fn encode_png(film: &Film) -> Result<Vec<u8>, OutputError> {
+    encode_srgb8_png(&film.to_srgb8(), film.width(), film.height())
+}
+
+/// Encodes straight-alpha 8-bit sRGB RGBA bytes ([`Film::to_srgb8`]) as a PNG.
+pub fn encode_srgb8_png(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>, OutputError> {
     use image::ImageEncoder;
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let mut out = Vec::new();
     PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
-        .write_image(
-            &srgb8(film),
-            film.width(),
-            film.height(),
-            image::ExtendedColorType::Rgba8,
-        )
+        .write_image(bytes, width, height, image::ExtendedColorType::Rgba8)
         .map_err(|e| OutputError::Encode {
             path: PathBuf::from("<memory>"),
             message: e.to_string(),
@@ -173,6 +144,45 @@ pub fn write_image(film: &Film, path: &Path) -> Result<(), OutputError> {
     write_atomically(path, &bytes)
 }
 
+/// What the farm's tiles must carry for these outputs: 8-bit sRGB when every one
+/// is a PNG (a ninth of the bytes), every sample otherwise.
+pub fn pixel_format_for<'a>(outputs: impl IntoIterator<Item = &'a Path>) -> PixelFormat {
+    let png = |p: &Path| matches!(ImageFormat::from_path(p), Ok(ImageFormat::Png));
+    if outputs.into_iter().all(png) {
+        PixelFormat::Srgb8
+    } else {
+        PixelFormat::Samples
+    }
+}
+
+/// Writes a frame's image to `path` like [`write_image`]; an image collected as
+/// 8-bit sRGB can only become a PNG.
+pub fn write_frame_image(image: &FrameImage, path: &Path) -> Result<(), OutputError> {
+    let (width, height, bytes) = match image {
+        FrameImage::Film(film) => return write_image(film, path),
+        FrameImage::Srgb8 {
+            width,
+            height,
+            bytes,
+        } => (*width, *height, bytes),
+    };
+    let encoded = match ImageFormat::from_path(path)? {
+        ImageFormat::Png => encode_srgb8_png(bytes, width, height),
+        ImageFormat::Exr => Err(OutputError::Encode {
+            path: PathBuf::from("<memory>"),
+            message: "an EXR keeps every channel, and this image has only 8-bit colour".into(),
+        }),
+    }
+    .map_err(|e| match e {
+        OutputError::Encode { message, .. } => OutputError::Encode {
+            path: path.to_path_buf(),
+            message,
+        },
+        other => other,
+    })?;
+    write_atomically(path, &encoded)
+}
+
 /// Writes `bytes` to a temporary file beside `path`, then renames it over `path`.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
     let io = |source| OutputError::Io {
@@ -238,14 +248,6 @@ mod tests {
         let err = ImageFormat::from_path(Path::new("out/a.jpg")).unwrap_err();
         assert!(err.to_string().contains("out/a.jpg") && err.to_string().contains(".png"));
         assert!(ImageFormat::from_path(Path::new("noext")).is_err());
-    }
-
-    #[test]
-    fn srgb_transfer() {
-        assert_eq!(linear_to_srgb(0.0), 0.0);
-        assert!((linear_to_srgb(1.0) - 1.0).abs() < 1e-6);
-        assert!((linear_to_srgb(0.003_130_8) - 0.040_449_9).abs() < 1e-5);
-        assert_eq!(to_byte(linear_to_srgb(0.5)), 188);
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! whose worker stops heartbeating goes back to the front of the queue; when the
 //! queue is empty, idle workers get speculative duplicates of units still out
 //! (first tile wins — results are identical by construction). A tile is checked
-//! completely before it touches the film.
+//! completely before it touches the canvas.
 //!
 //! A sequence of frames is one session: the workers stay, and the tile that
 //! completes a frame moves its image to [`Scheduler::take_completed`] and starts
@@ -22,8 +22,10 @@
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
+use hypertexture::PixelFormat;
 use hypertexture::interleave::WorkUnit;
-use hypertexture::{Film, Sample};
+
+use crate::canvas::{Canvas, FrameImage};
 use hypertexture_proto::convert::{self, WireError};
 use hypertexture_proto::{FailureKind, pb};
 
@@ -171,7 +173,7 @@ pub struct CompletedFrame {
     /// The frame number.
     pub frame: u32,
     /// Its image.
-    pub film: Film,
+    pub image: FrameImage,
     /// The CPU microseconds each unit's accepted tile cost.
     pub unit_costs: Vec<u64>,
     /// From its first unit handed out to its last tile in.
@@ -231,9 +233,8 @@ pub struct Scheduler {
     workers: HashMap<u64, WorkerState>,
     next_worker: u64,
     lease: Duration,
-    film: Film,
-    /// Per pixel: rendered yet (for previews).
-    rendered: Vec<bool>,
+    /// The frame rendering.
+    canvas: Canvas,
     /// Per unit: the CPU microseconds the accepted tile cost.
     unit_cpu: Vec<u64>,
     /// Per unit: the workers (by id) that failed it, and how.
@@ -243,9 +244,15 @@ pub struct Scheduler {
 }
 
 impl Scheduler {
-    /// A scheduler for `units` of a `width × height` frame; a worker silent for
-    /// `lease` loses its units.
-    pub fn new(units: Vec<WorkUnit>, width: u32, height: u32, lease: Duration) -> Scheduler {
+    /// A scheduler for `units` of a `width × height` frame whose tiles come in
+    /// `format`; a worker silent for `lease` loses its units.
+    pub fn new(
+        units: Vec<WorkUnit>,
+        width: u32,
+        height: u32,
+        format: PixelFormat,
+        lease: Duration,
+    ) -> Scheduler {
         let n = units.len();
         Scheduler {
             frames: vec![0],
@@ -260,8 +267,7 @@ impl Scheduler {
             workers: HashMap::new(),
             next_worker: 1,
             lease,
-            film: Film::new(width, height),
-            rendered: vec![false; width as usize * height as usize],
+            canvas: Canvas::new(width, height, format),
             unit_cpu: vec![0; n],
             failures: vec![Vec::new(); n],
             gave_up: None,
@@ -415,7 +421,7 @@ impl Scheduler {
             // A duplicate of a unit of a frame that is complete.
             return Ok(false);
         }
-        let (width, height) = (self.film.width(), self.film.height());
+        let (width, height) = (self.canvas.width(), self.canvas.height());
         let unit_of = |u: Option<&pb::Unit>| {
             u.ok_or(WireError::Missing("unit"))
                 .and_then(|u| convert::unit_from_wire(u, width, height))
@@ -427,25 +433,19 @@ impl Scheduler {
         if claimed != self.units[issued_unit] {
             return Err(Refusal::WrongUnit(assignment_id));
         }
-        let samples =
-            convert::samples_from_wire(values, claimed.pixel_count(width)).map_err(|error| {
-                Refusal::Malformed {
+        let tile =
+            convert::tile_from_wire(values, claimed.pixel_count(width), self.canvas.format())
+                .map_err(|error| Refusal::Malformed {
                     id: assignment_id,
                     error,
-                }
-            })?;
+                })?;
         match self.leases.get(&assignment_id) {
             Some(lease) if lease.worker == wid => {}
             _ if self.done[issued_unit] => return Ok(false),
             _ => return Err(Refusal::NotHeld(assignment_id)),
         }
-        // Checked (the samples come out only after the whole tile passed): write it.
-        let film = self.film.pixels_mut();
-        for ((x, y), sample) in claimed.pixels(width).zip(samples) {
-            let i = (y * width + x) as usize;
-            film[i] = sample;
-            self.rendered[i] = true;
-        }
+        // Checked (the whole tile, above): store it.
+        self.canvas.store(&claimed, tile);
         self.done[issued_unit] = true;
         self.remaining -= 1;
         self.unit_cpu[issued_unit] = render_cpu_micros;
@@ -464,12 +464,12 @@ impl Scheduler {
     /// Moves the complete frame's image out and starts the next frame, if any.
     fn complete_frame(&mut self, now: Instant) {
         let n = self.units.len();
-        let (width, height) = (self.film.width(), self.film.height());
         let last = self.current + 1 == self.frames.len();
         self.completed.push(CompletedFrame {
             frame: self.frame(),
-            // A blank film of the same size: late duplicates are still checked against it.
-            film: std::mem::replace(&mut self.film, Film::new(width, height)),
+            // A blank canvas of the same size stays: late duplicates are still
+            // checked against it.
+            image: self.canvas.take(),
             unit_costs: std::mem::replace(&mut self.unit_cpu, vec![0; n]),
             render_time: self
                 .frame_started
@@ -485,7 +485,6 @@ impl Scheduler {
         self.remaining = n;
         // Duplicates still out belong to the frame just completed.
         self.leases.clear();
-        self.rendered.fill(false);
         self.failures = vec![Vec::new(); n];
     }
 
@@ -665,48 +664,28 @@ impl Scheduler {
         self.workers.values()
     }
 
-    /// The image of the frame rendering, so far.
-    pub fn film(&self) -> &Film {
-        &self.film
-    }
-
-    /// The image so far with each missing pixel filled from the nearest rendered
-    /// pixel of a coarser lattice (units arrive coarse to fine, so after the first
-    /// pixel set the whole picture is there at low resolution).
-    pub fn preview(&self) -> Film {
-        let mut film = self.film.clone();
-        let (w, h) = (film.width(), film.height());
-        for y in 0..h {
-            for x in 0..w {
-                if self.rendered[(y * w + x) as usize] {
-                    continue;
-                }
-                let mut spacing = 2;
-                while spacing <= 64 {
-                    let (px, py) = (x - x % spacing, y - y % spacing);
-                    if self.rendered[(py * w + px) as usize] {
-                        film.set(x, y, self.film.get(px, py));
-                        break;
-                    }
-                    spacing *= 2;
-                }
-                if spacing > 64 {
-                    film.set(x, y, Sample::default());
-                }
-            }
-        }
-        film
+    /// The image so far, gaps filled from coarser pixel sets ([`Canvas::preview`]).
+    pub fn preview(&self) -> FrameImage {
+        self.canvas.preview()
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use hypertexture::Sample;
     use hypertexture::interleave::work_units;
 
     fn tile(unit: &WorkUnit, width: u32, value: f32) -> Vec<u8> {
         let samples = vec![Sample::from_array([value; Sample::CHANNELS]); unit.pixel_count(width)];
-        convert::samples_to_wire(&samples).to_vec()
+        convert::tile_to_wire(&samples, PixelFormat::Samples).to_vec()
+    }
+
+    fn film(image: &FrameImage) -> &hypertexture::Film {
+        match image {
+            FrameImage::Film(film) => film,
+            FrameImage::Srgb8 { .. } => panic!("a samples canvas gives a film"),
+        }
     }
 
     fn assign(s: &mut Scheduler, w: &str, now: Instant) -> (u64, WorkUnit) {
@@ -724,7 +703,13 @@ mod tests {
     fn hands_out_every_unit_once_then_finishes() {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
-        let mut s = Scheduler::new(units.clone(), 16, 16, Duration::from_secs(5));
+        let mut s = Scheduler::new(
+            units.clone(),
+            16,
+            16,
+            PixelFormat::Samples,
+            Duration::from_secs(5),
+        );
         let w = s.register("a", 1, now);
         for expected in &units {
             let (id, unit) = assign(&mut s, &w, now);
@@ -740,7 +725,12 @@ mod tests {
         let completed = s.take_completed();
         assert_eq!(completed.len(), 1);
         assert_eq!(completed[0].frame, 0);
-        assert!(completed[0].film.pixels().iter().all(|p| p.rgba[0] == 0.5));
+        assert!(
+            film(&completed[0].image)
+                .pixels()
+                .iter()
+                .all(|p| p.rgba[0] == 0.5)
+        );
     }
 
     #[test]
@@ -748,7 +738,8 @@ mod tests {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
         let n = units.len();
-        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5)).with_frames(vec![3, 4]);
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5))
+            .with_frames(vec![3, 4]);
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let mut first_frame = Vec::new();
         for _ in 0..n {
@@ -778,7 +769,12 @@ mod tests {
         assert_eq!(s.progress(), (n, 2 * n));
         let done = s.take_completed();
         assert_eq!((done.len(), done[0].frame), (1, 3));
-        assert!(done[0].film.pixels().iter().all(|p| p.rgba[0] == 0.3));
+        assert!(
+            film(&done[0].image)
+                .pixels()
+                .iter()
+                .all(|p| p.rgba[0] == 0.3)
+        );
         // The next unit out is frame 4's first; the late duplicate of frame 3 is unused.
         match s.next(&a, now).unwrap() {
             Next::Assign { unit, frame, .. } => assert_eq!((frame, unit), (4, first_frame[0].1)),
@@ -789,7 +785,12 @@ mod tests {
             s.submit(&b, dup_id, Some(&wire), &tile(&dup, 8, 9.0), 1, now),
             Ok(false)
         );
-        assert!(s.film().pixels().iter().all(|p| *p == Sample::default()));
+        assert!(
+            film(&s.preview())
+                .pixels()
+                .iter()
+                .all(|p| *p == Sample::default())
+        );
         assert_eq!(
             s.fail(&b, dup_id, FailureKind::Render, "late", now),
             Ok(None)
@@ -800,7 +801,7 @@ mod tests {
     fn a_silent_worker_loses_its_units_to_others() {
         let t0 = Instant::now();
         let units = work_units(8, 8, 8, 4096);
-        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
         let (a, b) = (s.register("a", 1, t0), s.register("b", 1, t0));
         let (lost_id, lost_unit) = assign(&mut s, &a, t0);
         // b keeps working; a goes silent.
@@ -828,7 +829,7 @@ mod tests {
     fn malformed_and_forged_tiles_never_touch_the_film() {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
-        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let (id, unit) = assign(&mut s, &a, now);
         let wire = convert::unit_to_wire(&unit);
@@ -872,7 +873,10 @@ mod tests {
             Err(Refusal::WrongUnit(id))
         );
         assert!(
-            s.film().pixels().iter().all(|p| *p == Sample::default()),
+            film(&s.preview())
+                .pixels()
+                .iter()
+                .all(|p| *p == Sample::default()),
             "nothing written"
         );
         assert_eq!(s.submit(&a, id, Some(&wire), &good, 0, now), Ok(true));
@@ -883,7 +887,7 @@ mod tests {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
         let n = units.len();
-        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let mut held = Vec::new();
         for _ in 0..n {
@@ -908,7 +912,7 @@ mod tests {
     fn goodbye_returns_units_and_preview_fills_from_coarse_sets() {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
-        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
         let a = s.register("a", 1, now);
         let (id, first) = assign(&mut s, &a, now);
         assert_eq!(first.set.offset(), (0, 0));
@@ -921,7 +925,12 @@ mod tests {
         let b = s.register("b", 1, now);
         assert_eq!(assign(&mut s, &b, now).1, second);
         // After the first set alone, the preview is complete at 1/8 resolution.
-        assert!(s.preview().pixels().iter().all(|p| p.rgba[0] == 0.75));
+        assert!(
+            film(&s.preview())
+                .pixels()
+                .iter()
+                .all(|p| p.rgba[0] == 0.75)
+        );
     }
 
     fn fail(
@@ -938,7 +947,7 @@ mod tests {
     fn a_failed_unit_goes_to_another_worker_and_three_failures_give_up() {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
-        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
         let (a, b, c) = (
             s.register("a", 1, now),
             s.register("b", 1, now),
@@ -989,7 +998,7 @@ mod tests {
     fn a_lone_worker_retries_a_failed_unit_up_to_the_limit() {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
-        let mut s = Scheduler::new(units, 8, 8, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
         let a = s.register("a", 1, now);
         let mut ids = Vec::new();
         let mut first = None;
@@ -1022,7 +1031,7 @@ mod tests {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
         let n = units.len();
-        let mut s = Scheduler::new(units, 16, 16, Duration::from_secs(5));
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let (first_id, first) = assign(&mut s, &a, now);
         let (ahead_id, ahead) = assign(&mut s, &a, now);
@@ -1050,7 +1059,13 @@ mod tests {
         assert!(s.finished());
 
         // When no worker present can build the scene, the render stops at once.
-        let mut s = Scheduler::new(work_units(8, 8, 8, 4096), 8, 8, Duration::from_secs(5));
+        let mut s = Scheduler::new(
+            work_units(8, 8, 8, 4096),
+            8,
+            8,
+            PixelFormat::Samples,
+            Duration::from_secs(5),
+        );
         let a = s.register("a", 1, now);
         let (id, _) = assign(&mut s, &a, now);
         fail(&mut s, &a, id, FailureKind::Scene, now).unwrap();

@@ -1,7 +1,7 @@
 //! Conversions between wire (prost) types and the program's own types, both ways.
 
 use hypertexture::interleave::{PixelSet, WorkUnit};
-use hypertexture::{Quality, Sample};
+use hypertexture::{PixelFormat, Quality, Sample};
 
 use crate::{Bytes, FailureKind, pb};
 
@@ -29,6 +29,9 @@ pub enum WireError {
     /// A job names a quality this build does not know.
     #[error("unknown quality {0}")]
     UnknownQuality(i32),
+    /// A job names no pixel format, or one this build does not know.
+    #[error("unknown pixel format {0}")]
+    UnknownPixelFormat(i32),
     /// A failure report names no kind, or one this build does not know.
     #[error("unknown failure kind {0}")]
     UnknownFailureKind(i32),
@@ -97,50 +100,56 @@ pub fn unit_from_wire(unit: &pb::Unit, width: u32, height: u32) -> Result<WorkUn
     })
 }
 
-/// Bytes per sample on the wire: 9 little-endian f32.
-pub const SAMPLE_BYTES: usize = Sample::CHANNELS * 4;
-
-/// The samples of a tile as little-endian bytes (36 per pixel).
-pub fn samples_to_wire(samples: &[Sample]) -> Bytes {
-    let mut bytes = Vec::with_capacity(samples.len() * SAMPLE_BYTES);
-    for s in samples {
-        for v in s.to_array() {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    bytes.into()
+/// A tile's pixels on the wire: the samples in the job's pixel format.
+pub fn tile_to_wire(samples: &[Sample], format: PixelFormat) -> Bytes {
+    format.encode(samples).into()
 }
 
-/// The samples of a tile from the wire: exactly `pixels` samples, all finite.
-/// The whole tile is checked before the first sample comes out, and nothing is
-/// allocated: the caller stores the samples where they go.
-pub fn samples_from_wire(
+/// Checks a tile from the wire: exactly `pixels` pixels of `format`, and for
+/// samples every value finite. The whole tile is checked before the caller
+/// stores any of it; nothing is copied.
+pub fn tile_from_wire(
     bytes: &[u8],
     pixels: usize,
-) -> Result<impl ExactSizeIterator<Item = Sample> + '_, WireError> {
-    let expected = pixels * SAMPLE_BYTES;
+    format: PixelFormat,
+) -> Result<&[u8], WireError> {
+    let bytes_per_pixel = format.bytes_per_pixel();
+    let expected = pixels * bytes_per_pixel;
     if bytes.len() != expected {
         return Err(WireError::TileLength {
             got: bytes.len(),
             expected,
             pixels,
-            bytes_per_pixel: SAMPLE_BYTES,
+            bytes_per_pixel,
         });
     }
-    let value = |chunk: &[u8]| f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
-    if let Some(index) = bytes.chunks_exact(4).position(|c| !value(c).is_finite()) {
-        return Err(WireError::NotFinite {
-            index,
-            value: value(&bytes[4 * index..]),
-        });
-    }
-    Ok(bytes.chunks_exact(SAMPLE_BYTES).map(move |chunk| {
-        let mut a = [0.0f32; Sample::CHANNELS];
-        for (v, c) in a.iter_mut().zip(chunk.chunks_exact(4)) {
-            *v = value(c);
+    if format == PixelFormat::Samples {
+        let value = |c: &[u8]| f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+        if let Some(index) = bytes.chunks_exact(4).position(|c| !value(c).is_finite()) {
+            return Err(WireError::NotFinite {
+                index,
+                value: value(&bytes[4 * index..]),
+            });
         }
-        Sample::from_array(a)
-    }))
+    }
+    Ok(bytes)
+}
+
+/// A pixel format on the wire.
+pub fn pixel_format_to_wire(format: PixelFormat) -> pb::PixelFormat {
+    match format {
+        PixelFormat::Samples => pb::PixelFormat::Samples,
+        PixelFormat::Srgb8 => pb::PixelFormat::Srgb8,
+    }
+}
+
+/// A pixel format from the wire (unspecified or unknown is an error).
+pub fn pixel_format_from_wire(format: i32) -> Result<PixelFormat, WireError> {
+    match pb::PixelFormat::try_from(format) {
+        Ok(pb::PixelFormat::Samples) => Ok(PixelFormat::Samples),
+        Ok(pb::PixelFormat::Srgb8) => Ok(PixelFormat::Srgb8),
+        _ => Err(WireError::UnknownPixelFormat(format)),
+    }
 }
 
 /// The content hash of a job: FNV-1a over the scene text, then the size, the
@@ -294,28 +303,50 @@ mod tests {
         let samples: Vec<Sample> = (0..3)
             .map(|i| Sample::from_array([i as f32; Sample::CHANNELS]))
             .collect();
-        let wire = samples_to_wire(&samples).to_vec();
-        assert_eq!(
-            samples_from_wire(&wire, 3).unwrap().collect::<Vec<_>>(),
-            samples
-        );
-        assert!(matches!(
-            samples_from_wire(&wire, 4),
-            Err(WireError::TileLength { .. })
-        ));
+        let wire = tile_to_wire(&samples, PixelFormat::Samples).to_vec();
+        let back = tile_from_wire(&wire, 3, PixelFormat::Samples).unwrap();
+        let back: Vec<Sample> = back.chunks_exact(36).map(Sample::from_le_bytes).collect();
+        assert_eq!(back, samples);
+        let samples_length = |r| matches!(r, Err(WireError::TileLength { .. }));
+        assert!(samples_length(tile_from_wire(
+            &wire,
+            4,
+            PixelFormat::Samples
+        )));
         let mut nan = wire.clone();
         nan[20..24].copy_from_slice(&f32::NAN.to_le_bytes());
         assert!(matches!(
-            samples_from_wire(&nan, 3),
+            tile_from_wire(&nan, 3, PixelFormat::Samples),
             Err(WireError::NotFinite { index: 5, .. })
         ));
         let mut inf = wire.clone();
         inf[..4].copy_from_slice(&f32::INFINITY.to_le_bytes());
-        assert!(samples_from_wire(&inf, 3).is_err());
-        assert!(matches!(
-            samples_from_wire(&wire[..wire.len() - 1], 3),
-            Err(WireError::TileLength { .. })
-        ));
+        assert!(tile_from_wire(&inf, 3, PixelFormat::Samples).is_err());
+        assert!(samples_length(tile_from_wire(
+            &wire[..wire.len() - 1],
+            3,
+            PixelFormat::Samples
+        )));
+        // 8-bit sRGB: any byte is a colour; only the length can be wrong.
+        let srgb = tile_to_wire(&samples, PixelFormat::Srgb8).to_vec();
+        assert_eq!(srgb.len(), 12);
+        assert_eq!(tile_from_wire(&srgb, 3, PixelFormat::Srgb8), Ok(&srgb[..]));
+        assert!(samples_length(tile_from_wire(&srgb, 2, PixelFormat::Srgb8)));
+        assert!(samples_length(tile_from_wire(&wire, 3, PixelFormat::Srgb8)));
+        for f in [PixelFormat::Samples, PixelFormat::Srgb8] {
+            assert_eq!(
+                pixel_format_from_wire(pixel_format_to_wire(f) as i32),
+                Ok(f)
+            );
+        }
+        assert_eq!(
+            pixel_format_from_wire(0),
+            Err(WireError::UnknownPixelFormat(0))
+        );
+        assert_eq!(
+            pixel_format_from_wire(3),
+            Err(WireError::UnknownPixelFormat(3))
+        );
     }
 
     #[test]

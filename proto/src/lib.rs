@@ -6,7 +6,7 @@
 
 pub mod convert;
 
-/// A tile's samples on the wire (a slice of the received buffer, not a copy).
+/// A tile's pixels on the wire (a slice of the received buffer, not a copy).
 pub use prost::bytes::Bytes;
 
 /// The code generated from `hypertexture.proto`.
@@ -18,8 +18,9 @@ pub mod pb {
 /// Bumped whenever the protocol changes incompatibly; checked at registration.
 /// 2: SubmitTile can hand out the next unit; assignments omit the scene text a
 /// worker already has. 3: ReportFailure (a worker gives back a unit it cannot
-/// render, with the reason).
-pub const PROTOCOL_VERSION: u32 = 3;
+/// render, with the reason). 4: jobs name the tiles' pixel format (8-bit sRGB
+/// when only PNGs are written).
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Why a worker could not render an assignment (the program's side of
 /// `pb::FailureKind`; see [`convert::failure_kind_to_wire`]).
@@ -45,8 +46,8 @@ impl std::fmt::Display for FailureKind {
 }
 
 /// The largest message either side accepts (tonic's default is 4 MiB). A tile is
-/// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] samples
-/// (~150 KB); anything near this limit is malformed and refused with
+/// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] pixels
+/// (~150 KB of samples); anything near this limit is malformed and refused with
 /// RESOURCE_EXHAUSTED rather than silently truncated.
 pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 

@@ -31,5 +31,5 @@ pub mod shaping;
 pub mod simd;
 pub mod soft;
 
-pub use film::{Film, Sample};
+pub use film::{Film, PixelFormat, Sample};
 pub use scene::{Overrides, Quality, Scene, SceneError};

@@ -433,7 +433,7 @@ async fn serve(
         let rendered = rendering
             .await
             .unwrap_or_else(|_| Err("the render task ended without a result".into()));
-        let (unit, samples, cpu) = match rendered {
+        let (unit, pixels, cpu) = match rendered {
             Ok(tile) => tile,
             Err(reason) => {
                 if let Some(status) = lost_while_rendering {
@@ -453,7 +453,7 @@ async fn serve(
             worker_id: worker_id.to_string(),
             assignment_id: assignment.assignment_id,
             unit: Some(convert::unit_to_wire(&unit)),
-            samples,
+            pixels,
             render_cpu_micros: cpu,
             // The unit after the one ahead, to render while the next tile travels.
             want_next: !*stop.borrow() && lost_while_rendering.is_none(),
@@ -569,7 +569,7 @@ fn is_refusal(status: &Status) -> bool {
     )
 }
 
-/// A rendered tile: the unit, its samples on the wire, the CPU microseconds.
+/// A rendered tile: the unit, its pixels on the wire, the CPU microseconds.
 type Tile = (WorkUnit, hypertexture_proto::Bytes, u64);
 
 /// Starts rendering an assignment on the pool (the async thread goes on with
@@ -602,6 +602,8 @@ fn start_render(
         .ok_or(convert::WireError::Missing("unit"))
         .and_then(|u| convert::unit_from_wire(u, scene.width(), scene.height()))
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+    let format = convert::pixel_format_from_wire(job.pixel_format)
+        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let frame = job.frame;
     let (done, result) = oneshot::channel();
     pool.spawn(move || {
@@ -613,7 +615,7 @@ fn start_render(
             let before = process_cpu_micros();
             let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
             let cpu = process_cpu_micros().saturating_sub(before);
-            (unit, convert::samples_to_wire(&samples), cpu)
+            (unit, convert::tile_to_wire(&samples, format), cpu)
         };
         let tile = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render))
             .map_err(|payload| format!("the render panicked: {}", panic_message(&*payload)));
