@@ -87,13 +87,43 @@ impl Canvas {
     /// Stores a tile of `unit`, already checked to hold its pixel count in this
     /// canvas's format.
     pub fn store(&mut self, unit: &WorkUnit, tile: &[u8]) {
-        let size = self.format.bytes_per_pixel();
-        debug_assert_eq!(tile.len(), unit.pixel_count(self.width) * size);
+        debug_assert_eq!(
+            tile.len(),
+            unit.pixel_count(self.width) * self.format.bytes_per_pixel()
+        );
+        // A pixel's size known at compile time: each copy is a move or two, not
+        // a call to memcpy (36 instructions a pixel before, for 4 bytes).
+        match self.format {
+            PixelFormat::Samples => {
+                self.store_as::<{ PixelFormat::Samples.bytes_per_pixel() }>(unit, tile)
+            }
+            PixelFormat::Srgb8 => {
+                self.store_as::<{ PixelFormat::Srgb8.bytes_per_pixel() }>(unit, tile)
+            }
+        }
+    }
+
+    /// [`Canvas::store`] for `N` bytes a pixel, row by row of the unit, in the
+    /// order of [`WorkUnit::pixels`].
+    fn store_as<const N: usize>(&mut self, unit: &WorkUnit, tile: &[u8]) {
         let width = self.width as usize;
-        for ((x, y), pixel) in unit.pixels(self.width).zip(tile.chunks_exact(size)) {
-            let i = y as usize * width + x as usize;
-            self.bytes[i * size..(i + 1) * size].copy_from_slice(pixel);
-            self.rendered[i] = true;
+        let b = unit.set.interleave as usize;
+        let (ox, oy) = unit.set.offset();
+        let (ox, oy) = (ox as usize, oy as usize);
+        let columns = unit.set.columns(self.width) as usize;
+        if columns == 0 {
+            return;
+        }
+        for (i, row_tile) in tile.chunks_exact(columns * N).enumerate() {
+            let r = unit.first_row as usize + i * unit.row_stride as usize;
+            let y = oy + r * b;
+            let row = &mut self.bytes[y * width * N..(y + 1) * width * N];
+            let rendered = &mut self.rendered[y * width..(y + 1) * width];
+            for (c, pixel) in row_tile.chunks_exact(N).enumerate() {
+                let x = ox + c * b;
+                row[x * N..(x + 1) * N].copy_from_slice(pixel);
+                rendered[x] = true;
+            }
         }
     }
 
@@ -161,7 +191,7 @@ mod tests {
 
     #[test]
     fn tiles_land_on_their_pixels_in_either_format() {
-        let (w, h) = (16, 12);
+        let (w, h) = (19, 13);
         let mut film = Film::new(w, h);
         for y in 0..h {
             for x in 0..w {
