@@ -23,6 +23,10 @@ use tonic::{Request, Response, Status};
 use crate::canvas::FrameImage;
 use crate::scheduler::{Next, Refusal, Scheduler};
 
+/// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
+/// 16 KiB, less than a tile of whole-set units at 512²).
+const MAX_FRAME_BYTES: u32 = 1 << 20;
+
 /// How the farm runs.
 #[derive(Clone, Debug)]
 pub struct FarmConfig {
@@ -506,7 +510,9 @@ pub async fn render_frames(
         first_assignment: Mutex::new(None),
     });
 
-    let mut server = tonic::transport::Server::builder();
+    // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
+    // write for the worker and one wake-up here instead of two or three.
+    let mut server = tonic::transport::Server::builder().max_frame_size(MAX_FRAME_BYTES);
     let scheme = if let Some((cert, key)) = &config.tls {
         let identity = tonic::transport::Identity::from_pem(cert, key);
         server = server
