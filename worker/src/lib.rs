@@ -12,6 +12,7 @@
 //! goes away the worker reconnects with exponential backoff; when asked to stop
 //! (SIGTERM) it finishes the current unit, says goodbye and returns.
 
+pub mod body;
 pub mod cli;
 pub mod logging;
 
@@ -137,7 +138,9 @@ pub fn process_cpu_micros() -> u64 {
     }
 }
 
-type Client = FarmClient<tonic::service::interceptor::InterceptedService<Channel, Auth>>;
+type Client = FarmClient<
+    tonic::service::interceptor::InterceptedService<body::EndStreamEarly<Channel>, Auth>,
+>;
 
 /// Adds `authorization: Bearer <token>` to every call.
 #[derive(Clone)]
@@ -238,7 +241,7 @@ pub async fn run(
                 continue;
             }
         };
-        let mut client = FarmClient::with_interceptor(channel, auth.clone())
+        let mut client = FarmClient::with_interceptor(body::EndStreamEarly(channel), auth.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
         let registered = client
