@@ -976,3 +976,46 @@ fn failing_local_worker_binaries_give_way_to_in_process_workers() {
     same_bytes(&reference, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--preview-every` rewrites the partial image while the farm renders, in the
+/// output's format (8-bit tiles for a PNG, every sample for an EXR), and the
+/// final image replaces it: the same bytes as in-process.
+#[test]
+fn previews_are_written_while_rendering_and_the_final_image_replaces_them() {
+    let dir = scratch("farm-preview");
+    let fur = scene("fur");
+    for ext in ["png", "exr"] {
+        let reference = dir.join(format!("reference.{ext}"));
+        // About a second of one debug-build thread: many preview intervals.
+        in_process("fur", 384, &reference);
+        let out = dir.join(format!("farm.{ext}"));
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args([
+                "--scene",
+                fur.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ])
+            .args(["--width", "384", "--height", "384"])
+            .args([
+                "--local-workers",
+                "1",
+                "--threads",
+                "1",
+                "--preview-every",
+                "0.05",
+            ])
+            .env("RUST_LOG", "info,coordinator=debug")
+            .env("NO_COLOR", "1")
+            .output()
+            .unwrap();
+        let log = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{log}");
+        assert!(
+            log.contains("preview of frame 0"),
+            "no preview written: {log}"
+        );
+        same_bytes(&reference, &out);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -623,11 +623,13 @@ pub async fn render_frames(
         if let Some((image, frame)) = preview {
             last_preview = now;
             let path = out_of(frame);
-            writing_preview = Some(tokio::task::spawn_blocking(move || {
-                if let Err(e) = crate::output::write_frame_image(&image, &path) {
-                    tracing::warn!("preview: {e}");
-                }
-            }));
+            writing_preview =
+                Some(tokio::task::spawn_blocking(
+                    move || match crate::output::write_frame_image(&image, &path) {
+                        Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),
+                        Err(e) => tracing::warn!("preview: {e}"),
+                    },
+                ));
         }
         if done {
             break Ok(());
