@@ -380,22 +380,43 @@ impl Scheduler {
         })
     }
 
-    /// The oldest outstanding unit this worker does not hold and has not failed,
-    /// held by fewer than [`MAX_HOLDERS`] workers.
+    /// An outstanding unit this worker does not hold and has not failed, held by
+    /// fewer than [`MAX_HOLDERS`] workers: first the newest unit a worker holds
+    /// queued behind the one it is rendering (workers render their units in the
+    /// order given, so that one would be started last, and a copy started now
+    /// ends the frame soonest), then the oldest outstanding one (a straggler).
     fn speculative(&self, worker: u64) -> Option<usize> {
-        let mut holders: HashMap<usize, (usize, u64, bool)> = HashMap::new();
+        // Each worker's oldest lease: the unit it is rendering.
+        let mut rendering: HashMap<u64, u64> = HashMap::new();
         for (&id, lease) in &self.leases {
-            let e = holders.entry(lease.unit).or_insert((0, id, false));
+            let oldest = rendering.entry(lease.worker).or_insert(id);
+            *oldest = (*oldest).min(id);
+        }
+        // Per unit: holders, its oldest and newest lease, whether this worker
+        // holds it, whether a holder has it queued rather than rendering.
+        let mut holders: HashMap<usize, (usize, u64, u64, bool, bool)> = HashMap::new();
+        for (&id, lease) in &self.leases {
+            let e = holders
+                .entry(lease.unit)
+                .or_insert((0, id, id, false, false));
             e.0 += 1;
             e.1 = e.1.min(id);
-            e.2 |= lease.worker == worker;
+            e.2 = e.2.max(id);
+            e.3 |= lease.worker == worker;
+            e.4 |= rendering[&lease.worker] != id;
         }
         holders
             .into_iter()
-            .filter(|&(unit, (count, _, mine))| {
+            .filter(|&(unit, (count, _, _, mine, _))| {
                 !mine && count < MAX_HOLDERS && !self.done[unit] && !self.failed_by(unit, worker)
             })
-            .min_by_key(|&(_, (_, oldest, _))| oldest)
+            .min_by_key(|&(_, (_, oldest, newest, _, queued))| {
+                if queued {
+                    (0, u64::MAX - newest)
+                } else {
+                    (1, oldest)
+                }
+            })
             .map(|(unit, _)| unit)
     }
 
@@ -755,9 +776,9 @@ mod tests {
                 other => panic!("{other:?}"),
             }
         }
-        // b holds a speculative duplicate of frame 3's first unit.
+        // b holds a speculative duplicate of frame 3's last unit.
         let (dup_id, dup) = assign(&mut s, &b, now);
-        assert_eq!(dup, first_frame[0].1);
+        assert_eq!(dup, first_frame[n - 1].1);
         for (id, unit) in &first_frame {
             let wire = convert::unit_to_wire(unit);
             assert_eq!(
@@ -893,9 +914,9 @@ mod tests {
         for _ in 0..n {
             held.push(assign(&mut s, &a, now));
         }
-        // The queue is empty: b gets a duplicate of a's oldest unit.
+        // The queue is empty: b gets a duplicate of the unit a would start last.
         let (dup_id, dup_unit) = assign(&mut s, &b, now);
-        assert_eq!(dup_unit, held[0].1);
+        assert_eq!(dup_unit, held[n - 1].1);
         let wire = convert::unit_to_wire(&dup_unit);
         assert_eq!(
             s.submit(&b, dup_id, Some(&wire), &tile(&dup_unit, 8, 1.0), 0, now),
@@ -903,9 +924,50 @@ mod tests {
         );
         // a's copy arrives later: valid, ignored.
         assert_eq!(
-            s.submit(&a, held[0].0, Some(&wire), &tile(&dup_unit, 8, 1.0), 0, now),
+            s.submit(
+                &a,
+                held[n - 1].0,
+                Some(&wire),
+                &tile(&dup_unit, 8, 1.0),
+                0,
+                now
+            ),
             Ok(false)
         );
+        // Another idle worker takes the next unit from the end of a's queue.
+        let c = s.register("c", 1, now);
+        assert_eq!(assign(&mut s, &c, now).1, held[n - 2].1);
+    }
+
+    #[test]
+    fn a_unit_being_rendered_is_duplicated_only_when_none_waits_in_a_queue() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        let (a, b, c) = (
+            s.register("a", 1, now),
+            s.register("b", 1, now),
+            s.register("c", 1, now),
+        );
+        // a and b each hold one unit, the one they are rendering; a's is older.
+        let mut held = Vec::new();
+        for _ in 0..n - 2 {
+            held.push(assign(&mut s, &a, now));
+        }
+        for (id, unit) in held.drain(..) {
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&a, id, Some(&wire), &tile(&unit, 8, 1.0), 0, now),
+                Ok(true)
+            );
+        }
+        let (_, oldest) = assign(&mut s, &a, now);
+        let (_, newer) = assign(&mut s, &b, now);
+        // No unit is queued behind another: the straggler's (oldest) first.
+        assert_eq!(assign(&mut s, &c, now).1, oldest);
+        let d = s.register("d", 1, now);
+        assert_eq!(assign(&mut s, &d, now).1, newer);
     }
 
     #[test]
