@@ -134,14 +134,21 @@ pub fn encode(film: &Film, format: ImageFormat) -> Result<Vec<u8>, OutputError> 
 
 /// Writes the film to `path` in the format its extension names, atomically.
 pub fn write_image(film: &Film, path: &Path) -> Result<(), OutputError> {
-    let bytes = encode(film, ImageFormat::from_path(path)?).map_err(|e| match e {
-        OutputError::Encode { message, .. } => OutputError::Encode {
-            path: path.to_path_buf(),
-            message,
-        },
-        other => other,
-    })?;
+    let bytes = encode(film, ImageFormat::from_path(path)?).map_err(|e| e.at(path))?;
     write_atomically(path, &bytes)
+}
+
+impl OutputError {
+    /// An encoder's error (made for `<memory>`) as the error of writing `path`.
+    fn at(self, path: &Path) -> OutputError {
+        match self {
+            OutputError::Encode { message, .. } => OutputError::Encode {
+                path: path.to_path_buf(),
+                message,
+            },
+            other => other,
+        }
+    }
 }
 
 /// What the farm's tiles must carry for these outputs: 8-bit sRGB when every one
@@ -167,19 +174,14 @@ pub fn write_frame_image(image: &FrameImage, path: &Path) -> Result<(), OutputEr
         } => (*width, *height, bytes),
     };
     let encoded = match ImageFormat::from_path(path)? {
-        ImageFormat::Png => encode_srgb8_png(bytes, width, height),
-        ImageFormat::Exr => Err(OutputError::Encode {
-            path: PathBuf::from("<memory>"),
-            message: "an EXR keeps every channel, and this image has only 8-bit colour".into(),
-        }),
-    }
-    .map_err(|e| match e {
-        OutputError::Encode { message, .. } => OutputError::Encode {
-            path: path.to_path_buf(),
-            message,
-        },
-        other => other,
-    })?;
+        ImageFormat::Png => encode_srgb8_png(bytes, width, height).map_err(|e| e.at(path))?,
+        ImageFormat::Exr => {
+            return Err(OutputError::Encode {
+                path: path.to_path_buf(),
+                message: "an EXR keeps every channel, and this image has only 8-bit colour".into(),
+            });
+        }
+    };
     write_atomically(path, &encoded)
 }
 
@@ -327,6 +329,28 @@ mod tests {
         assert_eq!(entries, vec![std::ffi::OsString::from("x.png")]);
         let err = write_image(&film(), &dir.join("missing/x.png")).unwrap_err();
         assert!(err.to_string().contains("missing/x.png"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_srgb8_image_writes_the_same_png_and_refuses_an_exr() {
+        let dir = std::env::temp_dir().join(format!("ht-output-8-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let film = film();
+        let image = FrameImage::Srgb8 {
+            width: film.width(),
+            height: film.height(),
+            bytes: film.to_srgb8(),
+        };
+        write_image(&film, &dir.join("film.png")).unwrap();
+        write_frame_image(&image, &dir.join("bytes.png")).unwrap();
+        assert_eq!(
+            std::fs::read(dir.join("film.png")).unwrap(),
+            std::fs::read(dir.join("bytes.png")).unwrap()
+        );
+        let err = write_frame_image(&image, &dir.join("x.exr")).unwrap_err();
+        assert!(err.to_string().contains("x.exr") && err.to_string().contains("8-bit"));
+        assert!(!dir.join("x.exr").exists());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
