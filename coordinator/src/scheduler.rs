@@ -267,7 +267,12 @@ impl Scheduler {
             workers: HashMap::new(),
             next_worker: 1,
             lease,
-            canvas: Canvas::new(width, height, format),
+            canvas: Canvas::new(
+                width,
+                height,
+                units.first().map_or(1, |u| u.set.interleave),
+                format,
+            ),
             unit_cpu: vec![0; n],
             failures: vec![Vec::new(); n],
             gave_up: None,
