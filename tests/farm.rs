@@ -142,6 +142,22 @@ fn a_wrong_token_is_refused_and_no_worker_means_a_clean_failure() {
     let anonymous = Running::worker(&["--coordinator", &url]);
     let (status, _) = anonymous.finish(30);
     assert!(!status.success(), "a worker with no token is refused too");
+    // Every call needs the token, the tile stream included.
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            use hypertexture_proto::pb;
+            let mut client = pb::farm_client::FarmClient::connect(url.clone())
+                .await
+                .unwrap();
+            let status = client
+                .submit_tiles(tokio_stream::iter([pb::SubmitTilesParams { tile: None }]))
+                .await
+                .unwrap_err();
+            assert_eq!(status.code(), tonic::Code::Unauthenticated, "{status:?}");
+        });
     let (status, log) = coord.finish(60);
     assert!(!status.success(), "the coordinator gives up");
     let log = log.join("\n");
@@ -297,11 +313,32 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                 Code::OutOfRange,
             ),
         ] {
+            let ok = |status: &tonic::Status| {
+                status.code() == code
+                    || (what == "oversized" && status.code() == Code::ResourceExhausted)
+            };
+            // On the stream workers use, the refusal ends the stream with the
+            // same status.
+            let mut replies = client
+                .submit_tiles(tokio_stream::iter([pb::SubmitTilesParams {
+                    tile: Some(params.clone()),
+                }]))
+                .await
+                .unwrap()
+                .into_inner();
+            let status = replies.message().await.unwrap_err();
+            assert!(ok(&status), "{what}, streamed: {status:?}");
             let status = client.submit_tile(params).await.unwrap_err();
-            let ok = status.code() == code
-                || (what == "oversized" && status.code() == Code::ResourceExhausted);
-            assert!(ok, "{what}: {status:?}");
+            assert!(ok(&status), "{what}: {status:?}");
         }
+        // A stream message without a tile is refused too.
+        let mut replies = client
+            .submit_tiles(tokio_stream::iter([pb::SubmitTilesParams { tile: None }]))
+            .await
+            .unwrap()
+            .into_inner();
+        let status = replies.message().await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
         // The evil client vanishes; its lease runs out and real workers take over.
     });
     let _worker = Running::worker(&["--coordinator", &url, "--threads", "2"]);

@@ -180,6 +180,48 @@ struct Shared {
 #[derive(Clone)]
 struct Service(Arc<Shared>);
 
+/// The replies of a SubmitTiles stream: each tile is handled as it is read,
+/// when the server polls for the next reply (no task or queue in between). A
+/// refused tile ends the stream with its status, as SubmitTile would answer.
+pub struct Replies {
+    /// The worker's tiles; `None` once the stream has ended.
+    tiles: Option<tonic::Streaming<pb::SubmitTilesParams>>,
+    service: Service,
+}
+
+impl tonic::codegen::tokio_stream::Stream for Replies {
+    type Item = Result<pb::SubmitTilesResult, Status>;
+
+    fn poll_next(
+        self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Self::Item>> {
+        use std::task::Poll;
+        let this = self.get_mut();
+        let Some(tiles) = this.tiles.as_mut() else {
+            return Poll::Ready(None);
+        };
+        let reply = match std::pin::Pin::new(tiles).poll_next(cx) {
+            Poll::Pending => return Poll::Pending,
+            Poll::Ready(None) => None,
+            Poll::Ready(Some(Err(status))) => Some(Err(status)),
+            Poll::Ready(Some(Ok(params))) => Some(
+                params
+                    .tile
+                    .ok_or_else(|| Status::invalid_argument("a SubmitTiles message without a tile"))
+                    .and_then(|tile| this.service.submit(tile))
+                    .map(|result| pb::SubmitTilesResult {
+                        result: Some(result),
+                    }),
+            ),
+        };
+        if !matches!(reply, Some(Ok(_))) {
+            this.tiles = None;
+        }
+        Poll::Ready(reply)
+    }
+}
+
 impl Service {
     fn authorize<T>(&self, request: &Request<T>) -> Result<(), Status> {
         let Some(token) = &self.0.token else {
@@ -205,6 +247,45 @@ impl Service {
     fn scheduler(&self) -> std::sync::MutexGuard<'_, Scheduler> {
         // A panic while holding the lock would be a bug; the state is still usable.
         self.0.scheduler.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A tile (SubmitTile, or one message of SubmitTiles): stored if it is
+    /// the unit's and well formed, refused otherwise; the reply hands out the
+    /// worker's next unit when it asks.
+    fn submit(&self, p: pb::SubmitTileParams) -> Result<pb::SubmitTileResult, Status> {
+        let (accepted, next) = {
+            let mut s = self.scheduler();
+            let now = Instant::now();
+            let accepted = s
+                .submit(
+                    &p.worker_id,
+                    p.assignment_id,
+                    p.unit.as_ref(),
+                    &p.pixels,
+                    p.render_cpu_micros,
+                    now,
+                )
+                .map_err(|r| {
+                    tracing::warn!("refused a tile from {}: {r}", p.worker_id);
+                    refusal(r)
+                })?;
+            if s.has_completed() {
+                let _ = self.0.finished.send(true);
+            }
+            let next = if p.want_next {
+                Some(s.next(&p.worker_id, now).map_err(refusal)?)
+            } else {
+                None
+            };
+            (accepted, next)
+        };
+        self.0
+            .tile_bytes
+            .fetch_add(p.pixels.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        Ok(pb::SubmitTileResult {
+            accepted,
+            next: next.map(|n| self.work(n, p.known_scene_hash)),
+        })
     }
 
     /// The scheduler's answer on the wire (for GetWork, and the next unit in a
@@ -313,39 +394,21 @@ impl Farm for Service {
         request: Request<pb::SubmitTileParams>,
     ) -> Result<Response<pb::SubmitTileResult>, Status> {
         self.authorize(&request)?;
-        let p = request.into_inner();
-        let (accepted, next) = {
-            let mut s = self.scheduler();
-            let now = Instant::now();
-            let accepted = s
-                .submit(
-                    &p.worker_id,
-                    p.assignment_id,
-                    p.unit.as_ref(),
-                    &p.pixels,
-                    p.render_cpu_micros,
-                    now,
-                )
-                .map_err(|r| {
-                    tracing::warn!("refused a tile from {}: {r}", p.worker_id);
-                    refusal(r)
-                })?;
-            if s.has_completed() {
-                let _ = self.0.finished.send(true);
-            }
-            let next = if p.want_next {
-                Some(s.next(&p.worker_id, now).map_err(refusal)?)
-            } else {
-                None
-            };
-            (accepted, next)
-        };
-        self.0
-            .tile_bytes
-            .fetch_add(p.pixels.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        Ok(Response::new(pb::SubmitTileResult {
-            accepted,
-            next: next.map(|n| self.work(n, p.known_scene_hash)),
+        self.submit(request.into_inner()).map(Response::new)
+    }
+
+    type SubmitTilesStream = Replies;
+
+    async fn submit_tiles(
+        &self,
+        request: Request<tonic::Streaming<pb::SubmitTilesParams>>,
+    ) -> Result<Response<Replies>, Status> {
+        // The token is checked once, for the stream; every tile on it is then
+        // checked as SubmitTile checks it.
+        self.authorize(&request)?;
+        Ok(Response::new(Replies {
+            tiles: Some(request.into_inner()),
+            service: self.clone(),
         }))
     }
 

@@ -19,8 +19,8 @@ pub mod pb {
 /// 2: SubmitTile can hand out the next unit; assignments omit the scene text a
 /// worker already has. 3: ReportFailure (a worker gives back a unit it cannot
 /// render, with the reason). 4: jobs name the tiles' pixel format (8-bit sRGB
-/// when only PNGs are written).
-pub const PROTOCOL_VERSION: u32 = 4;
+/// when only PNGs are written). 5: SubmitTiles (a worker's tiles on one stream).
+pub const PROTOCOL_VERSION: u32 = 5;
 
 /// Why a worker could not render an assignment (the program's side of
 /// `pb::FailureKind`; see [`convert::failure_kind_to_wire`]).

@@ -5,8 +5,9 @@
 //! once per hash, renders the unit's pixels with all its threads and submits the
 //! tile. A unit it cannot render (the scene does not build here, the assignment
 //! is unusable, the render panics) goes back to the coordinator with the reason
-//! (ReportFailure), never held in silence. The reply to a tile brings the next unit, and one unit is always
-//! assigned ahead, so the render threads never wait for the network: while unit
+//! (ReportFailure), never held in silence. Tiles go up on one SubmitTiles stream,
+//! a message per unit; the reply to a tile brings the next unit, and one unit
+//! is always assigned ahead, so the render threads never wait for the network: while unit
 //! n renders, tile n − 1 travels and its reply brings unit n + 1. A background
 //! task heartbeats so the coordinator knows it is alive. When the coordinator
 //! goes away the worker reconnects with exponential backoff; when asked to stop
@@ -346,8 +347,64 @@ impl From<GetWorkResult> for Asked {
     }
 }
 
-/// A tile on its way to the coordinator; the reply may carry the next unit.
-type Sending = tokio::task::JoinHandle<Result<pb::SubmitTileResult, Status>>;
+/// A tile on its way to the coordinator: the reply may carry the next unit, and
+/// the stream it went on comes back with it while the stream is still open.
+type Sending = tokio::task::JoinHandle<(Option<TileStream>, Result<pb::SubmitTileResult, Status>)>;
+
+/// A worker's tiles on one SubmitTiles stream: a message per tile each way,
+/// without a call (headers, trailers, a new HTTP/2 stream) per unit.
+struct TileStream {
+    tiles: tokio::sync::mpsc::Sender<pb::SubmitTilesParams>,
+    replies: tonic::Streaming<pb::SubmitTilesResult>,
+}
+
+impl TileStream {
+    /// Opens a stream (one round trip: the coordinator answers at once).
+    async fn open(client: &mut Client) -> Result<TileStream, Status> {
+        // One tile is on a stream at a time: its reply is awaited before the next.
+        let (tiles, queue) = tokio::sync::mpsc::channel(1);
+        let replies = client
+            .submit_tiles(tokio_stream::wrappers::ReceiverStream::new(queue))
+            .await?
+            .into_inner();
+        Ok(TileStream { tiles, replies })
+    }
+
+    /// Sends a tile and waits for its reply. An error ends the stream: a
+    /// refusal (as SubmitTile would refuse it) or a lost connection.
+    async fn submit(&mut self, tile: pb::SubmitTileParams) -> Result<pb::SubmitTileResult, Status> {
+        let closed = || Status::unavailable("the coordinator ended the tile stream");
+        self.tiles
+            .send(pb::SubmitTilesParams { tile: Some(tile) })
+            .await
+            .map_err(|_| closed())?;
+        match self.replies.message().await? {
+            Some(pb::SubmitTilesResult {
+                result: Some(result),
+            }) => Ok(result),
+            Some(_) => Err(Status::internal("a SubmitTiles reply without its result")),
+            None => Err(closed()),
+        }
+    }
+}
+
+/// Sends `tile` on `stream`, or on a new stream when there is none open.
+fn send_tile(client: &Client, stream: Option<TileStream>, tile: pb::SubmitTileParams) -> Sending {
+    let mut client = client.clone();
+    tokio::spawn(async move {
+        let mut stream = match stream {
+            Some(stream) => stream,
+            None => match TileStream::open(&mut client).await {
+                Ok(stream) => stream,
+                Err(status) => return (None, Err(status)),
+            },
+        };
+        match stream.submit(tile).await {
+            Ok(result) => (Some(stream), Ok(result)),
+            Err(status) => (None, Err(status)),
+        }
+    })
+}
 
 /// Pulls and renders units over one connection. One unit is always assigned
 /// ahead of the one rendering: it comes in the reply to the previous tile (or,
@@ -366,10 +423,12 @@ async fn serve(
     let mut ahead: Option<pb::Assignment> = None;
     // The previous tile, on its way while the next unit renders.
     let mut sending: Option<Sending> = None;
+    // The open SubmitTiles stream, while no tile is on it.
+    let mut stream: Option<TileStream> = None;
     loop {
         if *stop.borrow() {
             // Deliver the last tile; a unit assigned ahead goes back with the goodbye.
-            return delivered(config, sending.take(), report)
+            return delivered(config, sending.take(), report, &mut stream)
                 .await
                 .map(|_| Leave::Done);
         }
@@ -378,7 +437,7 @@ async fn serve(
             None => {
                 // Nothing ahead: the reply to the tile in flight may bring the next
                 // unit, or say that the frame is done; otherwise ask.
-                let asked = match delivered(config, sending.take(), report).await? {
+                let asked = match delivered(config, sending.take(), report, &mut stream).await? {
                     Delivered::Next(asked) => Ok(asked),
                     Delivered::Lost(status) => Err(status),
                     Delivered::Nothing => ask(client, worker_id, scenes.known()).await,
@@ -411,7 +470,7 @@ async fn serve(
                 if let Err(status) =
                     report_failure(client, worker_id, &assignment, kind, &reason).await
                 {
-                    let _ = delivered(config, sending.take(), report).await;
+                    let _ = delivered(config, sending.take(), report, &mut stream).await;
                     return lost(config, status);
                 }
                 continue;
@@ -420,7 +479,7 @@ async fn serve(
         // While it renders: the previous tile's reply brings the unit after this
         // one; without one (the first unit, or a refused tile), ask.
         let mut lost_while_rendering = None;
-        match delivered(config, sending.take(), report).await? {
+        match delivered(config, sending.take(), report, &mut stream).await? {
             Delivered::Next(Asked::Assignment(a)) => ahead = Some(a),
             Delivered::Next(Asked::Wait(_) | Asked::Finished) => {}
             Delivered::Lost(status) => lost_while_rendering = Some(status),
@@ -451,7 +510,6 @@ async fn serve(
                 continue;
             }
         };
-        let mut sender = client.clone();
         let tile = pb::SubmitTileParams {
             worker_id: worker_id.to_string(),
             assignment_id: assignment.assignment_id,
@@ -462,11 +520,9 @@ async fn serve(
             want_next: !*stop.borrow() && lost_while_rendering.is_none(),
             known_scene_hash: scenes.known(),
         };
-        sending = Some(tokio::spawn(async move {
-            sender.submit_tile(tile).await.map(|r| r.into_inner())
-        }));
+        sending = Some(send_tile(client, stream.take(), tile));
         if let Some(status) = lost_while_rendering {
-            let _ = delivered(config, sending.take(), report).await;
+            let _ = delivered(config, sending.take(), report, &mut stream).await;
             return lost(config, status);
         }
     }
@@ -513,11 +569,16 @@ async fn delivered(
     config: &WorkerConfig,
     sending: Option<Sending>,
     report: &mut WorkerReport,
+    stream: &mut Option<TileStream>,
 ) -> Result<Delivered, WorkerError> {
     let Some(task) = sending else {
         return Ok(Delivered::Nothing);
     };
-    Ok(match task.await {
+    let outcome = task.await.map(|(back, result)| {
+        *stream = back;
+        result
+    });
+    Ok(match outcome {
         Ok(Ok(result)) => {
             if result.accepted {
                 report.units += 1;
