@@ -423,8 +423,9 @@ async fn serve(
     let mut ahead: Option<pb::Assignment> = None;
     // The previous tile, on its way while the next unit renders.
     let mut sending: Option<Sending> = None;
-    // The open SubmitTiles stream, while no tile is on it.
-    let mut stream: Option<TileStream> = None;
+    // The open SubmitTiles stream, while no tile is on it: opened now, so the
+    // first tile does not wait for it (if this fails, the first tile retries).
+    let mut stream: Option<TileStream> = TileStream::open(client).await.ok();
     loop {
         if *stop.borrow() {
             // Deliver the last tile; a unit assigned ahead goes back with the goodbye.
