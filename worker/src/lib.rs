@@ -421,6 +421,9 @@ async fn serve(
 ) -> Result<Leave, WorkerError> {
     // Assigned and not started yet.
     let mut ahead: Option<pb::Assignment> = None;
+    // Assigned and already queued on the pool behind the unit rendering, so
+    // the render threads go straight from one unit to the next.
+    let mut queued: Option<(pb::Assignment, Rendering)> = None;
     // The previous tile, on its way while the next unit renders.
     let mut sending: Option<Sending> = None;
     // The open SubmitTiles stream, while no tile is on it: opened now, so the
@@ -428,53 +431,60 @@ async fn serve(
     let mut stream: Option<TileStream> = TileStream::open(client).await.ok();
     loop {
         if *stop.borrow() {
-            // Deliver the last tile; a unit assigned ahead goes back with the goodbye.
+            // Deliver the last tile; a unit assigned ahead (queued or not) goes
+            // back with the goodbye.
             return delivered(config, sending.take(), report, &mut stream)
                 .await
                 .map(|_| Leave::Done);
         }
-        let assignment = match ahead.take() {
-            Some(a) => a,
+        let (assignment, rendering) = match queued.take() {
+            Some(started) => started,
             None => {
-                // Nothing ahead: the reply to the tile in flight may bring the next
-                // unit, or say that the frame is done; otherwise ask.
-                let asked = match delivered(config, sending.take(), report, &mut stream).await? {
-                    Delivered::Next(asked) => Ok(asked),
-                    Delivered::Lost(status) => Err(status),
-                    Delivered::Nothing => ask(client, worker_id, scenes.known()).await,
+                let assignment = match ahead.take() {
+                    Some(a) => a,
+                    None => {
+                        // Nothing ahead: the reply to the tile in flight may bring the next
+                        // unit, or say that the frame is done; otherwise ask.
+                        let asked =
+                            match delivered(config, sending.take(), report, &mut stream).await? {
+                                Delivered::Next(asked) => Ok(asked),
+                                Delivered::Lost(status) => Err(status),
+                                Delivered::Nothing => ask(client, worker_id, scenes.known()).await,
+                            };
+                        match asked {
+                            Ok(Asked::Assignment(a)) => a,
+                            Ok(Asked::Wait(d)) => {
+                                if sleep_or_stop(d, stop).await {
+                                    return Ok(Leave::Done);
+                                }
+                                continue;
+                            }
+                            Ok(Asked::Finished) => {
+                                if config.exit_when_done
+                                    || sleep_or_stop(Duration::from_secs(1), stop).await
+                                {
+                                    return Ok(Leave::Done);
+                                }
+                                continue;
+                            }
+                            Err(status) => return lost(config, status),
+                        }
+                    }
                 };
-                match asked {
-                    Ok(Asked::Assignment(a)) => a,
-                    Ok(Asked::Wait(d)) => {
-                        if sleep_or_stop(d, stop).await {
-                            return Ok(Leave::Done);
-                        }
-                        continue;
-                    }
-                    Ok(Asked::Finished) => {
-                        if config.exit_when_done
-                            || sleep_or_stop(Duration::from_secs(1), stop).await
+                match start_render(&assignment, pool, scenes, config.fault) {
+                    Ok(rendering) => (assignment, rendering),
+                    Err((kind, reason)) => {
+                        // Give the unit back at once, with the reason: holding it would
+                        // hang the frame (the heartbeat keeps the lease alive).
+                        if let Err(status) =
+                            report_failure(client, worker_id, &assignment, kind, &reason).await
                         {
-                            return Ok(Leave::Done);
+                            let _ = delivered(config, sending.take(), report, &mut stream).await;
+                            return lost(config, status);
                         }
                         continue;
                     }
-                    Err(status) => return lost(config, status),
                 }
-            }
-        };
-        let rendering = match start_render(&assignment, pool, scenes, config.fault) {
-            Ok(rendering) => rendering,
-            Err((kind, reason)) => {
-                // Give the unit back at once, with the reason: holding it would
-                // hang the frame (the heartbeat keeps the lease alive).
-                if let Err(status) =
-                    report_failure(client, worker_id, &assignment, kind, &reason).await
-                {
-                    let _ = delivered(config, sending.take(), report, &mut stream).await;
-                    return lost(config, status);
-                }
-                continue;
             }
         };
         // While it renders: the previous tile's reply brings the unit after this
@@ -492,6 +502,19 @@ async fn serve(
                 }
             }
             Delivered::Nothing => {}
+        }
+        // Queue the unit ahead on the pool behind this one: the render threads
+        // take it up the moment they are free, without waiting for this thread
+        // to hear that the current unit is done. (One that cannot be started
+        // stays ahead, and is given back with the reason when its turn comes.)
+        if lost_while_rendering.is_none()
+            && !*stop.borrow()
+            && let Some(a) = ahead.take()
+        {
+            match start_render(&a, pool, scenes, config.fault) {
+                Ok(rendering) => queued = Some((a, rendering)),
+                Err(_) => ahead = Some(a),
+            }
         }
         let rendered = rendering
             .await
@@ -637,6 +660,9 @@ fn is_refusal(status: &Status) -> bool {
 /// A rendered tile: the unit, its pixels on the wire, the CPU microseconds.
 type Tile = (WorkUnit, hypertexture_proto::Bytes, u64);
 
+/// A unit on the render pool: its tile, or why it could not be rendered.
+type Rendering = oneshot::Receiver<Result<Tile, String>>;
+
 /// Starts rendering an assignment on the pool (the async thread goes on with
 /// heartbeats and tiles). The result comes straight from the render thread: the
 /// tile, or the message of a panic. An assignment that cannot be started (its
@@ -646,7 +672,7 @@ fn start_render(
     pool: &rayon::ThreadPool,
     scenes: &mut SceneCache,
     fault: Option<Fault>,
-) -> Result<oneshot::Receiver<Result<Tile, String>>, (FailureKind, String)> {
+) -> Result<Rendering, (FailureKind, String)> {
     let job = assignment
         .job
         .as_ref()
@@ -677,6 +703,10 @@ fn start_render(
                 panic!("the render panics on purpose (fault injection)");
             }
             let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
+            // The process's CPU while this unit renders. With one render
+            // thread the units queued on the pool follow each other and this
+            // is exact (with the async thread's share); with several, the next
+            // unit's first pixels may overlap this one's last: an estimate.
             let before = process_cpu_micros();
             let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
             let cpu = process_cpu_micros().saturating_sub(before);
