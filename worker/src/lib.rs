@@ -7,8 +7,9 @@
 //! is unusable, the render panics) goes back to the coordinator with the reason
 //! (ReportFailure), never held in silence. Tiles go up on one SubmitTiles stream,
 //! a message per unit; the reply to a tile brings the next unit, and one unit
-//! is always assigned ahead, so the render threads never wait for the network: while unit
-//! n renders, tile n − 1 travels and its reply brings unit n + 1. A background
+//! is always assigned ahead and queued on the render pool, so the render
+//! threads never wait for the network or for this thread: while unit n
+//! renders, tile n − 1 travels and its reply brings unit n + 1. A background
 //! task heartbeats so the coordinator knows it is alive. When the coordinator
 //! goes away the worker reconnects with exponential backoff; when asked to stop
 //! (SIGTERM) it finishes the current unit, says goodbye and returns.
@@ -408,8 +409,9 @@ fn send_tile(client: &Client, stream: Option<TileStream>, tile: pb::SubmitTilePa
 
 /// Pulls and renders units over one connection. One unit is always assigned
 /// ahead of the one rendering: it comes in the reply to the previous tile (or,
-/// when there is none, from GetWork while the unit renders), so the render
-/// threads never wait for a round trip.
+/// when there is none, from GetWork while the unit renders) and is queued on
+/// the pool at once, so the render threads never wait for a round trip, nor
+/// for this thread to hear that a unit is done.
 async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
