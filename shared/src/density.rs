@@ -8,6 +8,7 @@
 use glam::Vec3;
 
 use crate::distortion::Distortion;
+use crate::dual::{Dual, DualPoint};
 use crate::motion::Pose;
 use crate::noise::{LANES, Lanes, Noise, VNOISE_OFFSET, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
@@ -457,6 +458,182 @@ impl Fur {
         };
         let s = 0.5 * (1.0 + field.noise(self.frequency, object.project(x)));
         self.gain.apply(self.bias.apply(s)) * d
+    }
+}
+
+/// The tree differentiated ([`crate::dual`]): the density and its gradient with
+/// respect to the world point in one pass. `h` is the spacing of the central
+/// differences of the parts without a derivative written out (the distortion
+/// and expressions).
+impl Density {
+    /// [`Density::eval`] at `x` with its gradient.
+    pub fn eval_dual(&self, x: &DualPoint, field: &Field, h: f32) -> Dual {
+        match self {
+            Density::Sphere(s) => s.density_dual(x),
+            Density::Box(b) => b.density_dual(x),
+            Density::Torus(t) => t.density_dual(x),
+            Density::Union(v) => v.iter().fold(Dual::constant(0.0), |a, d| {
+                let b = d.eval_dual(x, field, h);
+                a + b - a * b
+            }),
+            Density::Intersection(v) => {
+                let mut a = Dual::constant(1.0);
+                for d in v {
+                    a = a * d.eval_dual(x, field, h);
+                    if a.v == 0.0 {
+                        break;
+                    }
+                }
+                a
+            }
+            Density::Difference(a, b) => {
+                let a = a.eval_dual(x, field, h);
+                if a.v == 0.0 {
+                    return Dual::constant(0.0);
+                }
+                a - a * b.eval_dual(x, field, h)
+            }
+            Density::Complement(a) => -a.eval_dual(x, field, h) + 1.0,
+            Density::Max(v) => v
+                .iter()
+                .fold(Dual::constant(0.0), |a, d| a.max(d.eval_dual(x, field, h))),
+            Density::Min(v) => v
+                .iter()
+                .fold(Dual::constant(1.0), |a, d| a.min(d.eval_dual(x, field, h))),
+            Density::Hypertexture(t) => t.eval_dual(x, field, h),
+            Density::Expression(_) => x.apply(h, |p| self.eval(p, field)).clamp01(),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_dual(&pose.to_object_dual(x), field, h),
+                None => d.eval_dual(x, field, h),
+            },
+        }
+    }
+
+    /// [`Density::project`] with its Jacobian.
+    #[inline]
+    fn project_dual(&self, x: &DualPoint) -> DualPoint {
+        match self {
+            Density::Sphere(s) => s.project_dual(x),
+            Density::Box(b) => b.project_dual(x),
+            Density::Torus(t) => t.project_dual(x),
+            _ => *x,
+        }
+    }
+}
+
+impl Hypertexture {
+    /// [`Hypertexture::eval`] with its gradient.
+    fn eval_dual(&self, x: &DualPoint, field: &Field, h: f32) -> Dual {
+        let mut p = *x;
+        for w in &self.warps {
+            p = w.apply_dual(&p, field);
+        }
+        if let Some(d) = &self.distortion {
+            p = p.through(h, |q| d.apply(q, &self.object, field));
+        }
+        let mut v = self.object.eval_dual(&p, field, h);
+        for m in &self.modulation {
+            if v.v == 0.0 {
+                break; // every value DMF maps 0 to 0
+            }
+            v = match m {
+                Modulation::Bias(b) => b.apply_dual(v),
+                Modulation::Gain(g) => g.apply_dual(v),
+                Modulation::Fur(f) => f.apply_dual(v, &p, &self.object, field),
+            };
+        }
+        v
+    }
+}
+
+impl Field<'_> {
+    /// [`Field::noise`] with its gradient.
+    #[inline]
+    fn noise_dual(&self, frequency: f32, x: &DualPoint) -> Dual {
+        self.noise
+            .noise_dual(&x.offset(-self.offset).times(frequency))
+    }
+}
+
+impl Warp {
+    /// [`Warp::apply`] with its Jacobian.
+    fn apply_dual(&self, x: &DualPoint, field: &Field) -> DualPoint {
+        let scale_about = |centre: Vec3, s: Dual| x.offset(-centre).scale(s).offset(centre);
+        match *self {
+            Warp::NoisyRadius {
+                frequency,
+                amplitude,
+                centre,
+            } => scale_about(centre, field.noise_dual(frequency, x) * amplitude + 1.0),
+            Warp::FractalRadius {
+                frequency,
+                octaves,
+                amplitude,
+                centre,
+            } => {
+                let mut sum = Dual::constant(0.0);
+                let mut f = frequency;
+                for _ in 0..octaves {
+                    sum = sum + field.noise_dual(f, x) * (1.0 / f);
+                    f *= 2.0;
+                }
+                scale_about(centre, sum * amplitude + 1.0)
+            }
+            Warp::Dripping {
+                frequency,
+                amplitude,
+                stretch,
+                centre,
+            } => {
+                if x.y.v >= centre.y {
+                    return *x;
+                }
+                let mut q = x.offset(-field.offset);
+                q.y = q.y * stretch;
+                let n = field.noise.noise_dual(&q.times(frequency));
+                let pull = -(n.max(Dual::constant(0.0)) * amplitude) + 1.0;
+                DualPoint {
+                    y: (x.y - centre.y) * pull + centre.y,
+                    ..*x
+                }
+            }
+            Warp::TurbulentRadius {
+                frequency,
+                amplitude,
+                octaves,
+                centre,
+            } => {
+                let q = x.offset(-field.offset).times(frequency);
+                let mut sum = Dual::constant(0.0);
+                let mut scale = 1.0f32;
+                for _ in 0..octaves {
+                    sum = sum + field.noise.noise_dual(&q.times(scale)).abs() * (1.0 / scale);
+                    scale *= 2.0;
+                }
+                scale_about(centre, sum * amplitude + 1.0)
+            }
+        }
+    }
+}
+
+impl Fur {
+    /// [`Fur::apply`] with its gradient: through the curl, the projection onto
+    /// the inner surface and the noise there.
+    fn apply_dual(&self, d: Dual, x: &DualPoint, object: &Density, field: &Field) -> Dual {
+        let x = if self.curliness > 0.0 {
+            let q = x.offset(-field.offset);
+            let vnoise = DualPoint {
+                x: field.noise.noise_dual(&q.offset(-VNOISE_OFFSET)),
+                y: field.noise.noise_dual(&q),
+                z: field.noise.noise_dual(&q.offset(VNOISE_OFFSET)),
+            };
+            let curl = self.curl_gain.apply_dual(-d + 1.0) * self.curliness;
+            x.add(&vnoise.scale(curl))
+        } else {
+            *x
+        };
+        let s = (field.noise_dual(self.frequency, &object.project_dual(&x)) + 1.0) * 0.5;
+        self.gain.apply_dual(self.bias.apply_dual(s)) * d
     }
 }
 

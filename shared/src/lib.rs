@@ -15,6 +15,7 @@ pub mod camera;
 pub mod curve;
 pub mod density;
 pub mod distortion;
+pub mod dual;
 pub mod fastmath;
 pub mod film;
 pub mod interleave;

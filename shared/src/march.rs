@@ -343,6 +343,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
     let diagonal = (max - min).length();
     let mut budget = (4.0 * diagonal / step) as u64 + 64;
     let mut k: u32 = 0;
+    let lit = !scene.lights.is_empty();
 
     loop {
         if k < basis.first {
@@ -365,13 +366,16 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
         let (f, alpha_k) = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
-        if f > 0.0 && f < 1.0 {
+        // Without lights the shading ignores the normal: only the first one is
+        // recorded (the normal AOV), and refraction asks for its own below.
+        if f > 0.0 && f < 1.0 && (lit || first_normal.is_none()) {
             normal = match scene.gradient {
                 Gradient::Forward => {
                     let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
                 Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
+                Gradient::Dual => dual_normal(scene, x, field),
             };
         }
 
@@ -388,7 +392,11 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
             // Colours and textures belong to the object: its point, not the world's.
             let object_x = field.object_point(x);
-            let shading_normal = pse::perturb_normal(scene, object_x, f, shading_normal, field);
+            let shading_normal = if lit {
+                pse::perturb_normal(scene, object_x, f, shading_normal, field)
+            } else {
+                shading_normal // `shade` reads it only for lights
+            };
             let key = match scene.colour_index {
                 ColourIndex::Density => f,
                 ColourIndex::Strata {
@@ -416,9 +424,12 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             let n2 = refraction.eval1(f);
             if (n2 - n1).abs() > 1e-6 {
                 medium_index = Some(n2);
-                let n = normal.or_else(|| {
-                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
-                    gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
+                let n = normal.or_else(|| match scene.gradient {
+                    Gradient::Dual => dual_normal(scene, x, field),
+                    _ => {
+                        let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+                        gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
+                    }
                 });
                 if let Some(n) = n {
                     let bent = refract(basis.ray.direction, n, n1 / n2);
@@ -488,6 +499,23 @@ fn gradient_normal(
 ) -> Option<Vec3> {
     let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
     let g = basis.du * (f - behind) + basis.dv * (fv - f) + basis.dw * (fw - f);
+    let len2 = g.length_squared();
+    (len2 > 1e-30).then(|| -g / len2.sqrt())
+}
+
+/// The unit outward normal at x from the derivative of the density
+/// (forward-mode differentiation, [`crate::dual`]), or `None` where the
+/// gradient vanishes.
+#[inline]
+fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
+    let g = scene
+        .density
+        .eval_dual(
+            &crate::dual::DualPoint::at(x),
+            field,
+            crate::dual::spacing(scene.step),
+        )
+        .d;
     let len2 = g.length_squared();
     (len2 > 1e-30).then(|| -g / len2.sqrt())
 }

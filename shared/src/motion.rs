@@ -101,6 +101,19 @@ impl Pose {
         self.pivot + Vec3::new(dot(a, q), dot(b, q), dot(c, q))
     }
 
+    /// [`Pose::to_object`] of a point with its Jacobian.
+    #[inline]
+    pub fn to_object_dual(&self, w: &crate::dual::DualPoint) -> crate::dual::DualPoint {
+        let q = w.offset(-self.shift);
+        let [a, b, c] = self.inverse;
+        crate::dual::DualPoint {
+            x: q.dot(a),
+            y: q.dot(b),
+            z: q.dot(c),
+        }
+        .offset(self.pivot)
+    }
+
     /// [`Pose::to_object`] lane by lane (the same bits).
     #[inline]
     pub fn to_object_lanes(&self, p: &Points) -> Points {

@@ -55,6 +55,17 @@ impl Bias {
         crate::fastmath::pow01(t, self.exponent)
     }
 
+    /// [`Bias::apply`] with its gradient: `bias'(t) = e·t^(e−1) = e·bias(t)/t`.
+    #[inline]
+    pub fn apply_dual(&self, t: crate::dual::Dual) -> crate::dual::Dual {
+        let t = t.clamp01();
+        if t.v == 0.0 {
+            return t;
+        }
+        let p = crate::fastmath::pow01(t.v, self.exponent);
+        t.chain(p, self.exponent * p / t.v)
+    }
+
     /// [`Bias::apply`] lane by lane on `isa` (the same bits).
     #[inline]
     pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
@@ -109,6 +120,17 @@ impl Gain {
             self.bias.apply(2.0 * t) / 2.0
         } else {
             1.0 - self.bias.apply(2.0 - 2.0 * t) / 2.0
+        }
+    }
+
+    /// [`Gain::apply`] with its gradient.
+    #[inline]
+    pub fn apply_dual(&self, t: crate::dual::Dual) -> crate::dual::Dual {
+        let t = t.clamp01();
+        if t.v < 0.5 {
+            self.bias.apply_dual(t * 2.0) * 0.5
+        } else {
+            -(self.bias.apply_dual(-(t * 2.0) + 2.0) * 0.5) + 1.0
         }
     }
 

@@ -243,6 +243,140 @@ impl SoftTorus {
     }
 }
 
+/// The primitives differentiated ([`crate::dual`]): the same formulas on a
+/// point with its Jacobian.
+mod dual {
+    use glam::Vec3;
+
+    use super::{Falloff, SoftBox, SoftSphere, SoftTorus};
+    use crate::dual::{Dual, DualPoint};
+
+    impl Falloff {
+        /// [`Falloff::density`] of a squared distance with its gradient.
+        #[inline]
+        pub fn density_dual(&self, d2: Dual) -> Dual {
+            if d2.v <= self.inner2 {
+                Dual::constant(1.0)
+            } else if d2.v >= self.outer2 {
+                Dual::constant(0.0)
+            } else {
+                (-d2 + self.outer2) * self.inv_width
+            }
+        }
+    }
+
+    impl SoftSphere {
+        /// [`SoftSphere::density`] with its gradient.
+        #[inline]
+        pub fn density_dual(&self, x: &DualPoint) -> Dual {
+            self.falloff
+                .density_dual(x.offset(-self.centre).length_squared())
+        }
+
+        /// [`SoftSphere::project`] with its Jacobian.
+        #[inline]
+        pub fn project_dual(&self, x: &DualPoint) -> DualPoint {
+            x.offset(-self.centre)
+                .direction_or(Vec3::Y)
+                .times(self.falloff.inner)
+                .offset(self.centre)
+        }
+    }
+
+    impl SoftBox {
+        /// [`SoftBox::density`] with its gradient.
+        #[inline]
+        pub fn density_dual(&self, x: &DualPoint) -> Dual {
+            let q = x.offset(-self.centre);
+            let dx = self.falloff[0].density_dual(q.x * q.x);
+            if dx.v == 0.0 {
+                return Dual::constant(0.0);
+            }
+            let dy = self.falloff[1].density_dual(q.y * q.y);
+            if dy.v == 0.0 {
+                return Dual::constant(0.0);
+            }
+            dx * dy * self.falloff[2].density_dual(q.z * q.z)
+        }
+
+        /// [`SoftBox::project`] with its Jacobian: the coordinate pushed onto
+        /// a face is constant there, the clamped ones too.
+        #[inline]
+        pub fn project_dual(&self, x: &DualPoint) -> DualPoint {
+            let h = Vec3::new(
+                self.falloff[0].inner,
+                self.falloff[1].inner,
+                self.falloff[2].inner,
+            );
+            let q = x.offset(-self.centre);
+            let v = q.value();
+            let mut p = q;
+            let clamp = |c: Dual, h: f32| {
+                if c.v < -h {
+                    Dual::constant(-h)
+                } else if c.v > h {
+                    Dual::constant(h)
+                } else {
+                    c
+                }
+            };
+            if v.abs().cmple(h).all() {
+                let gap = h - v.abs();
+                if gap.x <= gap.y && gap.x <= gap.z {
+                    p.x = Dual::constant(h.x.copysign(v.x));
+                } else if gap.y <= gap.z {
+                    p.y = Dual::constant(h.y.copysign(v.y));
+                } else {
+                    p.z = Dual::constant(h.z.copysign(v.z));
+                }
+            } else {
+                p = DualPoint {
+                    x: clamp(q.x, h.x),
+                    y: clamp(q.y, h.y),
+                    z: clamp(q.z, h.z),
+                };
+            }
+            p.offset(self.centre)
+        }
+    }
+
+    impl SoftTorus {
+        /// The core circle's nearest point, with its Jacobian.
+        #[inline]
+        fn core_point_dual(&self, x: &DualPoint) -> DualPoint {
+            let q = x.offset(-self.centre);
+            let radial = q.sub(&DualPoint::along(self.axis, q.dot(self.axis)));
+            radial
+                .direction_or(self.axis.any_orthonormal_vector())
+                .times(self.major_radius)
+                .offset(self.centre)
+        }
+
+        /// [`SoftTorus::density`] with its gradient.
+        #[inline]
+        pub fn density_dual(&self, x: &DualPoint) -> Dual {
+            let q = x.offset(-self.centre);
+            let h = q.dot(self.axis);
+            let radial = q
+                .sub(&DualPoint::along(self.axis, h))
+                .length_squared()
+                .sqrt()
+                - self.major_radius;
+            self.falloff.density_dual(radial * radial + h * h)
+        }
+
+        /// [`SoftTorus::project`] with its Jacobian.
+        #[inline]
+        pub fn project_dual(&self, x: &DualPoint) -> DualPoint {
+            let core = self.core_point_dual(x);
+            x.sub(&core)
+                .direction_or(self.axis)
+                .times(self.falloff.inner)
+                .add(&core)
+        }
+    }
+}
+
 /// The nearest point of each primitive's outer (D = 0) surface: where Gilet &
 /// Dischler's default vector field points (section 4.3).
 pub mod boundary_point {

@@ -498,6 +498,21 @@ impl Scene {
         };
     }
 
+    /// The bounding parallelepiped the rays are marched through (min, max).
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.bounds
+    }
+
+    /// How the shading normal is estimated (the scene's `shading.gradient`).
+    pub fn gradient(&self) -> Gradient {
+        self.gradient
+    }
+
+    /// Replaces the scene's `shading.gradient`.
+    pub fn set_gradient(&mut self, gradient: Gradient) {
+        self.gradient = gradient;
+    }
+
     fn widened_support(density: &Density, step: f32, (min, max): (Vec3, Vec3)) -> Option<Support> {
         let margin = Vec3::splat(2.0 * step) + (max - min).abs() * 1e-4;
         density.support().map(|(lo, hi)| Support {
@@ -546,6 +561,17 @@ impl Scene {
     /// The hypertexture H(x) for `frame`, in [0, 1].
     pub fn density_at(&self, x: Vec3, frame: u32) -> f32 {
         self.density.eval(x, &self.field(frame))
+    }
+
+    /// H(x) for `frame` and its gradient ∇H(x), by forward-mode
+    /// differentiation ([`crate::dual`]).
+    pub fn density_gradient_at(&self, x: Vec3, frame: u32) -> (f32, Vec3) {
+        let g = self.density.eval_dual(
+            &crate::dual::DualPoint::at(x),
+            &self.field(frame),
+            crate::dual::spacing(self.step),
+        );
+        (g.v, g.d)
     }
 
     /// The evaluation context of `frame`.
