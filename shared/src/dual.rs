@@ -10,7 +10,7 @@
 //! (the fur's projection onto the inner surface included).
 //!
 //! Two parts of the tree have no derivative written out and are differentiated
-//! by central differences of a small spacing ([`spacing`]) where they occur,
+//! by central differences over a step ([`spacing`]) where they occur,
 //! the result then flowing on through the chain rule: Gilet & Dischler's
 //! distortion (its transfer functions are curves and grids) and expressions of
 //! the Pixel Stream Editor (a compiled program).
@@ -27,11 +27,15 @@ use std::ops::{Add, Div, Mul, Neg, Sub};
 use glam::Vec3;
 
 /// The spacing of the central differences of the parts without a derivative
-/// written out: a 64th of the marching step, fine enough to follow features
-/// the step resolves and coarse enough for f32 at the scene's scale.
+/// written out: the marching step, as `gradient: Central` differences. Finer
+/// differences follow the derivative more closely but, like the derivative,
+/// do not see where the density jumps: Gilet & Dischler's distortion
+/// `x − k·V/|V|` jumps where the boundary field turns (the seams of a box's
+/// nearest points), and surfaces made of such jumps (the cave's) would be lit
+/// as if they faced elsewhere. Over a step, the jump is seen.
 #[inline]
 pub fn spacing(step: f32) -> f32 {
-    step / 64.0
+    step
 }
 
 /// A number and its gradient with respect to the world point.

@@ -564,13 +564,18 @@ impl Scene {
     }
 
     /// H(x) for `frame` and its gradient ∇H(x), by forward-mode
-    /// differentiation ([`crate::dual`]).
+    /// differentiation ([`crate::dual`]), as `gradient: Dual` shades.
     pub fn density_gradient_at(&self, x: Vec3, frame: u32) -> (f32, Vec3) {
-        let g = self.density.eval_dual(
-            &crate::dual::DualPoint::at(x),
-            &self.field(frame),
-            crate::dual::spacing(self.step),
-        );
+        self.density_gradient_with(x, frame, crate::dual::spacing(self.step))
+    }
+
+    /// [`Scene::density_gradient_at`] with the parts that have no derivative
+    /// written out (the distortion, expressions) differentiated by central
+    /// differences of spacing `h` rather than a step.
+    pub fn density_gradient_with(&self, x: Vec3, frame: u32, h: f32) -> (f32, Vec3) {
+        let g = self
+            .density
+            .eval_dual(&crate::dual::DualPoint::at(x), &self.field(frame), h);
         (g.v, g.d)
     }
 
