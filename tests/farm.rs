@@ -273,6 +273,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             render_cpu_micros: 0,
             want_next: true,
             known_scene_hash: 0,
+            calls_cpu_micros: 0,
         };
         let floats =
             |values: &[f32]| -> Vec<u8> { values.iter().flat_map(|v| v.to_le_bytes()).collect() };
@@ -441,6 +442,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
                 render_cpu_micros: 1,
                 want_next: true,
                 known_scene_hash: job.scene_hash,
+                calls_cpu_micros: 1,
             })
             .await
             .unwrap()

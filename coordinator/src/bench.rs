@@ -98,12 +98,25 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         }
     );
 
+    // A worker encodes each tile on its render thread (counted in its unit's
+    // cost); in-process, the image is encoded after the render. The
+    // simulation adds this per pixel to the render's cost.
+    let encode_per_pixel = (0..3)
+        .map(|_| {
+            let t = Instant::now();
+            std::hint::black_box(config.pixel_format.encode(serial_film.pixels()));
+            t.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+        / serial_film.pixels().len().max(1) as f64;
+
     // As in `coordinator --local-workers N`: the farm is served on one thread.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;
-    let mut per_unit_network = 0.0f64;
+    let mut per_unit_calls = 0.0f64;
+    let mut render_thread_wait = 0.0f64;
     for &n in &config.workers {
         let job = farm::FrameJob {
             scene_text: text.clone(),
@@ -153,9 +166,19 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         let mean = per_pixel.iter().sum::<f64>() / per_pixel.len().max(1) as f64;
         let max = per_pixel.iter().cloned().fold(0.0, f64::max);
         if n == 1 {
+            // What a unit costs a worker beyond its pixels (rendering and
+            // encoding them: the unit costs are its render thread's CPU): its
+            // async thread's CPU (the calls), which on a worker whose render
+            // threads fill its cores is taken from them; the median tile's,
+            // so that the first one's building the scene does not count.
+            let mut calls: Vec<u64> = report.unit_calls.clone();
+            calls.sort_unstable();
+            per_unit_calls = calls.get(calls.len() / 2).map_or(0.0, |&c| c as f64 / 1e6);
+            // For the record: how long its render thread did not render
+            // (waiting for the first unit, preempted by the coordinator and
+            // its own calls on this machine, the last tile's trip).
             let rendering: f64 = costs.iter().sum::<f64>() / 1e6;
-            let gap = (report.render_time.as_secs_f64() - rendering) / costs.len().max(1) as f64;
-            per_unit_network = gap.max(0.0);
+            render_thread_wait = (report.render_time.as_secs_f64() - rendering).max(0.0);
         }
         let speedup = serial / wall;
         println!(
@@ -178,8 +201,10 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     }
     println!();
     println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. Time a worker spends per unit not rendering (measured, 1 worker): {:.2} ms.",
-        per_unit_network * 1e3
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels (measured, 1 worker), charged by the simulation: encoding its tile, {:.1} ns per pixel, and its async thread's CPU, {:.3} ms per unit (the median tile's). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip).",
+        encode_per_pixel * 1e9,
+        per_unit_calls * 1e3,
+        render_thread_wait * 1e3,
     );
 
     if config.simulate.is_empty() {
@@ -199,9 +224,12 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         ("unbalanced (corner)", &config.unbalanced),
     ] {
         let (_, s) = load(path, config.width, config.height)?;
-        let costs = pixel_costs(&s);
+        let costs: Vec<f64> = pixel_costs(&s)
+            .into_iter()
+            .map(|c| c + encode_per_pixel)
+            .collect();
         for &w in &config.simulate {
-            let sim = simulate(&costs, s.width(), s.height(), w, per_unit_network);
+            let sim = simulate(&costs, s.width(), s.height(), w, per_unit_calls);
             println!(
                 "| {name} | {w} | {} | {:.1} | {:.1}% | {:.1} | {:.1}% |",
                 sim.units,
@@ -246,9 +274,9 @@ pub struct Simulation {
 }
 
 /// Simulates `workers` workers: pulling the farm's units in coarse-to-fine order
-/// (each unit costing its pixels plus `per_unit`, the measured time a worker is
-/// not rendering per unit), against
-/// W equal contiguous bands of rows assigned statically.
+/// (each unit costing its pixels plus `per_unit`, the CPU a worker's calls
+/// take per unit), against W equal contiguous bands of rows assigned
+/// statically.
 pub fn simulate(
     costs: &[f64],
     width: u32,

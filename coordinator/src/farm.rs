@@ -157,6 +157,9 @@ pub struct FarmReport {
     pub workers: Vec<crate::scheduler::WorkerState>,
     /// CPU microseconds of each unit.
     pub unit_costs: Vec<u64>,
+    /// CPU microseconds of the async thread of each unit's worker since its
+    /// tile before.
+    pub unit_calls: Vec<u64>,
     /// Bytes of tiles received.
     pub tile_bytes: u64,
 }
@@ -256,6 +259,7 @@ impl Service {
         let (accepted, next) = {
             let mut s = self.scheduler();
             let now = Instant::now();
+            s.note_calls_cpu(p.assignment_id, p.calls_cpu_micros);
             let accepted = s
                 .submit(
                     &p.worker_id,
@@ -492,6 +496,7 @@ pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport,
         render_time: frame.render_time,
         workers: session.workers,
         unit_costs: frame.unit_costs,
+        unit_calls: frame.unit_calls,
         tile_bytes: session.tile_bytes,
     })
 }

@@ -176,6 +176,9 @@ pub struct CompletedFrame {
     pub image: FrameImage,
     /// The CPU microseconds each unit's accepted tile cost.
     pub unit_costs: Vec<u64>,
+    /// The CPU microseconds of its worker's async thread each unit's last
+    /// tile reported (its calls since the tile before).
+    pub unit_calls: Vec<u64>,
     /// From its first unit handed out to its last tile in.
     pub render_time: Duration,
 }
@@ -237,6 +240,8 @@ pub struct Scheduler {
     canvas: Canvas,
     /// Per unit: the CPU microseconds the accepted tile cost.
     unit_cpu: Vec<u64>,
+    /// Per unit: the async-thread CPU microseconds its last tile reported.
+    unit_calls: Vec<u64>,
     /// Per unit: the workers (by id) that failed it, and how.
     failures: Vec<Vec<(u64, UnitFailure)>>,
     /// Set when the render cannot go on.
@@ -274,6 +279,7 @@ impl Scheduler {
                 format,
             ),
             unit_cpu: vec![0; n],
+            unit_calls: vec![0; n],
             failures: vec![Vec::new(); n],
             gave_up: None,
             units,
@@ -425,6 +431,19 @@ impl Scheduler {
             .map(|(unit, _)| unit)
     }
 
+    /// Notes what a tile's worker says its calls cost it (statistics only,
+    /// whether the tile is accepted or not): for the unit of `assignment_id`,
+    /// when that is of the frame rendering.
+    pub fn note_calls_cpu(&mut self, assignment_id: u64, calls_cpu_micros: u64) {
+        if let Some(&(frame, unit)) = assignment_id
+            .checked_sub(1)
+            .and_then(|i| self.issued.get(i as usize))
+            && frame == self.current
+        {
+            self.unit_calls[unit] = calls_cpu_micros;
+        }
+    }
+
     /// Accepts a tile. `Ok(false)`: valid but the unit was already complete.
     pub fn submit(
         &mut self,
@@ -497,6 +516,7 @@ impl Scheduler {
             // checked against it.
             image: self.canvas.take(),
             unit_costs: std::mem::replace(&mut self.unit_cpu, vec![0; n]),
+            unit_calls: std::mem::replace(&mut self.unit_calls, vec![0; n]),
             render_time: self
                 .frame_started
                 .take()
@@ -737,10 +757,11 @@ mod tests {
             Duration::from_secs(5),
         );
         let w = s.register("a", 1, now);
-        for expected in &units {
+        for (k, expected) in units.iter().enumerate() {
             let (id, unit) = assign(&mut s, &w, now);
             assert_eq!(&unit, expected);
             let wire = convert::unit_to_wire(&unit);
+            s.note_calls_cpu(id, 100 + k as u64);
             assert_eq!(
                 s.submit(&w, id, Some(&wire), &tile(&unit, 16, 0.5), 10, now),
                 Ok(true)
@@ -751,6 +772,9 @@ mod tests {
         let completed = s.take_completed();
         assert_eq!(completed.len(), 1);
         assert_eq!(completed[0].frame, 0);
+        assert_eq!(completed[0].unit_costs, vec![10; units.len()]);
+        let calls: Vec<u64> = (0..units.len() as u64).map(|k| 100 + k).collect();
+        assert_eq!(completed[0].unit_calls, calls);
         assert!(
             film(&completed[0].image)
                 .pixels()

@@ -129,13 +129,7 @@ pub fn to_byte(v: f32) -> u8 {
 /// below `c`. A linear bucket of `c` gives the code at the bucket's start, and at
 /// most two thresholds lie inside a bucket.
 pub fn srgb_byte(c: f32) -> u8 {
-    let t = srgb_table();
-    let c = c.clamp(0.0, 1.0);
-    let mut code = t.bucket[(c * SRGB_BUCKETS as f32) as usize];
-    while code < 255 && t.threshold[code as usize + 1] <= c {
-        code += 1;
-    }
-    code
+    srgb_table().code(c)
 }
 
 /// Buckets of the linear range in [`srgb_byte`]'s table (a power of two, so that a
@@ -147,6 +141,28 @@ struct SrgbTable {
     threshold: [f32; 256],
     /// `bucket[i]`: the code of `i / SRGB_BUCKETS`.
     bucket: [u8; SRGB_BUCKETS + 1],
+}
+
+impl SrgbTable {
+    /// [`srgb_byte`] with the table in hand.
+    #[inline]
+    fn code(&self, c: f32) -> u8 {
+        let c = c.clamp(0.0, 1.0);
+        let mut code = self.bucket[(c * SRGB_BUCKETS as f32) as usize];
+        while code < 255 && self.threshold[code as usize + 1] <= c {
+            code += 1;
+        }
+        code
+    }
+
+    /// [`srgb8`] with the table in hand.
+    #[inline]
+    fn rgba(&self, sample: &Sample) -> [u8; 4] {
+        let [r, g, b, a] = sample.rgba;
+        let unpremultiply = if a > 0.0 && a < 1.0 { 1.0 / a } else { 1.0 };
+        let code = |c: f32| self.code((c * unpremultiply).clamp(0.0, 1.0));
+        [code(r), code(g), code(b), to_byte(a)]
+    }
 }
 
 fn srgb_table() -> &'static SrgbTable {
@@ -177,16 +193,13 @@ fn srgb_table() -> &'static SrgbTable {
 
 /// A sample as straight-alpha 8-bit sRGB RGBA, the way a PNG stores it.
 pub fn srgb8(sample: &Sample) -> [u8; 4] {
-    let [r, g, b, a] = sample.rgba;
-    let unpremultiply = if a > 0.0 && a < 1.0 { 1.0 / a } else { 1.0 };
-    let code = |c: f32| srgb_byte((c * unpremultiply).clamp(0.0, 1.0));
-    [code(r), code(g), code(b), to_byte(a)]
+    srgb_table().rgba(sample)
 }
 
 impl Film {
     /// The film as straight-alpha 8-bit sRGB RGBA bytes, row-major.
     pub fn to_srgb8(&self) -> Vec<u8> {
-        self.pixels.iter().flat_map(srgb8).collect()
+        PixelFormat::Srgb8.encode(&self.pixels)
     }
 }
 
@@ -215,14 +228,19 @@ impl PixelFormat {
     /// The samples in this format.
     pub fn encode(self, samples: &[Sample]) -> Vec<u8> {
         let mut bytes = Vec::with_capacity(samples.len() * self.bytes_per_pixel());
-        for s in samples {
-            match self {
-                PixelFormat::Samples => {
+        match self {
+            PixelFormat::Samples => {
+                for s in samples {
                     for v in s.to_array() {
                         bytes.extend_from_slice(&v.to_le_bytes());
                     }
                 }
-                PixelFormat::Srgb8 => bytes.extend_from_slice(&srgb8(s)),
+            }
+            PixelFormat::Srgb8 => {
+                let table = srgb_table();
+                for s in samples {
+                    bytes.extend_from_slice(&table.rgba(s));
+                }
             }
         }
         bytes

@@ -122,6 +122,87 @@ pub async fn shutdown_signal() {
     }
 }
 
+/// The render threads, and the clock that tells their CPU time from the
+/// async thread's.
+struct RenderPool {
+    threads: rayon::ThreadPool,
+    /// The CPU clock of the async thread (the one that runs [`run`]).
+    async_clock: CpuClock,
+}
+
+/// The CPU-time clock of one thread, readable from any thread (Linux's
+/// `pthread_getcpuclockid`); reads 0 where the OS offers none.
+#[derive(Clone, Copy, Debug)]
+struct CpuClock(Option<ClockId>);
+
+#[cfg(target_os = "linux")]
+type ClockId = libc::clockid_t;
+#[cfg(not(target_os = "linux"))]
+type ClockId = ();
+
+impl CpuClock {
+    /// The clock of the calling thread.
+    fn of_this_thread() -> CpuClock {
+        #[cfg(target_os = "linux")]
+        {
+            let mut id: libc::clockid_t = 0;
+            // SAFETY: pthread_self is the calling thread, alive; the call only
+            // writes the clock id into `id`.
+            let ok = unsafe { libc::pthread_getcpuclockid(libc::pthread_self(), &mut id) } == 0;
+            CpuClock(ok.then_some(id))
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            CpuClock(None)
+        }
+    }
+
+    /// The thread's CPU time so far, in microseconds.
+    fn micros(self) -> u64 {
+        #[cfg(target_os = "linux")]
+        {
+            let Some(id) = self.0 else { return 0 };
+            let mut t = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: clock_gettime only writes into `t`; a clock of a thread
+            // that has exited gives an error, read as 0.
+            if unsafe { libc::clock_gettime(id, &mut t) } != 0 {
+                return 0;
+            }
+            t.tv_sec as u64 * 1_000_000 + t.tv_nsec as u64 / 1000
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            0
+        }
+    }
+}
+
+/// The async thread's CPU time between one tile and the next.
+struct CallsCpu {
+    clock: CpuClock,
+    last: u64,
+}
+
+impl CallsCpu {
+    fn new(clock: CpuClock) -> CallsCpu {
+        CallsCpu {
+            clock,
+            last: clock.micros(),
+        }
+    }
+
+    /// Microseconds since the last call (or since `new`).
+    fn since_last(&mut self) -> u64 {
+        let now = self.clock.micros();
+        let d = now.saturating_sub(self.last);
+        self.last = now;
+        d
+    }
+}
+
 /// The process's CPU time (user + system) in microseconds, from the OS.
 pub fn process_cpu_micros() -> u64 {
     #[cfg(unix)]
@@ -213,14 +294,17 @@ pub async fn run(
         ),
         None => None,
     });
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(config.threads)
-        .thread_name(|i| format!("render-{i}"))
-        .build()
-        .map_err(|e| WorkerError::Threads {
-            threads: config.threads,
-            message: e.to_string(),
-        })?;
+    let pool = RenderPool {
+        threads: rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(|i| format!("render-{i}"))
+            .build()
+            .map_err(|e| WorkerError::Threads {
+                threads: config.threads,
+                message: e.to_string(),
+            })?,
+        async_clock: CpuClock::of_this_thread(),
+    };
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::default();
     let mut backoff = Backoff(Backoff::FIRST);
@@ -416,11 +500,13 @@ async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
     worker_id: &str,
-    pool: &rayon::ThreadPool,
+    pool: &RenderPool,
     scenes: &mut SceneCache,
     report: &mut WorkerReport,
     stop: &mut watch::Receiver<bool>,
 ) -> Result<Leave, WorkerError> {
+    // The async thread's CPU since the previous tile (statistics).
+    let mut calls_cpu = CallsCpu::new(pool.async_clock);
     // Assigned and not started yet.
     let mut ahead: Option<pb::Assignment> = None;
     // Assigned and already queued on the pool behind the unit rendering, so
@@ -542,6 +628,7 @@ async fn serve(
             unit: Some(convert::unit_to_wire(&unit)),
             pixels,
             render_cpu_micros: cpu,
+            calls_cpu_micros: calls_cpu.since_last(),
             // The unit after the one ahead, to render while the next tile travels.
             want_next: !*stop.borrow() && lost_while_rendering.is_none(),
             known_scene_hash: scenes.known(),
@@ -671,7 +758,7 @@ type Rendering = oneshot::Receiver<Result<Tile, String>>;
 /// scene does not build here, it is malformed) is an error with its kind.
 fn start_render(
     assignment: &pb::Assignment,
-    pool: &rayon::ThreadPool,
+    pool: &RenderPool,
     scenes: &mut SceneCache,
     fault: Option<Fault>,
 ) -> Result<Rendering, (FailureKind, String)> {
@@ -699,20 +786,25 @@ fn start_render(
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let frame = job.frame;
     let (done, result) = oneshot::channel();
-    pool.spawn(move || {
+    let async_clock = pool.async_clock;
+    pool.threads.spawn(move || {
         let render = || {
             if fault == Some(Fault::Panic) {
                 panic!("the render panics on purpose (fault injection)");
             }
             let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
-            // The process's CPU while this unit renders. With one render
-            // thread the units queued on the pool follow each other and this
-            // is exact (with the async thread's share); with several, the next
-            // unit's first pixels may overlap this one's last: an estimate.
-            let before = process_cpu_micros();
+            // The render threads' CPU (the process's but the async
+            // thread's) while this unit renders and its tile is encoded:
+            // the worker's whole cost of the unit's pixels. With one render
+            // thread the units queued on the pool follow each other and
+            // this is exact; with several, the next unit's first pixels may
+            // overlap this one's last: an estimate.
+            let render_cpu = || process_cpu_micros().saturating_sub(async_clock.micros());
+            let before = render_cpu();
             let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
-            let cpu = process_cpu_micros().saturating_sub(before);
-            (unit, convert::tile_to_wire(&samples, format), cpu)
+            let tile = convert::tile_to_wire(&samples, format);
+            let cpu = render_cpu().saturating_sub(before);
+            (unit, tile, cpu)
         };
         let tile = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render))
             .map_err(|payload| format!("the render panicked: {}", panic_message(&*payload)));
