@@ -265,34 +265,32 @@ impl DualPoint {
         }
     }
 
+    /// `f` of each coordinate, with its axis (0, 1, 2).
+    #[inline(always)]
+    fn map(&self, f: impl Fn(Dual, usize) -> Dual) -> DualPoint {
+        DualPoint {
+            x: f(self.x, 0),
+            y: f(self.y, 1),
+            z: f(self.z, 2),
+        }
+    }
+
     /// `self + c` for a constant c.
     #[inline(always)]
     pub fn offset(&self, c: Vec3) -> DualPoint {
-        DualPoint {
-            x: self.x + c.x,
-            y: self.y + c.y,
-            z: self.z + c.z,
-        }
+        self.map(|v, i| v + c[i])
     }
 
     /// `self · s` for a dual s.
     #[inline(always)]
     pub fn scale(&self, s: Dual) -> DualPoint {
-        DualPoint {
-            x: self.x * s,
-            y: self.y * s,
-            z: self.z * s,
-        }
+        self.map(|v, _| v * s)
     }
 
     /// `self · s` for a constant s.
     #[inline(always)]
     pub fn times(&self, s: f32) -> DualPoint {
-        DualPoint {
-            x: self.x * s,
-            y: self.y * s,
-            z: self.z * s,
-        }
+        self.map(|v, _| v * s)
     }
 
     /// `c · s` for a constant vector c and a dual s.
