@@ -115,41 +115,19 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         .enable_all()
         .build()
         .map_err(CoordinatorError::Runtime)?;
-    let mut per_unit_calls = 0.0f64;
+    // (render µs, calls µs) of each tile of 1-worker farms but their first.
+    let mut call_points: Vec<(f64, u64)> = Vec::new();
     let mut render_thread_wait = 0.0f64;
+    let on_farm = |text: &str, path: &std::path::Path, scene: &Scene, n: usize| {
+        farm_render(&runtime, text, path, scene, config.pixel_format, n)
+    };
     for &n in &config.workers {
-        let job = farm::FrameJob {
-            scene_text: text.clone(),
-            scene_name: config.scene.display().to_string(),
-            width: scene.width(),
-            height: scene.height(),
-            frames: vec![farm::FrameOut {
-                frame: 0,
-                out: PathBuf::new(),
-            }],
-            spp: None,
-            quality: None,
-            knobs: Vec::new(),
-            pixel_format: config.pixel_format,
-        };
-        let farm_config = farm::FarmConfig {
-            listen: "127.0.0.1:0".parse().expect("a valid address"),
-            token: None,
-            lease: Duration::from_secs(10),
-            worker_timeout: Duration::from_secs(60),
-            local_workers: n,
-            local_threads: 1,
-            preview_every: None,
-            tls: None,
-            interleave: DEFAULT_INTERLEAVE,
-            progress: false,
-        };
         let (self0, children0) = (
             cpu_seconds(libc::RUSAGE_SELF),
             cpu_seconds(libc::RUSAGE_CHILDREN),
         );
         let start = Instant::now();
-        let report = runtime.block_on(farm::render(job, farm_config))?;
+        let report = on_farm(&text, &config.scene, &scene, n)?;
         let total = start.elapsed().as_secs_f64();
         // As for the in-process rows: the render itself, first unit out to last tile in.
         let wall = report.render_time.as_secs_f64();
@@ -166,14 +144,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         let mean = per_pixel.iter().sum::<f64>() / per_pixel.len().max(1) as f64;
         let max = per_pixel.iter().cloned().fold(0.0, f64::max);
         if n == 1 {
-            // What a unit costs a worker beyond its pixels (rendering and
-            // encoding them: the unit costs are its render thread's CPU): its
-            // async thread's CPU (the calls), which on a worker whose render
-            // threads fill its cores is taken from them; the median tile's,
-            // so that the first one's building the scene does not count.
-            let mut calls: Vec<u64> = report.unit_calls.clone();
-            calls.sort_unstable();
-            per_unit_calls = calls.get(calls.len() / 2).map_or(0.0, |&c| c as f64 / 1e6);
+            call_points.extend(unit_call_points(&report));
             // For the record: how long its render thread did not render
             // (waiting for the first unit, preempted by the coordinator and
             // its own calls on this machine, the last tile's trip).
@@ -201,15 +172,37 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     }
     println!();
     println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels (measured, 1 worker), charged by the simulation: encoding its tile, {:.1} ns per pixel, and its async thread's CPU, {:.3} ms per unit (the median tile's). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip).",
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip).",
         encode_per_pixel * 1e9,
-        per_unit_calls * 1e3,
         render_thread_wait * 1e3,
     );
 
     if config.simulate.is_empty() {
         return Ok(());
     }
+    // What a unit costs a worker beyond its pixels (rendering and encoding
+    // them: the unit costs are its render thread's CPU): its async thread's
+    // CPU (the calls), which on a worker whose render threads fill its cores
+    // is taken from them. It grows with the time the unit renders (see
+    // `UnitCalls`), so it is fitted over 1-worker farms of both scenes, whose
+    // units render from about 1 ms to 10 ms.
+    if !config.workers.contains(&1) {
+        let report = on_farm(&text, &config.scene, &scene, 1)?;
+        call_points.extend(unit_call_points(&report));
+    }
+    let (unbalanced_text, unbalanced) = load(&config.unbalanced, config.width, config.height)?;
+    let report = on_farm(&unbalanced_text, &config.unbalanced, &unbalanced, 1)?;
+    call_points.extend(unit_call_points(&report));
+    let (render, call): (Vec<f64>, Vec<u64>) = call_points.into_iter().unzip();
+    let calls = UnitCalls::fit(&render, &call);
+    println!();
+    println!(
+        "What a unit costs a worker's async thread (its calls), fitted over the tiles of 1-worker farms of both scenes but their first ({} tiles): {:.3} ms + {:.1}% of the unit's render time (mean {:.3} ms). The simulation charges it to every unit.",
+        render.len(),
+        calls.fixed * 1e3,
+        calls.proportional * 1e2,
+        calls.mean * 1e3,
+    );
     println!();
     println!(
         "## Simulated farms (pull schedule vs contiguous blocks), from measured per-pixel costs"
@@ -229,7 +222,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             .map(|c| c + encode_per_pixel)
             .collect();
         for &w in &config.simulate {
-            let sim = simulate(&costs, s.width(), s.height(), w, per_unit_calls);
+            let sim = simulate(&costs, s.width(), s.height(), w, calls);
             println!(
                 "| {name} | {w} | {} | {:.1} | {:.1}% | {:.1} | {:.1}% |",
                 sim.units,
@@ -241,6 +234,57 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         }
     }
     Ok(())
+}
+
+/// Renders frame 0 of `scene` on a farm of `n` local worker processes of one
+/// render thread each, served on `runtime`'s thread.
+fn farm_render(
+    runtime: &tokio::runtime::Runtime,
+    text: &str,
+    path: &std::path::Path,
+    scene: &Scene,
+    pixel_format: hypertexture::PixelFormat,
+    n: usize,
+) -> Result<farm::FarmReport, CoordinatorError> {
+    let job = farm::FrameJob {
+        scene_text: text.to_string(),
+        scene_name: path.display().to_string(),
+        width: scene.width(),
+        height: scene.height(),
+        frames: vec![farm::FrameOut {
+            frame: 0,
+            out: PathBuf::new(),
+        }],
+        spp: None,
+        quality: None,
+        knobs: Vec::new(),
+        pixel_format,
+    };
+    let farm_config = farm::FarmConfig {
+        listen: "127.0.0.1:0".parse().expect("a valid address"),
+        token: None,
+        lease: Duration::from_secs(10),
+        worker_timeout: Duration::from_secs(60),
+        local_workers: n,
+        local_threads: 1,
+        preview_every: None,
+        tls: None,
+        interleave: DEFAULT_INTERLEAVE,
+        progress: false,
+    };
+    Ok(runtime.block_on(farm::render(job, farm_config))?)
+}
+
+/// A 1-worker farm's tiles as (render µs, calls µs), without the first, whose
+/// calls include building the scene (once per scene on a LAN worker). One
+/// worker renders the units in order, so the first is unit 0.
+fn unit_call_points(report: &farm::FarmReport) -> impl Iterator<Item = (f64, u64)> + '_ {
+    report
+        .unit_costs
+        .iter()
+        .map(|&c| c as f64)
+        .zip(report.unit_calls.iter().copied())
+        .skip(1)
 }
 
 /// Seconds each pixel takes on one thread, row-major: the least of three
@@ -262,6 +306,60 @@ pub fn pixel_costs(scene: &Scene) -> Vec<f64> {
     costs
 }
 
+/// What a unit costs a worker's async thread (its calls: the tile out, the
+/// next unit in), in seconds: `fixed + proportional × render`. Measured on a
+/// 1-worker farm, it is not a constant per call: on this VM it grows with the
+/// time the thread slept while the unit rendered (0.07 ms after a 2.7 ms
+/// unit, 0.2 ms after a 9 ms one, with the same tile bytes), so a per-unit
+/// mean would charge a farm of short units for long ones.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct UnitCalls {
+    /// Seconds per unit.
+    pub fixed: f64,
+    /// Seconds per second of the unit's render.
+    pub proportional: f64,
+    /// The plain mean, seconds per unit (for the record).
+    pub mean: f64,
+}
+
+impl UnitCalls {
+    /// Least squares of the calls' CPU on the units' render CPU (both in
+    /// microseconds, unit by unit), neither term below zero.
+    pub fn fit(render_micros: &[f64], calls_micros: &[u64]) -> UnitCalls {
+        let n = render_micros.len().min(calls_micros.len());
+        if n == 0 {
+            return UnitCalls::default();
+        }
+        let xs = &render_micros[..n];
+        let ys: Vec<f64> = calls_micros[..n].iter().map(|&c| c as f64).collect();
+        let (mx, my) = (
+            xs.iter().sum::<f64>() / n as f64,
+            ys.iter().sum::<f64>() / n as f64,
+        );
+        let sxx: f64 = xs.iter().map(|x| (x - mx) * (x - mx)).sum();
+        let sxy: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+        let slope = if sxx > 0.0 { (sxy / sxx).max(0.0) } else { 0.0 };
+        let (proportional, fixed) = if my - slope * mx >= 0.0 {
+            (slope, my - slope * mx)
+        } else {
+            // A negative intercept: all of it proportional, through the origin.
+            let sxx0: f64 = xs.iter().map(|x| x * x).sum();
+            let sxy0: f64 = xs.iter().zip(&ys).map(|(x, y)| x * y).sum();
+            (if sxx0 > 0.0 { sxy0 / sxx0 } else { 0.0 }, 0.0)
+        };
+        UnitCalls {
+            fixed: fixed / 1e6,
+            proportional,
+            mean: my / 1e6,
+        }
+    }
+
+    /// A unit's whole cost to a worker, for `render` seconds of pixels.
+    pub fn with_render(&self, render: f64) -> f64 {
+        render * (1.0 + self.proportional) + self.fixed
+    }
+}
+
 /// The outcome of one simulated farm.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Simulation {
@@ -274,15 +372,14 @@ pub struct Simulation {
 }
 
 /// Simulates `workers` workers: pulling the farm's units in coarse-to-fine order
-/// (each unit costing its pixels plus `per_unit`, the CPU a worker's calls
-/// take per unit), against W equal contiguous bands of rows assigned
-/// statically.
+/// (each unit costing its pixels plus its calls), against W equal contiguous
+/// bands of rows assigned statically.
 pub fn simulate(
     costs: &[f64],
     width: u32,
     height: u32,
     workers: usize,
-    per_unit: f64,
+    calls: UnitCalls,
 ) -> Simulation {
     let serial: f64 = costs.iter().sum();
     // The farm's own units.
@@ -293,11 +390,11 @@ pub fn simulate(
     let to_ns = |s: f64| (s * 1e9) as u64;
     let mut makespan = 0;
     for unit in &units {
-        let cost: f64 = unit
-            .pixels(width)
-            .map(|(x, y)| costs[(y * width + x) as usize])
-            .sum::<f64>()
-            + per_unit;
+        let cost = calls.with_render(
+            unit.pixels(width)
+                .map(|(x, y)| costs[(y * width + x) as usize])
+                .sum::<f64>(),
+        );
         let std::cmp::Reverse(start) = free.pop().unwrap_or(std::cmp::Reverse(0));
         let end = start + to_ns(cost);
         makespan = makespan.max(end);
@@ -315,7 +412,7 @@ pub fn simulate(
             i * height as usize / workers,
             (i + 1) * height as usize / workers,
         );
-        worst = worst.max(rows[a..b].iter().sum::<f64>() + per_unit);
+        worst = worst.max(calls.with_render(rows[a..b].iter().sum::<f64>()));
     }
     Simulation {
         units: units.len(),
@@ -331,9 +428,24 @@ mod tests {
     #[test]
     fn uniform_cost_simulates_linear_speedup_both_ways() {
         let costs = vec![1e-5; 64 * 64];
-        let sim = simulate(&costs, 64, 64, 8, 0.0);
+        let sim = simulate(&costs, 64, 64, 8, UnitCalls::default());
         assert!((sim.pull_speedup - 8.0).abs() < 0.01, "{sim:?}");
         assert!((sim.blocks_speedup - 8.0).abs() < 0.01, "{sim:?}");
+    }
+
+    #[test]
+    fn unit_calls_fit_a_line_and_charge_it() {
+        let render = [1000.0, 2000.0, 4000.0, 8000.0];
+        let calls = [30, 50, 90, 170];
+        let fit = UnitCalls::fit(&render, &calls);
+        assert!((fit.fixed - 10e-6).abs() < 1e-9, "{fit:?}");
+        assert!((fit.proportional - 0.02).abs() < 1e-9, "{fit:?}");
+        assert!((fit.with_render(1e-3) - 1.03e-3).abs() < 1e-12, "{fit:?}");
+        // More calls for shorter units: no negative slope, the mean stays fixed.
+        let fit = UnitCalls::fit(&render, &[90, 80, 70, 60]);
+        assert_eq!(fit.proportional, 0.0);
+        assert!((fit.fixed - 75e-6).abs() < 1e-9, "{fit:?}");
+        assert_eq!(UnitCalls::fit(&[], &[]), UnitCalls::default());
     }
 
     #[test]
@@ -344,7 +456,7 @@ mod tests {
                 costs[y * 64 + x] = 1e-4;
             }
         }
-        let sim = simulate(&costs, 64, 64, 4, 0.0);
+        let sim = simulate(&costs, 64, 64, 4, UnitCalls::default());
         assert!(sim.pull_speedup > 3.8, "{sim:?}");
         assert!(sim.blocks_speedup < 1.5, "{sim:?}");
     }

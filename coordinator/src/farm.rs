@@ -531,12 +531,13 @@ pub async fn render_frames(
         source,
     })?;
 
-    // Units sized for the workers expected: the local ones, or at least 8 when
-    // workers may join from the LAN.
+    // Units sized for the workers expected: the local ones, or, when workers
+    // may join from the LAN, as many as the paper's 64 processors (at least
+    // one unit each for up to 64 workers, however small the frame).
     let expected = if config.listen.ip().is_loopback() {
         config.local_workers.max(1)
     } else {
-        config.local_workers.max(8)
+        config.local_workers.max(64)
     };
     let units = farm_units(job.width, job.height, config.interleave, expected);
     let unit_count = units.len();
