@@ -125,10 +125,11 @@ pub fn bayer_rank(interleave: u32, x: u32, y: u32) -> u32 {
 ///   unit is an interleaved sample of the whole image, so units of equal size
 ///   cost the same: within ±2% for both the fur and the one-dense-corner
 ///   scene at 512² (`coordinator bench`). Finer units then balance nothing;
-///   they only add calls, 0.04–0.08 ms of a worker's CPU each, which at 64
-///   workers on a 512² frame of 3.4 ms per worker was 10% (448 units, finer
-///   at the end: 89% simulated efficiency; whole sets: 97%). A straggler is
-///   covered by the scheduler's speculative duplicates.
+///   they only add calls, about 0.1 ms of a worker's CPU each on our VM. At
+///   64 workers on the 512² corner frame (3.4 ms per worker), 448 units,
+///   finer at the end, simulated 86–95% efficiency; whole sets, 96–97%
+///   (BENCHMARKS.md, session 13). A straggler is covered by the scheduler's
+///   speculative duplicates.
 pub fn farm_units(width: u32, height: u32, interleave: u32, workers: usize) -> Vec<WorkUnit> {
     let pixels = u64::from(width) * u64::from(height);
     let cap = u64::from(DEFAULT_MAX_UNIT_PIXELS);
