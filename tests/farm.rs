@@ -695,6 +695,7 @@ fn faulty_worker(
         ca: None,
         exit_when_done: false,
         fault: Some(fault),
+        shares_process: true,
     };
     let task = runtime.spawn(worker::run(config, stopped));
     (runtime, stop, task)

@@ -45,6 +45,7 @@ impl InProcessPlan {
                     ca: self.ca.clone(),
                     exit_when_done: true,
                     fault: None,
+                    shares_process: true,
                 };
                 tokio::spawn(worker::run(cfg, stopped.clone()))
             })

@@ -632,9 +632,10 @@ impl Scheduler {
     }
 
     /// A worker leaves cleanly; anything it still held goes back to the queue.
+    /// Its process's CPU time is kept when it knows it (not 0).
     pub fn goodbye(&mut self, worker_id: &str, process_cpu_micros: u64) -> Result<(), Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
-        w.process_cpu_micros = Some(process_cpu_micros);
+        w.process_cpu_micros = (process_cpu_micros > 0).then_some(process_cpu_micros);
         w.alive = false;
         self.release(wid);
         Ok(())

@@ -62,6 +62,7 @@ impl Cli {
             ca,
             exit_when_done: self.exit_when_done,
             fault: None,
+            shares_process: false,
         })
     }
 }

@@ -49,6 +49,10 @@ pub struct WorkerConfig {
     pub exit_when_done: bool,
     /// Fail on purpose (tests of the failure path only; `None` in every binary).
     pub fault: Option<Fault>,
+    /// The worker runs inside another program (the coordinator's in-process
+    /// fallback), so the process's CPU is not its own: its goodbye reports
+    /// none.
+    pub shares_process: bool,
 }
 
 /// A failure a test asks a worker to have, to exercise what follows it.
@@ -383,7 +387,11 @@ pub async fn run(
                 let _ = client
                     .goodbye(pb::GoodbyeParams {
                         worker_id: registered.worker_id.clone(),
-                        process_cpu_micros: process_cpu_micros(),
+                        process_cpu_micros: if config.shares_process {
+                            0
+                        } else {
+                            process_cpu_micros()
+                        },
                     })
                     .await;
                 tracing::info!("leaving after {} units", report.units);
@@ -787,19 +795,28 @@ fn start_render(
     let frame = job.frame;
     let (done, result) = oneshot::channel();
     let async_clock = pool.async_clock;
+    let one_thread = pool.threads.current_num_threads() == 1;
     pool.threads.spawn(move || {
         let render = || {
             if fault == Some(Fault::Panic) {
                 panic!("the render panics on purpose (fault injection)");
             }
             let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
-            // The render threads' CPU (the process's but the async
-            // thread's) while this unit renders and its tile is encoded:
-            // the worker's whole cost of the unit's pixels. With one render
-            // thread the units queued on the pool follow each other and
-            // this is exact; with several, the next unit's first pixels may
-            // overlap this one's last: an estimate.
-            let render_cpu = || process_cpu_micros().saturating_sub(async_clock.micros());
+            // The render threads' CPU while this unit renders and its tile
+            // is encoded: the worker's whole cost of the unit's pixels. With
+            // one render thread, that thread's own clock: exact, and blind to
+            // other workers in the same process (the coordinator's in-process
+            // fallback). With several, the process's CPU but the async
+            // thread's; the next unit's first pixels may overlap this one's
+            // last: an estimate.
+            let own = CpuClock::of_this_thread();
+            let render_cpu = || {
+                if one_thread {
+                    own.micros()
+                } else {
+                    process_cpu_micros().saturating_sub(async_clock.micros())
+                }
+            };
             let before = render_cpu();
             let samples = hypertexture::render::render_pixels(&scene, frame, &pixels);
             let tile = convert::tile_to_wire(&samples, format);
