@@ -212,12 +212,8 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         "| scene | workers | units | pull speedup | pull efficiency | blocks speedup | blocks efficiency |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|");
-    for (name, path) in [
-        ("fur", &config.scene),
-        ("unbalanced (corner)", &config.unbalanced),
-    ] {
-        let (_, s) = load(path, config.width, config.height)?;
-        let costs: Vec<f64> = pixel_costs(&s)
+    for (name, s) in [("fur", &scene), ("unbalanced (corner)", &unbalanced)] {
+        let costs: Vec<f64> = pixel_costs(s)
             .into_iter()
             .map(|c| c + encode_per_pixel)
             .collect();
