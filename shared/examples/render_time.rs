@@ -35,6 +35,14 @@ fn main() {
             },
         )
         .expect("scene");
+        let mut scene = scene;
+        if let Ok(isa) = std::env::var("ISA") {
+            let isa = hypertexture::simd::Isa::available()
+                .into_iter()
+                .find(|i| i.name() == isa)
+                .expect("ISA: an available path (scalar, sse4.1, avx2)");
+            assert!(scene.set_isa(isa));
+        }
         let best = (0..runs)
             .map(|_| {
                 let start = Instant::now();

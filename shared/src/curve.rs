@@ -39,7 +39,7 @@ impl<const N: usize> Curve<N> {
     }
 
     /// The value at `t`.
-    #[inline]
+    #[inline(always)]
     pub fn eval(&self, t: f32) -> [f32; N] {
         let n = self.keys.len();
         if n == 1 || t.is_nan() || t <= self.keys[0] {
