@@ -225,6 +225,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                 protocol_version: 999,
                 name: "old".into(),
                 threads: 1,
+                arithmetic_digest: 0,
             })
             .await
             .unwrap_err();
@@ -235,11 +236,32 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                     .message()
                     .contains(&hypertexture_proto::PROTOCOL_VERSION.to_string())
         );
+        // The right protocol but other arithmetic (another build): its pixels
+        // would not be byte-identical, so it is refused, naming both digests.
+        let digest = hypertexture::probe::arithmetic_digest().unwrap();
+        let refused = client
+            .register(pb::RegisterParams {
+                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+                name: "skewed".into(),
+                threads: 1,
+                arithmetic_digest: digest ^ 1,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), Code::FailedPrecondition);
+        assert!(
+            refused.message().contains("arithmetic mismatch")
+                && refused.message().contains(&format!("{:016x}", digest ^ 1))
+                && refused.message().contains(&format!("{digest:016x}")),
+            "{}",
+            refused.message()
+        );
         let id = client
             .register(pb::RegisterParams {
                 protocol_version: hypertexture_proto::PROTOCOL_VERSION,
                 name: "evil".into(),
                 threads: 1,
+                arithmetic_digest: digest,
             })
             .await
             .unwrap()
@@ -394,6 +416,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
                 protocol_version: hypertexture_proto::PROTOCOL_VERSION,
                 name: "short-lived".into(),
                 threads: 1,
+                arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
             })
             .await
             .unwrap()
@@ -758,6 +781,51 @@ fn a_worker_whose_scene_does_not_build_stops_the_render_at_once() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A worker of another build (its known-answer probe differs) is refused at
+/// registration with both digests and exits; a worker of this build then
+/// renders the frame, byte for byte the in-process image.
+#[test]
+fn a_worker_with_other_arithmetic_is_refused_and_the_image_stays_exact() {
+    let dir = scratch("farm-arithmetic");
+    let reference = dir.join("reference.png");
+    in_process("noisy_sphere", 32, &reference);
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--worker-timeout",
+        "60",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (runtime, _stop, task) = faulty_worker(&url, "skewed", worker::Fault::Arithmetic);
+    let refused = runtime.block_on(async {
+        tokio::time::timeout(std::time::Duration::from_secs(30), task)
+            .await
+            .expect("the refused worker returns")
+            .unwrap()
+    });
+    match refused {
+        Err(worker::WorkerError::Refused(message)) => {
+            assert!(message.contains("arithmetic mismatch"), "{message}")
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    coord.wait_for("refused worker skewed", 30);
+    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
+    let (status, log) = coord.finish(60);
+    assert!(status.success(), "{}", log.join("\n"));
+    same_bytes(&reference, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A worker whose renders panic gives each unit back with the panic's message;
 /// another worker renders it, and the image is exactly the in-process one.
 #[test]
@@ -850,6 +918,7 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
                         protocol_version: hypertexture_proto::PROTOCOL_VERSION,
                         name: name.into(),
                         threads: 1,
+                        arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
                     })
                     .await
                     .unwrap()

@@ -83,6 +83,9 @@ pub enum FarmError {
     /// The gRPC server failed.
     #[error("the farm's server failed: {0}")]
     Server(String),
+    /// This build's known-answer probe did not run (a defect of the build).
+    #[error("the known-answer probe: {0}")]
+    Probe(#[from] hypertexture::probe::ProbeError),
     /// A local worker could not be started.
     #[error("cannot start local worker {path}: {source}")]
     Spawn {
@@ -173,6 +176,9 @@ struct Shared {
     job_without_text: pb::Job,
     token: Option<String>,
     heartbeat: Duration,
+    /// This build's known-answer probe digest ([`hypertexture::probe`]): a
+    /// worker must match it to join.
+    arithmetic_digest: u64,
     /// Notified when a frame completes or the render is given up.
     finished: watch::Sender<bool>,
     tile_bytes: std::sync::atomic::AtomicU64,
@@ -366,6 +372,21 @@ impl Farm for Service {
             .filter(|c| !c.is_control())
             .take(64)
             .collect();
+        if params.arithmetic_digest != self.0.arithmetic_digest {
+            tracing::warn!(
+                "refused worker {name} from {}: its arithmetic differs from this build's \
+                 (probe digest {:016x}, here {:016x})",
+                peer.map_or_else(|| "?".into(), |a| a.to_string()),
+                params.arithmetic_digest,
+                self.0.arithmetic_digest
+            );
+            return Err(Status::failed_precondition(format!(
+                "arithmetic mismatch: the worker's known-answer probe gives digest {:016x}, \
+                 the coordinator's {:016x}; it is another build (or platform) whose pixels \
+                 would not be byte-identical: run the same release on both",
+                params.arithmetic_digest, self.0.arithmetic_digest
+            )));
+        }
         let worker_id = self
             .scheduler()
             .register(&name, params.threads, Instant::now());
@@ -539,6 +560,9 @@ pub async fn render_frames(
     } else {
         config.local_workers.max(64)
     };
+    let arithmetic_digest = tokio::task::spawn_blocking(hypertexture::probe::arithmetic_digest)
+        .await
+        .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
     let units = farm_units(job.width, job.height, config.interleave, expected);
     let unit_count = units.len();
     let (finished_tx, mut finished_rx) = watch::channel(false);
@@ -574,6 +598,7 @@ pub async fn render_frames(
         job: wire_job,
         token: token.clone(),
         heartbeat,
+        arithmetic_digest,
         finished: finished_tx,
         tile_bytes: std::sync::atomic::AtomicU64::new(0),
         first_assignment: Mutex::new(None),

@@ -20,7 +20,8 @@ pub mod pb {
 /// worker already has. 3: ReportFailure (a worker gives back a unit it cannot
 /// render, with the reason). 4: jobs name the tiles' pixel format (8-bit sRGB
 /// when only PNGs are written). 5: SubmitTiles (a worker's tiles on one stream).
-pub const PROTOCOL_VERSION: u32 = 5;
+/// 6: workers register with the digest of their known-answer probe.
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// Why a worker could not render an assignment (the program's side of
 /// `pb::FailureKind`; see [`convert::failure_kind_to_wire`]).

@@ -10,6 +10,7 @@
 //! - [`march`], [`render`]: the ray marcher and the image/pixel drivers.
 //! - [`film`]: what each pixel records.
 //! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
+//! - [`probe`]: the known-answer probe, a digest of this build's arithmetic.
 
 pub mod camera;
 pub mod curve;
@@ -23,6 +24,7 @@ pub mod lighting;
 pub mod march;
 pub mod motion;
 pub mod noise;
+pub mod probe;
 pub mod pse;
 pub mod random;
 pub mod render;

@@ -62,6 +62,8 @@ pub enum Fault {
     Scene,
     /// Every render panics.
     Panic,
+    /// The known-answer probe's digest is one bit off, as another build's would be.
+    Arithmetic,
 }
 
 /// Why a worker gave up. Network trouble is not here: it is retried forever.
@@ -83,9 +85,13 @@ pub enum WorkerError {
         /// What the OS said.
         source: std::io::Error,
     },
-    /// The coordinator refused this worker for good (wrong token, other protocol version).
+    /// The coordinator refused this worker for good (wrong token, other protocol
+    /// version, other arithmetic).
     #[error("the coordinator refused this worker: {0}")]
     Refused(String),
+    /// This build's known-answer probe did not run (a defect of the build).
+    #[error("the known-answer probe: {0}")]
+    Probe(String),
     /// The render threads could not be started.
     #[error("cannot start {threads} render threads: {message}")]
     Threads {
@@ -273,6 +279,27 @@ async fn sleep_or_stop(d: Duration, stop: &mut watch::Receiver<bool>) -> bool {
     }
 }
 
+/// This build's known-answer probe digest ([`hypertexture::probe`]), computed on
+/// the render pool: the coordinator admits a worker only when it matches its own.
+async fn probe(pool: &RenderPool) -> Result<u64, WorkerError> {
+    let (done, digest) = oneshot::channel();
+    pool.threads.spawn(move || {
+        let started = std::time::Instant::now();
+        let digest = std::panic::catch_unwind(hypertexture::probe::arithmetic_digest);
+        tracing::debug!("known-answer probe in {:?}", started.elapsed());
+        let _ = done.send(digest);
+    });
+    match digest.await {
+        Ok(Ok(Ok(digest))) => Ok(digest),
+        Ok(Ok(Err(e))) => Err(WorkerError::Probe(e.to_string())),
+        Ok(Err(payload)) => Err(WorkerError::Probe(format!(
+            "it panicked: {}",
+            panic_message(&*payload)
+        ))),
+        Err(_) => Err(WorkerError::Probe("the render pool dropped it".into())),
+    }
+}
+
 /// Why the connected loop ended.
 enum Leave {
     /// Asked to stop, or the frame is done: return.
@@ -309,6 +336,10 @@ pub async fn run(
             })?,
         async_clock: CpuClock::of_this_thread(),
     };
+    let arithmetic_digest = match config.fault {
+        Some(Fault::Arithmetic) => probe(&pool).await? ^ 1,
+        _ => probe(&pool).await?,
+    };
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::default();
     let mut backoff = Backoff(Backoff::FIRST);
@@ -339,6 +370,7 @@ pub async fn run(
                 protocol_version: PROTOCOL_VERSION,
                 name: config.name.clone(),
                 threads: config.threads as u32,
+                arithmetic_digest,
             })
             .await;
         let registered = match registered {
