@@ -121,6 +121,11 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     let on_farm = |text: &str, path: &std::path::Path, scene: &Scene, n: usize| {
         farm_render(&runtime, text, path, scene, config.pixel_format, n)
     };
+    // The coordinator's known-answer probe is computed once per process: here,
+    // before the farms, so that each farm's row shows what a frame costs.
+    let probe_started = Instant::now();
+    crate::farm::arithmetic_digest().map_err(crate::farm::FarmError::from)?;
+    let probe_time = probe_started.elapsed().as_secs_f64();
     for &n in &config.workers {
         let (self0, children0) = (
             cpu_seconds(libc::RUSAGE_SELF),
@@ -172,9 +177,10 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     }
     println!();
     println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip).",
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip). Not in the coordinator's rows: its known-answer probe, once per process before them, {:.1} ms (each worker process's own probe is in the workers' CPU).",
         encode_per_pixel * 1e9,
         render_thread_wait * 1e3,
+        probe_time * 1e3,
     );
 
     if config.simulate.is_empty() {

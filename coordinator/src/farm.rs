@@ -522,6 +522,23 @@ pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport,
     })
 }
 
+/// This build's known-answer probe digest ([`hypertexture::probe`]), which a
+/// worker must match to join: computed once per process (about 5 ms), on the
+/// calling thread.
+pub fn arithmetic_digest() -> Result<u64, hypertexture::probe::ProbeError> {
+    static DIGEST: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    if let Some(&d) = DIGEST.get() {
+        return Ok(d);
+    }
+    let started = Instant::now();
+    let d = hypertexture::probe::arithmetic_digest()?;
+    tracing::debug!(
+        "known-answer probe: digest {d:016x} in {:?}",
+        started.elapsed()
+    );
+    Ok(*DIGEST.get_or_init(|| d))
+}
+
 /// Renders every frame of `job` on the farm, one after another, as one session:
 /// serves workers (starting local ones once) and hands each frame to `on_frame`
 /// as soon as its last tile is in; when every frame is done, stops the local
@@ -560,7 +577,7 @@ pub async fn render_frames(
     } else {
         config.local_workers.max(64)
     };
-    let arithmetic_digest = tokio::task::spawn_blocking(hypertexture::probe::arithmetic_digest)
+    let arithmetic_digest = tokio::task::spawn_blocking(arithmetic_digest)
         .await
         .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
     let units = farm_units(job.width, job.height, config.interleave, expected);

@@ -6,16 +6,17 @@
 //! protocol may differ in a noise kernel, an approximation of a power or the
 //! order of a sum (a newer release, a local patch, another platform's libm), and
 //! their pixels then differ in the last bits — a seam no check on a tile's shape
-//! would see. So each side renders the same small set of scenes and hashes every
-//! bit of every pixel; a worker whose digest differs from the coordinator's is
+//! would see. So each side renders the same few pixels of a set of scenes and
+//! hashes every bit of them; a worker whose digest differs from the coordinator's is
 //! refused at registration.
 //!
 //! The probe scenes are the repository's scenes (the gallery, the Pixel Stream
 //! Editor's and all of Gilet & Dischler's), built into the library, each
-//! rendered at [`PROBE_SIZE`]² at its interactive step with its own samples per
-//! pixel: together they run the density kernels, noises, powers, shading,
-//! refraction, shadows and sampling the renderer has, in about 20 ms of one
-//! core (release build). A scene added to the gallery belongs here too.
+//! rendered at [`PROBE_PIXELS`] of a [`PROBE_SIZE`]² image at its interactive
+//! step with at most [`PROBE_SPP`] samples per pixel: together they run the
+//! density kernels, noises, powers, shading, refraction, shadows and sampling
+//! the renderer has, in about 5 ms of one core (release build). A scene added
+//! to the gallery belongs here too (a test checks it).
 //! Every instruction-set path gives the same digest (the paths are bit-identical;
 //! a test checks it here too), so a worker may run a different path from the
 //! coordinator's.
@@ -28,8 +29,13 @@ use crate::simd::Isa;
 /// Width and height of each probe render, in pixels.
 pub const PROBE_SIZE: u32 = 4;
 
+/// The pixels of that image the probe renders: the two on the diagonal nearest
+/// the centre, where the scenes put their objects (a test checks that each
+/// scene's object is met). Cheap enough for the coordinator's CPU budget.
+pub const PROBE_PIXELS: [(u32, u32); 2] = [(1, 1), (2, 2)];
+
 /// The most samples per pixel the probe takes (enough to run supersampling).
-const PROBE_SPP: u32 = 2;
+pub const PROBE_SPP: u32 = 2;
 
 /// The frame the probe renders (not 0, so that motion and flow move).
 const PROBE_FRAME: u32 = 3;
@@ -124,23 +130,19 @@ pub struct ProbeError {
 
 /// The digest of this build's arithmetic on instruction-set path `isa` (which
 /// must be available): FNV-1a over every channel's bits and the 8-bit sRGB
-/// encoding of every pixel of every probe scene. Pure and deterministic; it
-/// renders on the caller's rayon pool (a few milliseconds in a release build).
+/// encoding of the probe pixels of every probe scene. Pure and deterministic;
+/// it runs on the calling thread (about 5 ms in a release build: on a farm,
+/// the coordinator's CPU budget).
 pub fn digest(isa: Isa) -> Result<u64, ProbeError> {
-    use rayon::prelude::*;
-    let renders = PROBE_SCENES
-        .par_iter()
-        .map(|&(path, text)| probe_render(path, text, isa))
-        .collect::<Result<Vec<_>, _>>()?;
     let mut h = Fnv::new();
-    for bytes in renders {
-        h.bytes(&bytes);
+    for &(path, text) in PROBE_SCENES {
+        h.bytes(&probe_render(path, text, isa)?);
     }
     Ok(h.0)
 }
 
-/// The bytes the digest hashes for one probe scene: each pixel's channels
-/// (little-endian f32 bits) and its 8-bit sRGB encoding, row by row.
+/// The bytes the digest hashes for one probe scene: each probe pixel's channels
+/// (little-endian f32 bits) and its 8-bit sRGB encoding.
 fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, ProbeError> {
     // The interactive step and at most two samples a pixel: the same
     // arithmetic as the scene's own, on fewer samples.
@@ -160,14 +162,12 @@ fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, Pro
     }
     scene.set_isa(isa);
     let mut bytes = Vec::new();
-    for y in 0..PROBE_SIZE {
-        for x in 0..PROBE_SIZE {
-            let sample = render_pixel(&scene, x, y, PROBE_FRAME);
-            for v in sample.to_array() {
-                bytes.extend_from_slice(&v.to_bits().to_le_bytes());
-            }
-            bytes.extend_from_slice(&srgb8(&sample));
+    for (x, y) in PROBE_PIXELS {
+        let sample = render_pixel(&scene, x, y, PROBE_FRAME);
+        for v in sample.to_array() {
+            bytes.extend_from_slice(&v.to_bits().to_le_bytes());
         }
+        bytes.extend_from_slice(&srgb8(&sample));
     }
     Ok(bytes)
 }

@@ -286,7 +286,12 @@ async fn probe(pool: &RenderPool) -> Result<u64, WorkerError> {
     pool.threads.spawn(move || {
         let started = std::time::Instant::now();
         let digest = std::panic::catch_unwind(hypertexture::probe::arithmetic_digest);
-        tracing::debug!("known-answer probe in {:?}", started.elapsed());
+        if let Ok(Ok(d)) = &digest {
+            tracing::debug!(
+                "known-answer probe: digest {d:016x} in {:?}",
+                started.elapsed()
+            );
+        }
         let _ = done.send(digest);
     });
     match digest.await {
