@@ -11,20 +11,38 @@ use std::time::Instant;
 
 use hypertexture::{Overrides, Scene};
 
-fn main() {
+const USAGE: &str = "usage: render_time SIZE RUNS THREADS SCENE... (scenes by name under scenes/)";
+
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("render_time: {e}");
+            std::process::ExitCode::from(2)
+        }
+    }
+}
+
+fn run() -> Result<(), String> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [size, runs, threads, scenes @ ..] = args.as_slice() else {
-        panic!("usage: render_time SIZE RUNS THREADS SCENE...");
+        return Err(USAGE.into());
     };
-    let (size, runs, threads): (u32, usize, usize) = (
-        size.parse().expect("size"),
-        runs.parse().expect("runs"),
-        threads.parse().expect("threads"),
-    );
+    if scenes.is_empty() {
+        return Err(USAGE.into());
+    }
+    let number = |what: &str, v: &str| -> Result<usize, String> {
+        v.parse()
+            .ok()
+            .filter(|&n| n > 0)
+            .ok_or_else(|| format!("{what} must be a positive integer, not {v:?}; {USAGE}"))
+    };
+    let size = u32::try_from(number("SIZE", size)?).map_err(|_| "SIZE is too large".to_string())?;
+    let (runs, threads) = (number("RUNS", runs)?, number("THREADS", threads)?);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
-        .expect("thread pool");
+        .map_err(|e| format!("cannot start {threads} threads: {e}"))?;
     for name in scenes {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../scenes/{name}.ron"));
         let mut scene = Scene::load(
@@ -35,13 +53,15 @@ fn main() {
                 ..Overrides::default()
             },
         )
-        .expect("scene");
+        .map_err(|e| e.to_string())?;
         if let Ok(isa) = std::env::var("ISA") {
             let isa = hypertexture::simd::Isa::available()
                 .into_iter()
                 .find(|i| i.name() == isa)
-                .expect("ISA: an available path (scalar, sse4.1, avx2)");
-            assert!(scene.set_isa(isa));
+                .ok_or_else(|| {
+                    format!("ISA={isa}: not a path this CPU has (scalar, sse4.1, avx2)")
+                })?;
+            scene.set_isa(isa);
         }
         let best = (0..runs)
             .map(|_| {
@@ -54,4 +74,5 @@ fn main() {
             .fold(f64::INFINITY, f64::min);
         println!("{name} {size} {:.1}", best * 1e3);
     }
+    Ok(())
 }
