@@ -198,7 +198,8 @@ impl Density {
         }
     }
 
-    /// Whether [`Density::project`] is defined for this node.
+    /// Whether `Density::project` (the fur's projection onto the inner surface) is
+    /// defined for this node.
     pub fn can_project(desc: &ObjectDesc) -> bool {
         matches!(
             desc,

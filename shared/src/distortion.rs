@@ -36,7 +36,7 @@ pub const NOISE_GAIN: f32 = 2.0;
 /// A shape transfer function T (1D) or T2D, values in [0, 1].
 #[derive(Clone, Debug, PartialEq)]
 pub enum Transfer {
-    /// T[t] through control points, clamped to [0, 1].
+    /// `T[t]` through control points, clamped to [0, 1].
     Curve(Curve<1>),
     /// T2D[t, O(x)], bilinear over a grid.
     Grid {
