@@ -1,7 +1,7 @@
 //! The farm: a gRPC server that hands interleaved pixel sets to workers.
 //!
 //! Workers dial in, register, pull units and push tiles back; the
-//! [`Scheduler`](crate::scheduler::Scheduler) decides everything else. This file is
+//! [`Scheduler`] decides everything else. This file is
 //! the gRPC edge: authentication, conversion of refusals to `tonic::Status`, the
 //! run loop (lease expiry, progress, previews, time-outs, finished frames) and
 //! the local workers. A sequence of frames is one session: one server, the same

@@ -32,7 +32,7 @@ pub enum OutputError {
     /// Encoding failed.
     #[error("{path}: cannot encode the image: {message}")]
     Encode {
-        /// The output path (or "<memory>").
+        /// The output path (or `<memory>`).
         path: PathBuf,
         /// The encoder's message.
         message: String,
