@@ -22,6 +22,7 @@
 //! coordinator's.
 
 use crate::film::srgb8;
+use crate::random::Fnv1a;
 use crate::render::render_pixel;
 use crate::scene::{Overrides, Quality, Scene};
 use crate::simd::Isa;
@@ -101,22 +102,6 @@ pub const PROBE_SCENES: &[(&str, &str)] = probe_scenes![
     "gilet/wool.ron",
 ];
 
-/// FNV-1a, 64-bit: stable across machines and builds.
-struct Fnv(u64);
-
-impl Fnv {
-    fn new() -> Fnv {
-        Fnv(0xcbf2_9ce4_8422_2325)
-    }
-
-    fn bytes(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 ^= u64::from(b);
-            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
-        }
-    }
-}
-
 /// Why the probe could not run: a probe scene that does not build (a defect of
 /// this build, reported rather than hidden in a digest).
 #[derive(Debug, thiserror::Error)]
@@ -134,11 +119,11 @@ pub struct ProbeError {
 /// it runs on the calling thread (about 5 ms in a release build: on a farm,
 /// the coordinator's CPU budget).
 pub fn digest(isa: Isa) -> Result<u64, ProbeError> {
-    let mut h = Fnv::new();
+    let mut h = Fnv1a::default();
     for &(path, text) in PROBE_SCENES {
-        h.bytes(&probe_render(path, text, isa)?);
+        h.write(probe_render(path, text, isa)?);
     }
-    Ok(h.0)
+    Ok(h.finish())
 }
 
 /// The bytes the digest hashes for one probe scene: each probe pixel's channels
