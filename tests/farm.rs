@@ -25,6 +25,28 @@ fn in_process(scene_name: &str, size: u32, out: &Path) {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
+/// A coordinator rendering `scene_name` at `size`² to `out` that starts no
+/// workers of its own (the test brings them), with `extra` flags; and its URL.
+fn remote_only(scene_name: &str, size: u32, out: &Path, extra: &[&str]) -> (Running, String) {
+    let size = size.to_string();
+    let scene = scene(scene_name);
+    let args = [
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        &size,
+        "--height",
+        &size,
+        "--local-workers",
+        "0",
+    ];
+    let mut coord = Running::coordinator(&[&args[..], extra].concat());
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    (coord, url)
+}
+
 fn same_bytes(a: &Path, b: &Path) {
     let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
     assert!(x == y, "{} and {} differ", a.display(), b.display());
@@ -69,23 +91,12 @@ fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
     // Big enough that one render thread is still busy when it is killed.
     in_process("fur", 256, &reference);
     let out = dir.join("farm.png");
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("fur").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "256",
-        "--height",
-        "256",
-        "--local-workers",
-        "0",
-        "--lease-timeout",
-        "1",
-        "--worker-timeout",
-        "30",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (mut coord, url) = remote_only(
+        "fur",
+        256,
+        &out,
+        &["--lease-timeout", "1", "--worker-timeout", "30"],
+    );
     let mut doomed =
         Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "doomed"]);
     doomed.wait_for("registered", 30);
@@ -196,21 +207,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
     let reference = dir.join("reference.exr");
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.exr");
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--lease-timeout",
-        "1",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -390,21 +387,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
     let reference = dir.join("reference.png");
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--lease-timeout",
-        "1",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -500,19 +483,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
 fn a_worker_exits_when_the_frame_is_done() {
     let dir = scratch("farm-done");
     let out = dir.join("farm.png");
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (coord, url) = remote_only("noisy_sphere", 32, &out, &[]);
     let worker = Running::worker(&["--coordinator", &url, "--threads", "1", "--exit-when-done"]);
     let (status, log) = worker.finish(30);
     assert!(status.success(), "{}", log.join("\n"));
@@ -731,24 +702,12 @@ fn faulty_worker(
 fn a_worker_whose_scene_does_not_build_stops_the_render_at_once() {
     let dir = scratch("farm-scene-fails");
     let out = dir.join("never.png");
-    let coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--worker-timeout",
-        "60",
-        "--lease-timeout",
-        "60",
-    ]);
-    let mut coord = coord;
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (coord, url) = remote_only(
+        "noisy_sphere",
+        32,
+        &out,
+        &["--worker-timeout", "60", "--lease-timeout", "60"],
+    );
     let started = std::time::Instant::now();
     let (runtime, stop, task) = faulty_worker(&url, "broken", worker::Fault::Scene);
     let (status, log) = coord.finish(30);
@@ -790,21 +749,7 @@ fn a_worker_with_other_arithmetic_is_refused_and_the_image_stays_exact() {
     let reference = dir.join("reference.png");
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--worker-timeout",
-        "60",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--worker-timeout", "60"]);
     let (runtime, _stop, task) = faulty_worker(&url, "skewed", worker::Fault::Arithmetic);
     let refused = runtime.block_on(async {
         tokio::time::timeout(std::time::Duration::from_secs(30), task)
@@ -889,21 +834,12 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
     use hypertexture_proto::pb::farm_client::FarmClient;
     use hypertexture_proto::pb::get_work_result::Outcome;
 
-    let mut coord = Running::coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        "/tmp/hypertexture-never-written.png",
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--lease-timeout",
-        "60",
-    ]);
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (coord, url) = remote_only(
+        "noisy_sphere",
+        32,
+        Path::new("/tmp/hypertexture-never-written.png"),
+        &["--lease-timeout", "60"],
+    );
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
