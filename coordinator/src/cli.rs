@@ -126,6 +126,163 @@ pub enum Command {
     /// Map the density channel of a rendered EXR to colour again, without
     /// re-rendering (the 1985 paper's two-pass compositing).
     Recolor(RecolorArgs),
+    /// Run the farm as a long-running service: a job queue kept under --data,
+    /// workers that stay between jobs, an HTTP/JSON API and metrics on the
+    /// workers' port.
+    Serve(ServeArgs),
+    /// Queue a job on a running service; prints its id.
+    Submit(SubmitArgs),
+    /// Show a service's jobs and workers (or one job).
+    Status(StatusArgs),
+    /// Cancel a job on a running service.
+    Cancel(JobArgs),
+    /// Wait for a job to end; exit status 0 only if it is done.
+    Wait(JobArgs),
+}
+
+/// The default address of `serve` and of the clients' `--server`.
+pub const DEFAULT_SERVER: &str = "http://127.0.0.1:47000";
+
+/// How the service logs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// One line of text per event.
+    Plain,
+    /// One JSON object per event.
+    Json,
+}
+
+/// Arguments of `coordinator serve`.
+#[derive(Debug, clap::Args)]
+pub struct ServeArgs {
+    /// Where the queue, job states and completed tiles are kept (created if missing).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Where to listen: the workers' gRPC and the HTTP API share this port.
+    /// Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:47000")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// Threads of each local worker.
+    #[arg(long, value_name = "N", default_value = "1")]
+    pub threads: NonZeroUsize,
+    /// Shared secret workers and (beyond loopback) API clients must present.
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+    /// On SIGTERM or Ctrl-C: seconds that units in flight get to arrive.
+    #[arg(long, value_name = "SECS", default_value_t = 30.0, value_parser = positive_seconds)]
+    pub drain_timeout: f64,
+    /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
+    #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
+    pub interleave: u32,
+    /// Log lines as text or JSON.
+    #[arg(long, value_name = "FORMAT", default_value = "plain")]
+    pub log_format: LogFormat,
+    /// Only warnings and errors.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// How a client reaches the service.
+#[derive(Debug, clap::Args)]
+pub struct ServerArgs {
+    /// The service's URL.
+    #[arg(long, value_name = "URL", default_value = DEFAULT_SERVER)]
+    pub server: String,
+    /// The service's token (needed beyond loopback).
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// CA certificate (PEM) to verify an https:// service.
+    #[arg(long, value_name = "FILE")]
+    pub ca: Option<PathBuf>,
+}
+
+/// Arguments of `coordinator submit`.
+#[derive(Debug, clap::Args)]
+pub struct SubmitArgs {
+    /// The service.
+    #[command(flatten)]
+    pub server: ServerArgs,
+    /// Scene file (RON); its text is sent with the job.
+    #[arg(value_name = "SCENE")]
+    pub scene: PathBuf,
+    /// Output path pattern on the coordinator's machine: `#` runs are the
+    /// padded frame number (out/fur.####.exr); a relative path is made absolute
+    /// against this directory.
+    #[arg(long, value_name = "PATTERN")]
+    pub out: String,
+    /// Frames A..B (B excluded) or A..=B (B included); default: frame 0.
+    #[arg(long, value_name = "A..B", value_parser = frame_range)]
+    pub frames: Option<(u32, u32)>,
+    /// Higher runs first; ties run oldest first.
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 0,
+        allow_negative_numbers = true
+    )]
+    pub priority: i32,
+    /// Image width (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub width: Option<u32>,
+    /// Image height (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub height: Option<u32>,
+    /// Samples per pixel (overrides the scene's).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub spp: Option<u32>,
+    /// Marching step preset.
+    #[arg(long, value_name = "PRESET")]
+    pub quality: Option<QualityArg>,
+    /// Set a knob of the scene (repeatable).
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
+    pub set: Vec<(String, f64)>,
+    /// Only workers carrying this tag render the job (repeatable: all of them).
+    #[arg(long = "require-tag", value_name = "NAME")]
+    pub require_tag: Vec<String>,
+}
+
+/// Arguments of `coordinator status`.
+#[derive(Debug, clap::Args)]
+pub struct StatusArgs {
+    /// The service.
+    #[command(flatten)]
+    pub server: ServerArgs,
+    /// One job's id (default: every job, and the workers).
+    #[arg(value_name = "JOB")]
+    pub job: Option<u64>,
+}
+
+/// Arguments of `coordinator cancel` and `coordinator wait`.
+#[derive(Debug, clap::Args)]
+pub struct JobArgs {
+    /// The service.
+    #[command(flatten)]
+    pub server: ServerArgs,
+    /// The job's id.
+    #[arg(value_name = "JOB")]
+    pub job: u64,
 }
 
 /// Arguments of `coordinator grid`.

@@ -2,17 +2,22 @@
 //!
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
+pub mod api;
 pub mod bench;
 pub mod canvas;
 pub mod cli;
+pub mod client;
 pub mod farm;
 pub mod grid;
+pub mod jobs;
 pub mod local;
 pub mod logging;
 pub mod output;
 pub mod progress;
 pub mod recolor;
 pub mod scheduler;
+pub mod service;
+pub mod store;
 
 use std::io::IsTerminal;
 use std::num::NonZeroUsize;

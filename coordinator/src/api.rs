@@ -1,0 +1,1 @@
+//! The HTTP/JSON API of `coordinator serve` (to be written).
