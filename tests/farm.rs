@@ -223,6 +223,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                 name: "old".into(),
                 threads: 1,
                 arithmetic_digest: 0,
+                tags: Vec::new(),
             })
             .await
             .unwrap_err();
@@ -242,6 +243,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                 name: "skewed".into(),
                 threads: 1,
                 arithmetic_digest: digest ^ 1,
+                tags: Vec::new(),
             })
             .await
             .unwrap_err();
@@ -259,6 +261,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
                 name: "evil".into(),
                 threads: 1,
                 arithmetic_digest: digest,
+                tags: Vec::new(),
             })
             .await
             .unwrap()
@@ -400,6 +403,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
                 name: "short-lived".into(),
                 threads: 1,
                 arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
+                tags: Vec::new(),
             })
             .await
             .unwrap()
@@ -690,6 +694,7 @@ fn faulty_worker(
         exit_when_done: false,
         fault: Some(fault),
         shares_process: true,
+        tags: Vec::new(),
     };
     let task = runtime.spawn(worker::run(config, stopped));
     (runtime, stop, task)
@@ -855,6 +860,7 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
                         name: name.into(),
                         threads: 1,
                         arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
+                        tags: Vec::new(),
                     })
                     .await
                     .unwrap()

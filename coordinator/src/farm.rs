@@ -7,6 +7,7 @@
 //! the local workers. A sequence of frames is one session: one server, the same
 //! workers, each frame handed over as soon as it is complete.
 
+use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -14,14 +15,14 @@ use std::time::{Duration, Instant};
 
 use hypertexture::PixelFormat;
 use hypertexture::interleave::farm_units;
-use hypertexture_proto::pb::farm_server::{Farm, FarmServer};
+use hypertexture_proto::pb::farm_server::{Farm as FarmRpc, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
 use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
 use tokio::sync::watch;
 use tonic::{Request, Response, Status};
 
 use crate::canvas::FrameImage;
-use crate::scheduler::{Next, Refusal, Scheduler};
+use crate::scheduler::{Accepted, JobId, Next, Refusal, Scheduler};
 
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
 /// 16 KiB, less than a tile of whole-set units at 512²).
@@ -167,22 +168,165 @@ pub struct FarmReport {
     pub tile_bytes: u64,
 }
 
+/// A job as the farm sends it to workers.
+#[derive(Clone, Debug)]
+pub struct WireJob {
+    /// With its scene text.
+    pub with_text: pb::Job,
+    /// Without it, for workers that have built the scene.
+    pub without_text: pb::Job,
+}
+
+impl WireJob {
+    /// The wire form of `job` (its frame is set per assignment).
+    pub fn of(job: &FrameJob) -> WireJob {
+        let with_text = pb::Job {
+            scene_hash: convert::scene_hash(
+                &job.scene_text,
+                job.width,
+                job.height,
+                job.spp.unwrap_or(0),
+                convert::quality_to_wire(job.quality) as i32,
+                &job.knobs,
+            ),
+            scene_text: job.scene_text.clone(),
+            scene_name: job.scene_name.clone(),
+            width: job.width,
+            height: job.height,
+            frame: job.frames.first().map_or(0, |f| f.frame),
+            spp: job.spp.unwrap_or(0),
+            quality: convert::quality_to_wire(job.quality) as i32,
+            knobs: convert::knobs_to_wire(&job.knobs),
+            pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
+        };
+        WireJob {
+            without_text: pb::Job {
+                scene_text: String::new(),
+                ..with_text.clone()
+            },
+            with_text,
+        }
+    }
+}
+
+/// Where accepted tiles go besides the canvas: the service's store. Called
+/// with the farm's state locked, before the tile is acknowledged, so a tile
+/// a worker was told is in is stored.
+pub trait TileSink: Send + Sync {
+    /// Keeps the pixels of an accepted unit.
+    fn tile(&self, accepted: &Accepted, pixels: &[u8]);
+}
+
+/// The number of buckets of the unit latency histogram, and their upper
+/// bounds in seconds.
+pub const LATENCY_BUCKETS: [f64; 12] = [
+    0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0,
+];
+
+/// Counters the metrics report.
+#[derive(Clone, Debug, Default)]
+pub struct FarmStats {
+    /// Accepted units per bucket of [`LATENCY_BUCKETS`] (the last: above them all).
+    pub latency_buckets: [u64; LATENCY_BUCKETS.len() + 1],
+    /// Sum of the accepted units' latencies, in seconds.
+    pub latency_sum: f64,
+    /// Accepted units.
+    pub latency_count: u64,
+    /// Units given back by workers and handed out again.
+    pub retries: u64,
+    /// Workers blocklisted for a job.
+    pub blocklisted: u64,
+    /// Registrations refused (protocol or arithmetic mismatch).
+    pub refused_workers: u64,
+    /// Calls refused for a missing or wrong token.
+    pub unauthenticated: u64,
+}
+
+impl FarmStats {
+    fn observe(&mut self, latency: Duration) {
+        let secs = latency.as_secs_f64();
+        let bucket = LATENCY_BUCKETS
+            .iter()
+            .position(|&b| secs <= b)
+            .unwrap_or(LATENCY_BUCKETS.len());
+        self.latency_buckets[bucket] += 1;
+        self.latency_sum += secs;
+        self.latency_count += 1;
+    }
+}
+
+/// The farm's state: the scheduler, the jobs' wire forms and the counters,
+/// behind one lock.
+pub struct FarmState {
+    /// Who renders what.
+    pub scheduler: Scheduler,
+    /// Every job in the scheduler, as sent to workers.
+    pub wire: HashMap<JobId, WireJob>,
+    /// Counters for the metrics.
+    pub stats: FarmStats,
+}
+
 /// The shared state behind the gRPC service.
-struct Shared {
-    scheduler: Mutex<Scheduler>,
-    /// The job of every frame; each assignment sets its frame.
-    job: pb::Job,
-    /// The job without its scene text, for workers that have built the scene.
-    job_without_text: pb::Job,
+pub struct Shared {
+    state: Mutex<FarmState>,
     token: Option<String>,
     heartbeat: Duration,
     /// This build's known-answer probe digest ([`hypertexture::probe`]): a
     /// worker must match it to join.
     arithmetic_digest: u64,
-    /// Notified when a frame completes or the render is given up.
+    /// Notified when a frame completes or a job is given up.
     finished: watch::Sender<bool>,
+    /// Notified when jobs are added: idle workers' GetWork waits on it.
+    jobs_added: watch::Sender<u64>,
     tile_bytes: std::sync::atomic::AtomicU64,
     first_assignment: Mutex<Option<Instant>>,
+    sink: Option<Arc<dyn TileSink>>,
+    /// The interleave and the farm size new jobs' units are made for.
+    unit_layout: Mutex<(u32, usize)>,
+}
+
+impl Shared {
+    /// The interleave B and the number of workers new jobs' units are sized for.
+    pub fn unit_layout(&self) -> (u32, usize) {
+        *self.unit_layout.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Sets [`Shared::unit_layout`].
+    pub fn set_unit_layout(&self, interleave: u32, workers: usize) {
+        *self.unit_layout.lock().unwrap_or_else(|p| p.into_inner()) = (interleave, workers);
+    }
+
+    /// The farm's state, locked.
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
+        // A panic while holding the lock would be a bug; the state is still usable.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Adds a job: its wire form and its plan; idle workers hear of it at once.
+    pub fn add_job(
+        &self,
+        plan: crate::scheduler::JobPlan,
+        resume: crate::scheduler::Resume,
+        wire: WireJob,
+    ) -> Result<(), hypertexture_proto::convert::WireError> {
+        let id = plan.id;
+        {
+            let mut s = self.lock();
+            s.scheduler.add_job(plan, resume)?;
+            s.wire.insert(id, wire);
+        }
+        self.jobs_added.send_modify(|n| *n += 1);
+        // A job resumed complete is handed to the supervisor at once.
+        let _ = self.finished.send(true);
+        Ok(())
+    }
+
+    /// Takes a job out of the farm (cancelled, failed, or done).
+    pub fn remove_job(&self, job: JobId) -> bool {
+        let mut s = self.lock();
+        s.wire.remove(&job);
+        s.scheduler.remove_job(job).is_some()
+    }
 }
 
 /// The gRPC service.
@@ -248,14 +392,14 @@ impl Service {
             let peer = request
                 .remote_addr()
                 .map_or_else(|| "unknown".into(), |a| a.to_string());
+            self.state().stats.unauthenticated += 1;
             tracing::warn!("refused a call from {peer}: missing or wrong token");
             Err(Status::unauthenticated("missing or wrong token"))
         }
     }
 
-    fn scheduler(&self) -> std::sync::MutexGuard<'_, Scheduler> {
-        // A panic while holding the lock would be a bug; the state is still usable.
-        self.0.scheduler.lock().unwrap_or_else(|p| p.into_inner())
+    fn state(&self) -> std::sync::MutexGuard<'_, FarmState> {
+        self.0.lock()
     }
 
     /// A tile (SubmitTile, or one message of SubmitTiles): stored if it is
@@ -263,11 +407,15 @@ impl Service {
     /// worker's next unit when it asks.
     fn submit(&self, p: pb::SubmitTileParams) -> Result<pb::SubmitTileResult, Status> {
         let (accepted, next) = {
-            let mut s = self.scheduler();
+            let mut guard = self.state();
+            let state = &mut *guard;
             let now = Instant::now();
-            s.note_calls_cpu(p.assignment_id, p.calls_cpu_micros);
-            let accepted = s
-                .submit(
+            state
+                .scheduler
+                .note_calls_cpu(p.assignment_id, p.calls_cpu_micros);
+            let accepted = state
+                .scheduler
+                .accept(
                     &p.worker_id,
                     p.assignment_id,
                     p.unit.as_ref(),
@@ -279,54 +427,63 @@ impl Service {
                     tracing::warn!("refused a tile from {}: {r}", p.worker_id);
                     refusal(r)
                 })?;
-            if s.has_completed() {
+            if let Some(a) = &accepted {
+                state.stats.observe(a.latency);
+                if let Some(sink) = &self.0.sink {
+                    sink.tile(a, &p.pixels);
+                }
+            }
+            if state.scheduler.has_completed() {
                 let _ = self.0.finished.send(true);
             }
             let next = if p.want_next {
-                Some(s.next(&p.worker_id, now).map_err(refusal)?)
+                Some(state.scheduler.next(&p.worker_id, now).map_err(refusal)?)
             } else {
                 None
             };
-            (accepted, next)
+            let next = next.map(|n| self.work(state, n, p.known_scene_hash));
+            (accepted.is_some(), next)
         };
         self.0
             .tile_bytes
             .fetch_add(p.pixels.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        Ok(pb::SubmitTileResult {
-            accepted,
-            next: next.map(|n| self.work(n, p.known_scene_hash)),
-        })
+        Ok(pb::SubmitTileResult { accepted, next })
     }
 
     /// The scheduler's answer on the wire (for GetWork, and the next unit in a
     /// SubmitTile reply). The scene text is left out when the worker has built
     /// that scene already.
-    fn work(&self, next: Next, known_scene_hash: u64) -> pb::GetWorkResult {
+    fn work(&self, state: &FarmState, next: Next, known_scene_hash: u64) -> pb::GetWorkResult {
         let outcome = match next {
             Next::Assign {
                 assignment_id,
+                job,
                 unit,
                 frame,
-            } => {
-                self.0
-                    .first_assignment
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .get_or_insert_with(Instant::now);
-                let job = if known_scene_hash == self.0.job.scene_hash {
-                    &self.0.job_without_text
-                } else {
-                    &self.0.job
-                };
-                Outcome::Assignment(pb::Assignment {
-                    assignment_id,
-                    job: Some(pb::Job {
-                        frame,
-                        ..job.clone()
-                    }),
-                    unit: Some(convert::unit_to_wire(&unit)),
-                })
-            }
+            } => match state.wire.get(&job) {
+                Some(wire) => {
+                    self.0
+                        .first_assignment
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .get_or_insert_with(Instant::now);
+                    let job = if known_scene_hash == wire.with_text.scene_hash {
+                        &wire.without_text
+                    } else {
+                        &wire.with_text
+                    };
+                    Outcome::Assignment(pb::Assignment {
+                        assignment_id,
+                        job: Some(pb::Job {
+                            frame,
+                            ..job.clone()
+                        }),
+                        unit: Some(convert::unit_to_wire(&unit)),
+                    })
+                }
+                // Every job in the scheduler has its wire form: not reached.
+                None => Outcome::RetryAfterMs(50),
+            },
             Next::Wait => Outcome::RetryAfterMs(50),
             Next::Finished => Outcome::Finished(true),
         };
@@ -334,6 +491,33 @@ impl Service {
             outcome: Some(outcome),
         }
     }
+}
+
+/// Tags (a worker's, or a job's required ones), checked: at most 16, each 1 to 64 of `A-Z a-z 0-9 . _ -`.
+pub fn tags_from_wire(tags: &[String]) -> Result<Vec<String>, String> {
+    if tags.len() > 16 {
+        return Err(format!(
+            "{} tags: a worker may carry at most 16",
+            tags.len()
+        ));
+    }
+    let mut out: Vec<String> = Vec::new();
+    for t in tags {
+        let ok = !t.is_empty()
+            && t.len() <= 64
+            && t.chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+        if !ok {
+            return Err(format!(
+                "tag {:?}: a tag is 1 to 64 of A-Z a-z 0-9 . _ -",
+                t.chars().take(80).collect::<String>()
+            ));
+        }
+        if !out.contains(t) {
+            out.push(t.clone());
+        }
+    }
+    Ok(out)
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
@@ -352,7 +536,7 @@ fn refusal(r: Refusal) -> Status {
 }
 
 #[tonic::async_trait]
-impl Farm for Service {
+impl FarmRpc for Service {
     async fn register(
         &self,
         request: Request<pb::RegisterParams>,
@@ -361,6 +545,7 @@ impl Farm for Service {
         let peer = request.remote_addr();
         let params = request.into_inner();
         if params.protocol_version != PROTOCOL_VERSION {
+            self.state().stats.refused_workers += 1;
             return Err(Status::failed_precondition(format!(
                 "protocol version mismatch: the worker speaks {}, the coordinator {}",
                 params.protocol_version, PROTOCOL_VERSION
@@ -373,6 +558,7 @@ impl Farm for Service {
             .take(64)
             .collect();
         if params.arithmetic_digest != self.0.arithmetic_digest {
+            self.state().stats.refused_workers += 1;
             tracing::warn!(
                 "refused worker {name} from {}: its arithmetic differs from this build's \
                  (probe digest {:016x}, here {:016x})",
@@ -387,13 +573,22 @@ impl Farm for Service {
                 params.arithmetic_digest, self.0.arithmetic_digest
             )));
         }
-        let worker_id = self
-            .scheduler()
-            .register(&name, params.threads, Instant::now());
+        let tags = tags_from_wire(&params.tags).map_err(Status::invalid_argument)?;
+        let worker_id = self.state().scheduler.register_tagged(
+            &name,
+            params.threads,
+            tags.clone(),
+            Instant::now(),
+        );
         tracing::info!(
-            "worker {name} joined from {} ({} threads)",
+            "worker {name} joined from {} ({} threads{})",
             peer.map_or_else(|| "?".into(), |a| a.to_string()),
-            params.threads
+            params.threads,
+            if tags.is_empty() {
+                String::new()
+            } else {
+                format!(", tags {}", tags.join(","))
+            }
         );
         Ok(Response::new(pb::RegisterResult {
             worker_id,
@@ -407,11 +602,32 @@ impl Farm for Service {
     ) -> Result<Response<pb::GetWorkResult>, Status> {
         self.authorize(&request)?;
         let p = request.get_ref();
-        let next = self
-            .scheduler()
-            .next(&p.worker_id, Instant::now())
-            .map_err(refusal)?;
-        Ok(Response::new(self.work(next, p.known_scene_hash)))
+        // An idle worker's call waits (up to a second) for a job to arrive, so
+        // a job submitted to an idle farm starts at once, without polling.
+        let mut added = self.0.jobs_added.subscribe();
+        for attempt in 0..2 {
+            let work = {
+                let mut state = self.state();
+                let next = state
+                    .scheduler
+                    .next(&p.worker_id, Instant::now())
+                    .map_err(refusal)?;
+                if next == Next::Wait && attempt == 0 && state.scheduler.queued_units() == 0 {
+                    None
+                } else {
+                    Some(self.work(&state, next, p.known_scene_hash))
+                }
+            };
+            match work {
+                Some(work) => return Ok(Response::new(work)),
+                None => {
+                    let _ = tokio::time::timeout(Duration::from_secs(1), added.changed()).await;
+                }
+            }
+        }
+        Ok(Response::new(pb::GetWorkResult {
+            outcome: Some(Outcome::RetryAfterMs(50)),
+        }))
     }
 
     async fn submit_tile(
@@ -442,7 +658,8 @@ impl Farm for Service {
         request: Request<pb::HeartbeatParams>,
     ) -> Result<Response<pb::HeartbeatResult>, Status> {
         self.authorize(&request)?;
-        self.scheduler()
+        self.state()
+            .scheduler
             .heartbeat(&request.get_ref().worker_id, Instant::now())
             .map_err(refusal)?;
         Ok(Response::new(pb::HeartbeatResult {}))
@@ -454,7 +671,8 @@ impl Farm for Service {
     ) -> Result<Response<pb::GoodbyeResult>, Status> {
         self.authorize(&request)?;
         let p = request.into_inner();
-        self.scheduler()
+        self.state()
+            .scheduler
             .goodbye(&p.worker_id, p.process_cpu_micros)
             .map_err(refusal)?;
         Ok(Response::new(pb::GoodbyeResult {}))
@@ -469,29 +687,42 @@ impl Farm for Service {
         let kind =
             convert::failure_kind_from_wire(p.kind).map_err(|e| refusal(Refusal::BadReport(e)))?;
         let reason = convert::reason_from_wire(&p.reason);
-        let mut s = self.scheduler();
-        let counted = s
+        let mut state = self.state();
+        let counted = state
+            .scheduler
             .fail(&p.worker_id, p.assignment_id, kind, &reason, Instant::now())
             .map_err(refusal)?;
         if let Some(c) = &counted {
+            state.stats.retries += 1;
+            if c.blocklisted {
+                state.stats.blocklisted += 1;
+                tracing::error!(
+                    "worker {} failed {} units of job {} and is blocklisted for it",
+                    c.worker,
+                    crate::scheduler::MAX_FAILURES,
+                    c.job
+                );
+            }
             if kind == hypertexture_proto::FailureKind::Scene {
                 tracing::error!(
-                    "worker {} cannot build the scene, it gets no more units: {reason}",
-                    c.worker
+                    "worker {} cannot build the scene of job {}, it gets no more of its units: {reason}",
+                    c.worker,
+                    c.job
                 );
             } else {
                 tracing::warn!(
-                    "worker {} could not render unit {} ({}), failure {} of at most {}: {kind}: {reason}",
+                    "worker {} could not render unit {} of job {} ({}), failure {} of at most {}: {kind}: {reason}",
                     c.worker,
                     c.index,
+                    c.job,
                     crate::scheduler::describe(&c.unit),
                     c.failures,
                     crate::scheduler::MAX_FAILURES
                 );
             }
         }
-        if s.gave_up().is_some() {
-            // Wake the run loop: it stops the render.
+        if state.scheduler.gave_up_jobs().next().is_some() {
+            // Wake the supervisor: it ends the job.
             let _ = self.0.finished.send(true);
         }
         Ok(Response::new(pb::ReportFailureResult {
@@ -504,10 +735,15 @@ impl Farm for Service {
 pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
     job.frames.truncate(1);
     let mut done = None;
-    let session = render_frames(job, config, &mut |frame| {
-        done = Some(frame);
-        Ok(())
-    })
+    let session = render_frames(
+        job,
+        config,
+        &mut |frame| {
+            done = Some(frame);
+            Ok(())
+        },
+        std::future::pending(),
+    )
     .await?;
     let frame = done
         .ok_or_else(|| FarmError::Stopped("the farm finished without a frame".into()))?
@@ -539,36 +775,253 @@ pub fn arithmetic_digest() -> Result<u64, hypertexture::probe::ProbeError> {
     Ok(*DIGEST.get_or_init(|| d))
 }
 
+/// What one turn of the supervisor found.
+#[derive(Debug, Default)]
+pub struct Tick {
+    /// Frames completed since the last turn.
+    pub completed: Vec<crate::scheduler::CompletedFrame>,
+    /// Jobs given up (nothing more of them is handed out; the caller takes
+    /// them out of the farm).
+    pub gave_up: Vec<(JobId, crate::scheduler::GiveUp)>,
+    /// Workers with a live connection that can render the one-shot job.
+    pub able: usize,
+}
+
+/// A running farm: the server (the workers' gRPC and any routes beside it,
+/// on one port), its state and its local workers. [`Farm::start`] serves,
+/// [`Farm::tick`] supervises (a caller's loop calls it), [`Farm::finish`]
+/// stops the local workers and the server. The one-shot render
+/// ([`render_frames`]) and the service (`crate::service`) are both these
+/// three pieces.
+pub struct Farm {
+    shared: Arc<Shared>,
+    finished_rx: watch::Receiver<bool>,
+    addr: SocketAddr,
+    scheme: &'static str,
+    public: String,
+    stop_server: tokio::sync::oneshot::Sender<()>,
+    server_task: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    locals: crate::local::LocalWorkers,
+}
+
+impl Farm {
+    /// Binds `config.listen`, runs this build's probe, serves the workers'
+    /// gRPC (and `routes`, the HTTP API, on the same port) and starts the
+    /// local workers. Tiles accepted also go to `sink`.
+    pub async fn start(
+        config: FarmConfig,
+        scheduler: Scheduler,
+        routes: Option<axum::Router>,
+        sink: Option<Arc<dyn TileSink>>,
+    ) -> Result<Farm, FarmError> {
+        let loopback = config.listen.ip().is_loopback();
+        if !loopback && config.token.is_none() {
+            return Err(FarmError::TokenRequired(config.listen));
+        }
+        // On loopback without a token anyone on this machine may join (as the user's
+        // own `worker` processes do); beyond loopback a token is required (above).
+        let token = config.token.clone();
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .map_err(|source| FarmError::Bind {
+                addr: config.listen,
+                source,
+            })?;
+        let addr = listener.local_addr().map_err(|source| FarmError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+        let arithmetic_digest = tokio::task::spawn_blocking(arithmetic_digest)
+            .await
+            .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
+        let (finished_tx, finished_rx) = watch::channel(false);
+        let heartbeat = (config.lease / 4).max(Duration::from_millis(50));
+        let shared = Arc::new(Shared {
+            state: Mutex::new(FarmState {
+                scheduler,
+                wire: HashMap::new(),
+                stats: FarmStats::default(),
+            }),
+            token: token.clone(),
+            heartbeat,
+            arithmetic_digest,
+            finished: finished_tx,
+            jobs_added: watch::channel(0).0,
+            tile_bytes: std::sync::atomic::AtomicU64::new(0),
+            first_assignment: Mutex::new(None),
+            sink,
+            unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
+        });
+
+        // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
+        // write for the worker and one wake-up here instead of two or three.
+        let mut server = tonic::transport::Server::builder()
+            .max_frame_size(MAX_FRAME_BYTES)
+            .accept_http1(routes.is_some());
+        let scheme = if let Some((cert, key)) = &config.tls {
+            let identity = tonic::transport::Identity::from_pem(cert, key);
+            server = server
+                .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+                .map_err(|e| FarmError::Tls(e.to_string()))?;
+            "https"
+        } else {
+            "http"
+        };
+        let service = FarmServer::new(Service(Arc::clone(&shared)))
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES);
+        let router = match routes {
+            Some(routes) => tonic::service::Routes::from(routes).add_service(service),
+            None => tonic::service::Routes::new(service),
+        };
+        let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
+        let server_task = tokio::spawn(server.add_routes(router).serve_with_incoming_shutdown(
+            // No Nagle: a tile's reply must not wait for a delayed ACK.
+            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
+            async {
+                let _ = server_stopped.await;
+            },
+        ));
+
+        let public = if addr.ip().is_unspecified() {
+            "THIS-HOST".to_string()
+        } else {
+            addr.ip().to_string()
+        };
+        tracing::info!(
+            "farm listening on {addr}: workers join with `worker --coordinator {scheme}://{public}:{}{}`",
+            addr.port(),
+            if config.token.is_some() {
+                " --token …"
+            } else {
+                ""
+            }
+        );
+        let local_url = format!(
+            "{scheme}://{}:{}",
+            if config.tls.is_some() {
+                "localhost"
+            } else {
+                "127.0.0.1"
+            },
+            addr.port()
+        );
+        let locals = crate::local::LocalWorkers::start(&config, &local_url, token.as_deref())?;
+        Ok(Farm {
+            shared,
+            finished_rx,
+            addr,
+            scheme,
+            public,
+            stop_server,
+            server_task,
+            locals,
+        })
+    }
+
+    /// The farm's shared state.
+    pub fn shared(&self) -> &Arc<Shared> {
+        &self.shared
+    }
+
+    /// The address it listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// `http` or `https`.
+    pub fn scheme(&self) -> &'static str {
+        self.scheme
+    }
+
+    /// Waits until a frame completes or a job is given up, or `every` passes.
+    pub async fn wait(&mut self, every: Duration) {
+        let _ = tokio::time::timeout(every, self.finished_rx.changed()).await;
+    }
+
+    /// One turn of the supervisor: expires silent workers' leases, takes the
+    /// frames completed and the jobs given up (which leave the scheduler),
+    /// and restarts failed local workers.
+    pub fn tick(&mut self, now: Instant) -> Tick {
+        let tick = {
+            let mut s = self.shared.lock();
+            for name in s.scheduler.expire(now) {
+                tracing::warn!("worker {name} stopped answering: its units go to others");
+            }
+            let completed = s.scheduler.take_completed();
+            let gave_up: Vec<(JobId, crate::scheduler::GiveUp)> = s
+                .scheduler
+                .gave_up_jobs()
+                .map(|(id, g)| (id, g.clone()))
+                .collect();
+            Tick {
+                completed,
+                gave_up,
+                able: s.scheduler.able(),
+            }
+        };
+        if let Some(e) = self.locals.check() {
+            tracing::warn!("{e}");
+        }
+        tick
+    }
+
+    /// Milliseconds of wall time from the first unit handed out until now.
+    fn render_time(&self, start: Instant) -> Duration {
+        self.shared
+            .first_assignment
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .map_or(Duration::ZERO, |t| t.elapsed())
+            .min(start.elapsed())
+    }
+
+    /// Stops the local workers (waiting up to `grace` for them to leave, after
+    /// asking them to with `terminate`) and the server; returns every worker
+    /// that joined.
+    pub async fn finish(
+        self,
+        grace: Duration,
+        terminate: bool,
+    ) -> Vec<crate::scheduler::WorkerState> {
+        let Farm {
+            shared,
+            stop_server,
+            mut server_task,
+            locals,
+            ..
+        } = self;
+        locals.stop(grace, terminate).await;
+        let _ = stop_server.send(());
+        // Graceful shutdown waits for open connections: daemon workers keep theirs
+        // (they wait for the next frame), so give them a moment, then stop serving.
+        match tokio::time::timeout(Duration::from_secs(1), &mut server_task).await {
+            Ok(Ok(Err(e))) => tracing::warn!("server: {e}"),
+            Ok(_) => {}
+            Err(_) => server_task.abort(),
+        }
+        let s = shared.lock();
+        let mut workers: Vec<_> = s.scheduler.workers().cloned().collect();
+        drop(s);
+        workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
+        workers
+    }
+}
+
 /// Renders every frame of `job` on the farm, one after another, as one session:
 /// serves workers (starting local ones once) and hands each frame to `on_frame`
 /// as soon as its last tile is in; when every frame is done, stops the local
-/// workers and the server. An error from `on_frame` stops the render.
+/// workers and the server. An error from `on_frame`, or `shutdown` resolving
+/// (Ctrl-C, SIGTERM), stops the render.
 pub async fn render_frames(
     job: FrameJob,
     config: FarmConfig,
     on_frame: &mut dyn FnMut(FrameDone) -> Result<(), FarmError>,
+    shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<SessionReport, FarmError> {
     if job.frames.is_empty() {
         return Err(FarmError::Stopped("no frame to render".into()));
     }
-    let loopback = config.listen.ip().is_loopback();
-    if !loopback && config.token.is_none() {
-        return Err(FarmError::TokenRequired(config.listen));
-    }
-    // On loopback without a token anyone on this machine may join (as the user's
-    // own `worker` processes do); beyond loopback a token is required (above).
-    let token = config.token.clone();
-    let listener = tokio::net::TcpListener::bind(config.listen)
-        .await
-        .map_err(|source| FarmError::Bind {
-            addr: config.listen,
-            source,
-        })?;
-    let addr = listener.local_addr().map_err(|source| FarmError::Bind {
-        addr: config.listen,
-        source,
-    })?;
-
     // Units sized for the workers expected: the local ones, or, when workers
     // may join from the LAN, as many as the paper's 64 processors (at least
     // one unit each for up to 64 workers, however small the frame).
@@ -577,106 +1030,22 @@ pub async fn render_frames(
     } else {
         config.local_workers.max(64)
     };
-    let arithmetic_digest = tokio::task::spawn_blocking(arithmetic_digest)
-        .await
-        .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
     let units = farm_units(job.width, job.height, config.interleave, expected);
     let unit_count = units.len();
-    let (finished_tx, mut finished_rx) = watch::channel(false);
-    let heartbeat = (config.lease / 4).max(Duration::from_millis(50));
-    let wire_job = pb::Job {
-        scene_hash: convert::scene_hash(
-            &job.scene_text,
-            job.width,
-            job.height,
-            job.spp.unwrap_or(0),
-            convert::quality_to_wire(job.quality) as i32,
-            &job.knobs,
-        ),
-        scene_text: job.scene_text.clone(),
-        scene_name: job.scene_name.clone(),
-        width: job.width,
-        height: job.height,
-        frame: job.frames[0].frame,
-        spp: job.spp.unwrap_or(0),
-        quality: convert::quality_to_wire(job.quality) as i32,
-        knobs: convert::knobs_to_wire(&job.knobs),
-        pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
-    };
-    let shared = Arc::new(Shared {
-        scheduler: Mutex::new(
-            Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
-                .with_frames(job.frames.iter().map(|f| f.frame).collect()),
-        ),
-        job_without_text: pb::Job {
-            scene_text: String::new(),
-            ..wire_job.clone()
-        },
-        job: wire_job,
-        token: token.clone(),
-        heartbeat,
-        arithmetic_digest,
-        finished: finished_tx,
-        tile_bytes: std::sync::atomic::AtomicU64::new(0),
-        first_assignment: Mutex::new(None),
-    });
-
-    // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
-    // write for the worker and one wake-up here instead of two or three.
-    let mut server = tonic::transport::Server::builder().max_frame_size(MAX_FRAME_BYTES);
-    let scheme = if let Some((cert, key)) = &config.tls {
-        let identity = tonic::transport::Identity::from_pem(cert, key);
-        server = server
-            .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
-            .map_err(|e| FarmError::Tls(e.to_string()))?;
-        "https"
-    } else {
-        "http"
-    };
-    let service = FarmServer::new(Service(Arc::clone(&shared)))
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
-    let mut server_task = tokio::spawn(server.add_service(service).serve_with_incoming_shutdown(
-        // No Nagle: a tile's reply must not wait for a delayed ACK.
-        tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-        async {
-            let _ = server_stopped.await;
-        },
-    ));
-
-    let public = if addr.ip().is_unspecified() {
-        "THIS-HOST".to_string()
-    } else {
-        addr.ip().to_string()
-    };
-    tracing::info!(
-        "farm listening on {addr}: workers join with `worker --coordinator {scheme}://{public}:{}{}`",
-        addr.port(),
-        if config.token.is_some() {
-            " --token …"
-        } else {
-            ""
-        }
-    );
+    let scheduler = Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
+        .with_frames(job.frames.iter().map(|f| f.frame).collect());
+    let wire = WireJob::of(&job);
+    let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;
+    farm.shared
+        .lock()
+        .wire
+        .insert(crate::scheduler::ONE_SHOT_JOB, wire);
     tracing::info!(
         "{} × {}, {unit_count} units of {} pixel sets",
         job.width,
         job.height,
         config.interleave * config.interleave
     );
-
-    let local_url = format!(
-        "{scheme}://{}:{}",
-        if config.tls.is_some() {
-            "localhost"
-        } else {
-            "127.0.0.1"
-        },
-        addr.port()
-    );
-    let mut locals = crate::local::LocalWorkers::start(&config, &local_url, token.as_deref())?;
-
     let out_of = |frame: u32| {
         job.frames
             .iter()
@@ -691,40 +1060,39 @@ pub async fn render_frames(
     // A preview being encoded and written, off the thread that serves the workers.
     let mut writing_preview: Option<tokio::task::JoinHandle<()>> = None;
     let mut no_worker_since = Some(Instant::now());
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    tokio::pin!(shutdown);
     let outcome = loop {
         tokio::select! {
-            _ = tick.tick() => {}
-            _ = finished_rx.changed() => {}
+            () = farm.wait(Duration::from_millis(100)) => {}
+            () = &mut shutdown => break Err(FarmError::Stopped("stopped by a signal".into())),
         }
         let now = Instant::now();
-        let (done, alive, preview, completed) = {
-            let mut s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
-            for name in s.expire(now) {
-                tracing::warn!("worker {name} stopped answering: its units go to others");
-            }
-            bar.update(&s, now);
-            let completed = s.take_completed();
+        let tick = farm.tick(now);
+        let (done, preview) = {
+            let s = farm.shared.lock();
+            bar.update(&s.scheduler, now);
             let writing = writing_preview.as_ref().is_some_and(|t| !t.is_finished());
             let preview = match config.preview_every {
-                Some(every) if now - last_preview >= every && !s.finished() && !writing => {
-                    Some((s.preview(), s.frame()))
+                Some(every)
+                    if now - last_preview >= every && !s.scheduler.finished() && !writing =>
+                {
+                    Some((s.scheduler.preview(), s.scheduler.frame()))
                 }
                 _ => None,
             };
-            if let Some(why) = s.gave_up() {
-                break Err(FarmError::GaveUp(why.clone()));
-            }
-            (s.finished(), s.able(), preview, completed)
+            (s.scheduler.finished(), preview)
         };
-        if !completed.is_empty()
+        if let Some((_, why)) = tick.gave_up.into_iter().next() {
+            break Err(FarmError::GaveUp(why));
+        }
+        if !tick.completed.is_empty()
             && let Some(task) = writing_preview.take()
         {
             // The final image replaces the preview: let the preview finish first.
             let _ = task.await;
         }
         let mut handed = Ok(());
-        for frame in completed {
+        for frame in tick.completed {
             let out = out_of(frame.frame);
             handed = handed.and_then(|()| on_frame(FrameDone { frame, out }));
         }
@@ -745,14 +1113,14 @@ pub async fn render_frames(
         if done {
             break Ok(());
         }
-        if alive > 0 {
+        if tick.able > 0 {
             no_worker_since = None;
         } else {
             let since = *no_worker_since.get_or_insert(now);
             if now - since >= config.worker_timeout {
-                let s = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
-                let (complete, total) = s.progress();
-                let unable = s.alive() - s.able();
+                let s = farm.shared.lock();
+                let (complete, total) = s.scheduler.progress();
+                let unable = s.scheduler.alive() - s.scheduler.able();
                 let unable = if unable > 0 {
                     format!(
                         " ({unable} connected worker{} cannot build the scene)",
@@ -762,14 +1130,13 @@ pub async fn render_frames(
                     String::new()
                 };
                 break Err(FarmError::NoWorkers(format!(
-                    "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {scheme}://{public}:{}` or raise --worker-timeout",
+                    "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {}://{}:{}` or raise --worker-timeout",
                     config.worker_timeout.as_secs_f64(),
-                    addr.port()
+                    farm.scheme,
+                    farm.public,
+                    farm.addr.port()
                 )));
             }
-        }
-        if let Some(e) = locals.check() {
-            tracing::warn!("{e}");
         }
     };
     bar.finish();
@@ -777,13 +1144,11 @@ pub async fn render_frames(
         // The final image replaces the preview: let the preview finish first.
         let _ = task.await;
     }
-    let render_time = shared
-        .first_assignment
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
-        .map_or(Duration::ZERO, |t| t.elapsed())
-        .min(start.elapsed());
-
+    let render_time = farm.render_time(start);
+    let tile_bytes = farm
+        .shared
+        .tile_bytes
+        .load(std::sync::atomic::Ordering::Relaxed);
     // Local workers see `finished` on their next call and exit; give them a
     // moment. After a failure they are told nothing more: stop them now.
     let grace = if outcome.is_ok() {
@@ -791,22 +1156,8 @@ pub async fn render_frames(
     } else {
         Duration::ZERO
     };
-    locals.stop(grace).await;
-    let _ = stop_server.send(());
-    // Graceful shutdown waits for open connections: daemon workers keep theirs
-    // (they wait for the next frame), so give them a moment, then stop serving.
-    match tokio::time::timeout(Duration::from_secs(1), &mut server_task).await {
-        Ok(Ok(Err(e))) => tracing::warn!("server: {e}"),
-        Ok(_) => {}
-        Err(_) => server_task.abort(),
-    }
+    let workers = farm.finish(grace, false).await;
     outcome?;
-
-    let tile_bytes = shared.tile_bytes.load(std::sync::atomic::Ordering::Relaxed);
-    let scheduler = shared.scheduler.lock().unwrap_or_else(|p| p.into_inner());
-    let mut workers: Vec<_> = scheduler.workers().cloned().collect();
-    drop(scheduler);
-    workers.sort_by(|a, b| a.joined.cmp(&b.joined).then(a.name.cmp(&b.name)));
     Ok(SessionReport {
         render_time,
         workers,

@@ -130,6 +130,9 @@ pub enum CoordinatorError {
         /// What went wrong.
         message: String,
     },
+    /// The service failed.
+    #[error(transparent)]
+    Service(Box<service::ServiceError>),
     /// The render threads could not be started.
     #[error("cannot start {threads} render threads: {message}")]
     Threads {
@@ -306,11 +309,16 @@ pub fn render_on_farm(
                 })
                 .collect::<Result<Vec<Summary>, CoordinatorError>>()
         });
-        let session = runtime.block_on(farm::render_frames(job, farm_config, &mut |done| {
-            to_writer.send(done).map_err(|_| {
-                farm::FarmError::Stopped("an image could not be written: stopping".into())
-            })
-        }));
+        let session = runtime.block_on(farm::render_frames(
+            job,
+            farm_config,
+            &mut |done| {
+                to_writer.send(done).map_err(|_| {
+                    farm::FarmError::Stopped("an image could not be written: stopping".into())
+                })
+            },
+            worker::shutdown_signal(),
+        ));
         drop(to_writer);
         // The writer's error says what went wrong; the farm's only that it stopped.
         let written = writer

@@ -46,6 +46,7 @@ impl InProcessPlan {
                     exit_when_done: true,
                     fault: None,
                     shares_process: true,
+                    tags: Vec::new(),
                 };
                 tokio::spawn(worker::run(cfg, stopped.clone()))
             })
@@ -90,6 +91,10 @@ impl LocalWorkers {
                         &config.local_threads.to_string(),
                     ])
                     .args(["--name", &name, "--exit-when-done", "--quiet"])
+                    // A local worker never outlives this process, whatever
+                    // ends it: the worker watches its parent, and on Linux
+                    // the kernel kills it when this process dies.
+                    .args(["--parent-pid", &std::process::id().to_string()])
                     .env_remove("HYPERTEXTURE_TOKEN")
                     .stdin(std::process::Stdio::null())
                     .kill_on_drop(true);
@@ -98,6 +103,17 @@ impl LocalWorkers {
                     }
                     if config.tls.is_some() {
                         cmd.arg("--ca").arg(&ca_path);
+                    }
+                    #[cfg(target_os = "linux")]
+                    // SAFETY: the closure runs in the child between fork and
+                    // exec and calls only prctl, which is async-signal-safe.
+                    unsafe {
+                        cmd.pre_exec(|| {
+                            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                                return Err(std::io::Error::last_os_error());
+                            }
+                            Ok(())
+                        });
                     }
                     let child = cmd.spawn().map_err(|source| FarmError::Spawn {
                         path: path.clone(),
@@ -155,10 +171,25 @@ impl LocalWorkers {
     }
 
     /// Waits up to `grace` for the workers to leave, then stops the rest (at
-    /// once, and quietly, with no grace).
-    pub async fn stop(self, grace: Duration) {
+    /// once, and quietly, with no grace). With `terminate`, asks them to leave
+    /// first (SIGTERM), as a service does when it stops: its workers hear no
+    /// `finished`.
+    pub async fn stop(self, grace: Duration, terminate: bool) {
         match self {
             LocalWorkers::Processes(children, _) => {
+                // Ask first (SIGTERM: a worker delivers its last tile and says
+                // goodbye), so that a worker still rendering leaves within
+                // the grace.
+                #[cfg(unix)]
+                for (_, child) in children.iter().filter(|_| terminate) {
+                    if let Some(pid) = child.id() {
+                        // SAFETY: kill(2) on our own child's pid, which it keeps
+                        // until we wait for it.
+                        unsafe {
+                            libc::kill(pid as libc::pid_t, libc::SIGTERM);
+                        }
+                    }
+                }
                 for (name, mut child) in children {
                     match tokio::time::timeout(grace, child.wait()).await {
                         Ok(_) => {}

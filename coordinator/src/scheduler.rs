@@ -1,25 +1,33 @@
-//! The scheduler: who renders which unit, and what comes back.
+//! The scheduler: who renders which unit of which job, and what comes back.
 //!
 //! Pure state, no I/O and no clock of its own (callers pass `now`), so every rule
-//! is unit-tested here. Units are handed out in coarse-to-fine order; a unit
-//! whose worker stops heartbeating goes back to the front of the queue; when the
-//! queue is empty, idle workers get speculative duplicates of units still out
-//! (first tile wins — results are identical by construction). A tile is checked
-//! completely before it touches the canvas.
+//! is unit-tested here. The farm holds any number of jobs; a job is one scene
+//! over a list of frames, each frame split into the same units. A worker asking
+//! for work gets a unit of the first job it may render in the queue's order:
+//! highest priority first, ties oldest first, so a job submitted with a higher
+//! priority starts on the next unit each worker takes, and no worker idles
+//! while any job it may render has units left. Within a job, units go out in
+//! coarse-to-fine order; a unit whose worker stops heartbeating goes back to
+//! the front of its job's queue; when no job has a unit waiting, idle workers
+//! get speculative duplicates of units still out (first tile wins — results are
+//! identical by construction). A tile is checked completely before it touches
+//! a canvas.
 //!
-//! A sequence of frames is one session: the workers stay, and the tile that
-//! completes a frame moves its image to [`Scheduler::take_completed`] and starts
-//! the next frame at once (its first unit goes out in that tile's reply).
-//! Assignment ids run on across frames; a late tile of an earlier frame is
-//! valid and unused.
+//! A job's frames are rendered one after another: the tile that completes a
+//! frame moves its image to [`Scheduler::take_completed`] and starts the job's
+//! next frame at once. Assignment ids are unique over the scheduler's life; a
+//! late tile of a frame that is complete (or of a job that has ended) is valid
+//! and unused.
 //!
 //! A worker that cannot render a unit reports it ([`Scheduler::fail`]): the unit
-//! goes back to the queue, preferably to a worker that has not failed it; a
-//! worker whose scene does not build gets no more units; and the render is
-//! given up ([`GiveUp`]) when a unit has failed [`MAX_FAILURES`] times or no
-//! worker present can build the scene, instead of retrying forever.
+//! goes back to the queue, to a worker that has not failed it when there is
+//! one; a worker that has failed [`MAX_FAILURES`] units of a job is blocklisted
+//! for that job; a worker whose scene does not build gets no more units of that
+//! job; and a job is given up ([`GiveUp`]) when one of its units has failed
+//! [`MAX_FAILURES`] times (on different workers when there are any) or, in a
+//! one-shot render, when no worker present can render it. Other jobs go on.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use hypertexture::PixelFormat;
@@ -33,21 +41,32 @@ use hypertexture_proto::{FailureKind, pb};
 const MAX_HOLDERS: usize = 2;
 
 /// A unit that fails to render this many times (on different workers when
-/// there are any) stops the render.
+/// there are any) fails its job; a worker that fails this many units of a
+/// job is blocklisted for it.
 pub const MAX_FAILURES: usize = 3;
+
+/// How far back a worker's pixels per second are measured.
+const RATE_WINDOW: Duration = Duration::from_secs(60);
+
+/// A job's id: unique, increasing in the order of submission.
+pub type JobId = u64;
+
+/// The job of a one-shot render ([`Scheduler::new`]).
+pub const ONE_SHOT_JOB: JobId = 1;
 
 /// What a worker is told when it asks for work.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Next {
-    /// Render this unit of this frame under this assignment id.
+    /// Render this unit of this frame of this job under this assignment id.
     Assign {
         assignment_id: u64,
+        job: JobId,
         unit: WorkUnit,
         frame: u32,
     },
     /// Nothing to hand out now; ask again later.
     Wait,
-    /// Every frame is complete.
+    /// Every frame is complete (one-shot renders only: a service waits for jobs).
     Finished,
 }
 
@@ -96,7 +115,7 @@ impl std::fmt::Display for UnitFailure {
     }
 }
 
-/// Why the render was given up.
+/// Why a job was given up.
 #[derive(Clone, Debug, PartialEq)]
 pub enum GiveUp {
     /// A unit failed [`MAX_FAILURES`] times.
@@ -108,10 +127,15 @@ pub enum GiveUp {
         /// Each failure, oldest first.
         failures: Vec<UnitFailure>,
     },
-    /// Every worker present failed to build the scene.
+    /// Every worker present failed to build the scene (one-shot renders).
     Scene {
         /// One failure per worker that cannot build it.
         failures: Vec<UnitFailure>,
+    },
+    /// Every worker present is blocklisted for the job (one-shot renders).
+    Blocklisted {
+        /// The workers' names.
+        workers: Vec<String>,
     },
 }
 
@@ -141,6 +165,11 @@ impl std::fmt::Display for GiveUp {
                 "no worker present can build the scene, giving up: {}",
                 list(failures)
             ),
+            GiveUp::Blocklisted { workers } => write!(
+                f,
+                "every worker present failed {MAX_FAILURES} units and is blocklisted ({}), giving up",
+                workers.join(", ")
+            ),
         }
     }
 }
@@ -157,6 +186,8 @@ pub fn describe(unit: &WorkUnit) -> String {
 /// A failure report that counted: what the coordinator logs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Counted {
+    /// The job.
+    pub job: JobId,
     /// The reporting worker's name.
     pub worker: String,
     /// The unit's index.
@@ -165,11 +196,28 @@ pub struct Counted {
     pub unit: WorkUnit,
     /// The unit's failures so far (scene failures are the worker's, not the unit's).
     pub failures: usize,
+    /// The worker has just been blocklisted for the job.
+    pub blocklisted: bool,
+}
+
+/// A tile accepted into a canvas: what the service stores.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Accepted {
+    /// The job.
+    pub job: JobId,
+    /// The frame.
+    pub frame: u32,
+    /// The unit's index.
+    pub unit: usize,
+    /// From the unit's assignment to its tile.
+    pub latency: Duration,
 }
 
 /// A frame whose every unit is in.
 #[derive(Clone, Debug)]
 pub struct CompletedFrame {
+    /// The job.
+    pub job: JobId,
     /// The frame number.
     pub frame: u32,
     /// Its image.
@@ -186,8 +234,12 @@ pub struct CompletedFrame {
 /// What the coordinator knows of a worker.
 #[derive(Clone, Debug)]
 pub struct WorkerState {
+    /// Its id on the wire (`w7`).
+    pub id: String,
     /// Its name.
     pub name: String,
+    /// Its tags: it renders only jobs whose required tags it carries.
+    pub tags: Vec<String>,
     /// Render threads it announced.
     pub threads: u32,
     /// Last time it called.
@@ -204,39 +256,94 @@ pub struct WorkerState {
     pub process_cpu_micros: Option<u64>,
     /// Still part of the farm.
     pub alive: bool,
-    /// Why the scene does not build on this worker, if it said so: it gets no
-    /// more units.
+    /// Why the scene of the one-shot job does not build on this worker, if
+    /// it said so: it gets no more units of it.
     pub cannot_build: Option<String>,
+    /// Its accepted tiles of the last minute: when, and how many pixels.
+    recent: VecDeque<(Instant, u64)>,
+}
+
+impl WorkerState {
+    /// Pixels per second over the last minute of its tiles (since it joined,
+    /// when that is sooner).
+    pub fn pixels_per_second(&self, now: Instant) -> f64 {
+        let since = now
+            .checked_sub(RATE_WINDOW)
+            .map_or(self.joined, |t| t.max(self.joined));
+        let pixels: u64 = self
+            .recent
+            .iter()
+            .filter(|(t, _)| *t >= since)
+            .map(|(_, p)| p)
+            .sum();
+        pixels as f64 / now.saturating_duration_since(since).as_secs_f64().max(1e-3)
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
 struct Lease {
+    job: JobId,
     unit: usize,
     worker: u64,
+    issued: Instant,
 }
 
-/// The state of a render: one frame, or a sequence rendered one after another.
-pub struct Scheduler {
-    /// The frame numbers, in order, and the index of the one rendering.
-    frames: Vec<u32>,
+/// What the scheduler needs of a job.
+#[derive(Clone, Debug)]
+pub struct JobPlan {
+    /// Its id (the queue's order among equal priorities).
+    pub id: JobId,
+    /// Higher runs first.
+    pub priority: i32,
+    /// The units of every frame.
+    pub units: Vec<WorkUnit>,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// What its tiles carry.
+    pub format: PixelFormat,
+    /// Its frames, in order (at least one).
+    pub frames: Vec<u32>,
+    /// Tags a worker must carry to render it.
+    pub require_tags: Vec<String>,
+}
+
+/// Where a job restored from the store stands.
+#[derive(Clone, Debug, Default)]
+pub struct Resume {
+    /// Frames already complete and written (the first ones of the plan).
+    pub frames_done: usize,
+    /// Tiles of the next frame received before (unit index, tile bytes).
+    pub tiles: Vec<(usize, Vec<u8>)>,
+}
+
+/// A job's progress, as the service reports it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JobProgress {
+    /// Units complete, over every frame.
+    pub units_done: u64,
+    /// Units in all.
+    pub units_total: u64,
+    /// Frames complete in the scheduler (written or being written).
+    pub frames_complete: u32,
+    /// Whether a unit of it has ever been handed out.
+    pub started: bool,
+    /// Units waiting to be handed out (this frame).
+    pub units_queued: u64,
+    /// Units held by workers now.
+    pub units_in_flight: u64,
+}
+
+struct Job {
+    plan: JobPlan,
+    /// Index in `plan.frames` of the frame rendering.
     current: usize,
     /// When the current frame's first unit went out.
     frame_started: Option<Instant>,
-    /// Frames complete and not yet taken.
-    completed: Vec<CompletedFrame>,
-    units: Vec<WorkUnit>,
     pending: VecDeque<usize>,
     done: Vec<bool>,
     remaining: usize,
-    /// Outstanding assignments.
-    leases: HashMap<u64, Lease>,
-    /// The frame (index into `frames`) and unit of every assignment ever issued
-    /// (to tell late duplicates from forgeries).
-    issued: Vec<(usize, usize)>,
-    workers: HashMap<u64, WorkerState>,
-    next_worker: u64,
-    lease: Duration,
-    /// The frame rendering.
     canvas: Canvas,
     /// Per unit: the CPU microseconds the accepted tile cost.
     unit_cpu: Vec<u64>,
@@ -244,13 +351,113 @@ pub struct Scheduler {
     unit_calls: Vec<u64>,
     /// Per unit: the workers (by id) that failed it, and how.
     failures: Vec<Vec<(u64, UnitFailure)>>,
-    /// Set when the render cannot go on.
+    /// Per worker: units of this job it failed (blocklisted at [`MAX_FAILURES`]).
+    worker_failures: HashMap<u64, usize>,
+    /// Workers whose scene for this job does not build, and what they said.
+    cannot_build: HashMap<u64, String>,
     gave_up: Option<GiveUp>,
+    /// Cancelled or given up: nothing more is handed out.
+    ended: bool,
+    started: bool,
+}
+
+impl Job {
+    fn new(plan: JobPlan, resume: Resume) -> Result<Job, WireError> {
+        let n = plan.units.len();
+        let interleave = plan.units.first().map_or(1, |u| u.set.interleave);
+        let mut job = Job {
+            current: resume.frames_done.min(plan.frames.len()),
+            frame_started: None,
+            pending: (0..n).collect(),
+            done: vec![false; n],
+            remaining: n,
+            canvas: Canvas::new(plan.width, plan.height, interleave, plan.format),
+            unit_cpu: vec![0; n],
+            unit_calls: vec![0; n],
+            failures: vec![Vec::new(); n],
+            worker_failures: HashMap::new(),
+            cannot_build: HashMap::new(),
+            gave_up: None,
+            ended: false,
+            started: resume.frames_done > 0 || !resume.tiles.is_empty(),
+            plan,
+        };
+        if job.current == job.plan.frames.len() {
+            job.remaining = 0;
+            job.pending.clear();
+            return Ok(job);
+        }
+        for (unit, bytes) in resume.tiles {
+            let Some(u) = job.plan.units.get(unit).copied() else {
+                return Err(WireError::Missing("a stored tile's unit"));
+            };
+            if job.done[unit] {
+                continue;
+            }
+            let tile =
+                convert::tile_from_wire(&bytes, u.pixel_count(job.plan.width), job.plan.format)?;
+            job.canvas.store(&u, tile);
+            job.done[unit] = true;
+            job.remaining -= 1;
+        }
+        job.pending.retain(|&u| !job.done[u]);
+        Ok(job)
+    }
+
+    fn frame(&self) -> u32 {
+        self.plan.frames[self.current.min(self.plan.frames.len() - 1)]
+    }
+
+    fn finished(&self) -> bool {
+        self.current >= self.plan.frames.len()
+            || (self.current + 1 == self.plan.frames.len() && self.remaining == 0)
+    }
+
+    fn blocklisted(&self, worker: u64) -> bool {
+        self.worker_failures
+            .get(&worker)
+            .is_some_and(|&n| n >= MAX_FAILURES)
+    }
+
+    /// Whether `worker` may be handed units of this job.
+    fn open_to(&self, worker: u64, w: &WorkerState) -> bool {
+        !self.ended
+            && self.remaining > 0
+            && !self.cannot_build.contains_key(&worker)
+            && !self.blocklisted(worker)
+            && self.plan.require_tags.iter().all(|t| w.tags.contains(t))
+    }
+
+    fn failed_by(&self, unit: usize, worker: u64) -> bool {
+        self.failures[unit].iter().any(|(w, _)| *w == worker)
+    }
+}
+
+/// The state of the farm: its jobs and its workers.
+pub struct Scheduler {
+    jobs: BTreeMap<JobId, Job>,
+    /// Frames complete and not yet taken.
+    completed: Vec<CompletedFrame>,
+    /// Outstanding assignments.
+    leases: HashMap<u64, Lease>,
+    /// The job, frame index and unit of every assignment of a job that has
+    /// not ended (to tell late duplicates from forgeries).
+    issued: HashMap<u64, (JobId, usize, usize)>,
+    next_assignment: u64,
+    workers: HashMap<u64, WorkerState>,
+    next_worker: u64,
+    lease: Duration,
+    /// A one-shot render: workers hear `Finished` once every job is done, and
+    /// a job nobody present can render is given up.
+    one_shot: bool,
+    /// Draining: nothing more is handed out.
+    draining: bool,
 }
 
 impl Scheduler {
-    /// A scheduler for `units` of a `width × height` frame whose tiles come in
-    /// `format`; a worker silent for `lease` loses its units.
+    /// A one-shot render of `units` of a `width × height` frame whose tiles
+    /// come in `format` (job [`ONE_SHOT_JOB`], frame 0); a worker silent for
+    /// `lease` loses its units.
     pub fn new(
         units: Vec<WorkUnit>,
         width: u32,
@@ -258,54 +465,116 @@ impl Scheduler {
         format: PixelFormat,
         lease: Duration,
     ) -> Scheduler {
-        let n = units.len();
+        let mut s = Scheduler::service(lease);
+        s.one_shot = true;
+        s.add_job(
+            JobPlan {
+                id: ONE_SHOT_JOB,
+                priority: 0,
+                units,
+                width,
+                height,
+                format,
+                frames: vec![0],
+                require_tags: Vec::new(),
+            },
+            Resume::default(),
+        )
+        .expect("a new job has no stored tiles");
+        s
+    }
+
+    /// A scheduler without jobs that waits for them ([`Scheduler::add_job`]).
+    pub fn service(lease: Duration) -> Scheduler {
         Scheduler {
-            frames: vec![0],
-            current: 0,
-            frame_started: None,
+            jobs: BTreeMap::new(),
             completed: Vec::new(),
-            pending: (0..n).collect(),
-            done: vec![false; n],
-            remaining: n,
             leases: HashMap::new(),
-            issued: Vec::new(),
+            issued: HashMap::new(),
+            next_assignment: 1,
             workers: HashMap::new(),
             next_worker: 1,
             lease,
-            canvas: Canvas::new(
-                width,
-                height,
-                units.first().map_or(1, |u| u.set.interleave),
-                format,
-            ),
-            unit_cpu: vec![0; n],
-            unit_calls: vec![0; n],
-            failures: vec![Vec::new(); n],
-            gave_up: None,
-            units,
+            one_shot: false,
+            draining: false,
         }
     }
 
-    /// Renders these frames (in order, at least one) instead of frame 0.
+    /// Renders these frames of the one-shot job (in order, at least one) instead of frame 0.
     pub fn with_frames(mut self, frames: Vec<u32>) -> Scheduler {
         assert!(!frames.is_empty(), "a render has at least one frame");
-        self.frames = frames;
+        if let Some(job) = self.jobs.get_mut(&ONE_SHOT_JOB) {
+            job.plan.frames = frames;
+        }
         self
     }
 
-    /// The frame rendering now.
+    /// Adds a job to the queue, resuming it where the store left it (a frame
+    /// whose every tile was stored is complete at once). Fails when a stored
+    /// tile does not fit the job.
+    pub fn add_job(&mut self, plan: JobPlan, resume: Resume) -> Result<(), WireError> {
+        let id = plan.id;
+        let job = Job::new(plan, resume)?;
+        let complete = job.current < job.plan.frames.len() && job.remaining == 0;
+        self.jobs.insert(id, job);
+        if complete {
+            self.complete_frame(id, Instant::now());
+        }
+        Ok(())
+    }
+
+    /// Cancels a job: nothing more of it is handed out, its units in flight
+    /// are dropped, and it leaves the scheduler. False when unknown.
+    pub fn cancel(&mut self, job: JobId) -> bool {
+        self.remove_job(job).is_some()
+    }
+
+    /// Takes a job out of the scheduler (cancelled, given up, or done and
+    /// written).
+    pub fn remove_job(&mut self, job: JobId) -> Option<JobPlan> {
+        let removed = self.jobs.remove(&job)?;
+        self.leases.retain(|_, l| l.job != job);
+        self.issued.retain(|_, (j, _, _)| *j != job);
+        Some(removed.plan)
+    }
+
+    /// Stops handing out units (a draining service).
+    pub fn drain(&mut self) {
+        self.draining = true;
+    }
+
+    /// Units held by workers now.
+    pub fn in_flight(&self) -> usize {
+        self.leases.len()
+    }
+
+    /// The frame the one-shot job is rendering.
     pub fn frame(&self) -> u32 {
-        self.frames[self.current]
+        self.jobs.get(&ONE_SHOT_JOB).map_or(0, Job::frame)
     }
 
     /// Registers a worker; returns its id.
     pub fn register(&mut self, name: &str, threads: u32, now: Instant) -> String {
+        self.register_tagged(name, threads, Vec::new(), now)
+    }
+
+    /// Registers a worker carrying `tags`; returns its id.
+    pub fn register_tagged(
+        &mut self,
+        name: &str,
+        threads: u32,
+        tags: Vec<String>,
+        now: Instant,
+    ) -> String {
         let id = self.next_worker;
         self.next_worker += 1;
+        let wire_id = format!("w{id}");
         self.workers.insert(
             id,
             WorkerState {
+                id: wire_id.clone(),
                 name: name.to_string(),
+                tags,
                 threads,
                 last_seen: now,
                 joined: now,
@@ -315,9 +584,10 @@ impl Scheduler {
                 process_cpu_micros: None,
                 alive: true,
                 cannot_build: None,
+                recent: VecDeque::new(),
             },
         );
-        format!("w{id}")
+        wire_id
     }
 
     fn worker_mut(&mut self, worker_id: &str) -> Result<(u64, &mut WorkerState), Refusal> {
@@ -338,65 +608,108 @@ impl Scheduler {
         Ok(())
     }
 
+    /// The jobs in the queue's order: highest priority first, ties oldest first.
+    fn queue_order(&self) -> Vec<JobId> {
+        let mut ids: Vec<(i32, JobId)> = self
+            .jobs
+            .values()
+            .filter(|j| !j.ended && j.remaining > 0)
+            .map(|j| (j.plan.priority, j.plan.id))
+            .collect();
+        ids.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        ids.into_iter().map(|(_, id)| id).collect()
+    }
+
     /// The next thing for this worker to do.
     pub fn next(&mut self, worker_id: &str, now: Instant) -> Result<Next, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
-        let cannot_build = w.cannot_build.is_some();
-        if self.remaining == 0 {
+        if self.one_shot && self.jobs.values().all(Job::finished) {
             return Ok(Next::Finished);
         }
-        if cannot_build || self.gave_up.is_some() {
+        if self.draining {
             return Ok(Next::Wait);
         }
-        let unit = match self.pending_for(wid) {
-            Some(u) => Some(u),
-            None => self.speculative(wid),
-        };
-        Ok(match unit {
-            Some(unit) => {
-                let assignment_id = self.issued.len() as u64 + 1;
-                self.issued.push((self.current, unit));
-                self.leases
-                    .insert(assignment_id, Lease { unit, worker: wid });
-                self.frame_started.get_or_insert(now);
+        let order = self.queue_order();
+        let worker = &self.workers[&wid];
+        let open: Vec<JobId> = order
+            .into_iter()
+            .filter(|id| self.jobs[id].open_to(wid, worker))
+            .collect();
+        let mut chosen = None;
+        for &id in &open {
+            if let Some(unit) = self.pending_for(id, wid) {
+                chosen = Some((id, unit));
+                break;
+            }
+        }
+        if chosen.is_none() {
+            chosen = open
+                .iter()
+                .find_map(|&id| self.speculative(id, wid).map(|u| (id, u)));
+        }
+        Ok(match chosen {
+            Some((job_id, unit)) => {
+                let assignment_id = self.next_assignment;
+                self.next_assignment += 1;
+                let job = self.jobs.get_mut(&job_id).expect("chosen above");
+                job.started = true;
+                job.frame_started.get_or_insert(now);
+                self.issued
+                    .insert(assignment_id, (job_id, job.current, unit));
+                self.leases.insert(
+                    assignment_id,
+                    Lease {
+                        job: job_id,
+                        unit,
+                        worker: wid,
+                        issued: now,
+                    },
+                );
                 Next::Assign {
                     assignment_id,
-                    unit: self.units[unit],
-                    frame: self.frame(),
+                    job: job_id,
+                    unit: job.plan.units[unit],
+                    frame: job.frame(),
                 }
             }
             None => Next::Wait,
         })
     }
 
-    /// Takes the first pending unit this worker has not failed, or that no other
-    /// worker could take instead (so a lone worker retries, up to the limit).
-    fn pending_for(&mut self, worker: u64) -> Option<usize> {
-        let position = self
-            .pending
-            .iter()
-            .position(|&u| !self.failed_by(u, worker) || !self.another_could_take(u, worker))?;
-        self.pending.remove(position)
+    /// Takes the job's first pending unit this worker has not failed. In a
+    /// one-shot render, also one that no other worker could take instead (so
+    /// a lone worker retries, up to the limit); a service waits for another
+    /// worker, so a unit's failures are on different workers.
+    fn pending_for(&mut self, job_id: JobId, worker: u64) -> Option<usize> {
+        let job = &self.jobs[&job_id];
+        let position = job.pending.iter().position(|&u| {
+            !job.failed_by(u, worker) || (self.one_shot && !self.another_could_take(job, u, worker))
+        })?;
+        self.jobs.get_mut(&job_id)?.pending.remove(position)
     }
 
-    fn failed_by(&self, unit: usize, worker: u64) -> bool {
-        self.failures[unit].iter().any(|(w, _)| *w == worker)
-    }
-
-    /// Whether a worker other than `worker`, able to render, has not failed `unit`.
-    fn another_could_take(&self, unit: usize, worker: u64) -> bool {
+    /// Whether a worker other than `worker`, able to render the job, has not
+    /// failed `unit`.
+    fn another_could_take(&self, job: &Job, unit: usize, worker: u64) -> bool {
         self.workers.iter().any(|(&id, w)| {
-            id != worker && w.alive && w.cannot_build.is_none() && !self.failed_by(unit, id)
+            id != worker
+                && w.alive
+                && !job.cannot_build.contains_key(&id)
+                && !job.blocklisted(id)
+                && job.plan.require_tags.iter().all(|t| w.tags.contains(t))
+                && !job.failed_by(unit, id)
         })
     }
 
-    /// An outstanding unit this worker does not hold and has not failed, held by
-    /// fewer than [`MAX_HOLDERS`] workers: first the newest unit a worker holds
-    /// queued behind the one it is rendering (workers render their units in the
-    /// order given, so that one would be started last, and a copy started now
-    /// ends the frame soonest), then the oldest outstanding one (a straggler).
-    fn speculative(&self, worker: u64) -> Option<usize> {
+    /// An outstanding unit of the job this worker does not hold and has not
+    /// failed, held by fewer than [`MAX_HOLDERS`] workers: first the newest
+    /// unit a worker holds queued behind the one it is rendering (workers
+    /// render their units in the order given, so that one would be started
+    /// last, and a copy started now ends the frame soonest), then the oldest
+    /// outstanding one (a straggler).
+    fn speculative(&self, job_id: JobId, worker: u64) -> Option<usize> {
+        let job = &self.jobs[&job_id];
         // Each worker's oldest lease: the unit it is rendering.
         let mut rendering: HashMap<u64, u64> = HashMap::new();
         for (&id, lease) in &self.leases {
@@ -406,7 +719,7 @@ impl Scheduler {
         // Per unit: holders, its oldest and newest lease, whether this worker
         // holds it, whether a holder has it queued rather than rendering.
         let mut holders: HashMap<usize, (usize, u64, u64, bool, bool)> = HashMap::new();
-        for (&id, lease) in &self.leases {
+        for (&id, lease) in self.leases.iter().filter(|(_, l)| l.job == job_id) {
             let e = holders
                 .entry(lease.unit)
                 .or_insert((0, id, id, false, false));
@@ -419,28 +732,37 @@ impl Scheduler {
         holders
             .into_iter()
             .filter(|&(unit, (count, _, _, mine, _))| {
-                !mine && count < MAX_HOLDERS && !self.done[unit] && !self.failed_by(unit, worker)
+                !mine && count < MAX_HOLDERS && !job.done[unit] && !job.failed_by(unit, worker)
             })
-            .min_by_key(|&(_, (_, oldest, newest, _, queued))| {
+            .min_by_key(|&(unit, (_, oldest, newest, _, queued))| {
                 if queued {
-                    (0, u64::MAX - newest)
+                    (0, u64::MAX - newest, unit)
                 } else {
-                    (1, oldest)
+                    (1, oldest, unit)
                 }
             })
             .map(|(unit, _)| unit)
+    }
+
+    /// The job, frame index and unit of an assignment of a job still in the
+    /// scheduler; `Err(true)` when the id was issued for a job that has
+    /// ended, `Err(false)` when it never was.
+    fn issued(&self, assignment_id: u64) -> Result<(JobId, usize, usize), bool> {
+        match self.issued.get(&assignment_id) {
+            Some(&i) => Ok(i),
+            None => Err(assignment_id > 0 && assignment_id < self.next_assignment),
+        }
     }
 
     /// Notes what a tile's worker says its calls cost it (statistics only,
     /// whether the tile is accepted or not): for the unit of `assignment_id`,
     /// when that is of the frame rendering.
     pub fn note_calls_cpu(&mut self, assignment_id: u64, calls_cpu_micros: u64) {
-        if let Some(&(frame, unit)) = assignment_id
-            .checked_sub(1)
-            .and_then(|i| self.issued.get(i as usize))
-            && frame == self.current
+        if let Ok((job_id, frame, unit)) = self.issued(assignment_id)
+            && let Some(job) = self.jobs.get_mut(&job_id)
+            && frame == job.current
         {
-            self.unit_calls[unit] = calls_cpu_micros;
+            job.unit_calls[unit] = calls_cpu_micros;
         }
     }
 
@@ -454,84 +776,127 @@ impl Scheduler {
         render_cpu_micros: u64,
         now: Instant,
     ) -> Result<bool, Refusal> {
-        let (wid, w) = self.worker_mut(worker_id)?;
-        w.last_seen = now;
-        let Some(&(issued_frame, issued_unit)) = assignment_id
-            .checked_sub(1)
-            .and_then(|i| self.issued.get(i as usize))
-        else {
-            return Err(Refusal::NeverAssigned(assignment_id));
-        };
-        if issued_frame != self.current {
-            // A duplicate of a unit of a frame that is complete.
-            return Ok(false);
-        }
-        let (width, height) = (self.canvas.width(), self.canvas.height());
-        let unit_of = |u: Option<&pb::Unit>| {
-            u.ok_or(WireError::Missing("unit"))
-                .and_then(|u| convert::unit_from_wire(u, width, height))
-        };
-        let claimed = unit_of(unit).map_err(|error| Refusal::Malformed {
-            id: assignment_id,
-            error,
-        })?;
-        if claimed != self.units[issued_unit] {
-            return Err(Refusal::WrongUnit(assignment_id));
-        }
-        let tile =
-            convert::tile_from_wire(values, claimed.pixel_count(width), self.canvas.format())
-                .map_err(|error| Refusal::Malformed {
-                    id: assignment_id,
-                    error,
-                })?;
-        match self.leases.get(&assignment_id) {
-            Some(lease) if lease.worker == wid => {}
-            _ if self.done[issued_unit] => return Ok(false),
-            _ => return Err(Refusal::NotHeld(assignment_id)),
-        }
-        // Checked (the whole tile, above): store it.
-        self.canvas.store(&claimed, tile);
-        self.done[issued_unit] = true;
-        self.remaining -= 1;
-        self.unit_cpu[issued_unit] = render_cpu_micros;
-        self.leases.retain(|_, l| l.unit != issued_unit);
-        self.pending.retain(|&u| u != issued_unit);
-        let w = self.workers.get_mut(&wid).expect("checked above");
-        w.units += 1;
-        w.pixels += claimed.pixel_count(width) as u64;
-        w.render_cpu_micros += render_cpu_micros;
-        if self.remaining == 0 {
-            self.complete_frame(now);
-        }
-        Ok(true)
+        self.accept(
+            worker_id,
+            assignment_id,
+            unit,
+            values,
+            render_cpu_micros,
+            now,
+        )
+        .map(|a| a.is_some())
     }
 
-    /// Moves the complete frame's image out and starts the next frame, if any.
-    fn complete_frame(&mut self, now: Instant) {
-        let n = self.units.len();
-        let last = self.current + 1 == self.frames.len();
+    /// Accepts a tile: `Ok(Some(_))` when it was stored in its frame's canvas,
+    /// `Ok(None)` when it is valid but the unit was already complete (or its
+    /// job has ended).
+    pub fn accept(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        unit: Option<&pb::Unit>,
+        values: &[u8],
+        render_cpu_micros: u64,
+        now: Instant,
+    ) -> Result<Option<Accepted>, Refusal> {
+        let (wid, w) = self.worker_mut(worker_id)?;
+        w.last_seen = now;
+        let (job_id, issued_frame, issued_unit) = match self.issued(assignment_id) {
+            Ok(i) => i,
+            Err(true) => return Ok(None),
+            Err(false) => return Err(Refusal::NeverAssigned(assignment_id)),
+        };
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return Ok(None);
+        };
+        if issued_frame != job.current {
+            // A duplicate of a unit of a frame that is complete.
+            return Ok(None);
+        }
+        let (width, height) = (job.plan.width, job.plan.height);
+        let claimed = unit
+            .ok_or(WireError::Missing("unit"))
+            .and_then(|u| convert::unit_from_wire(u, width, height))
+            .map_err(|error| Refusal::Malformed {
+                id: assignment_id,
+                error,
+            })?;
+        if claimed != job.plan.units[issued_unit] {
+            return Err(Refusal::WrongUnit(assignment_id));
+        }
+        let tile = convert::tile_from_wire(values, claimed.pixel_count(width), job.plan.format)
+            .map_err(|error| Refusal::Malformed {
+                id: assignment_id,
+                error,
+            })?;
+        let issued_at = match self.leases.get(&assignment_id) {
+            Some(lease) if lease.worker == wid => lease.issued,
+            _ if job.done[issued_unit] => return Ok(None),
+            _ => return Err(Refusal::NotHeld(assignment_id)),
+        };
+        // Checked (the whole tile, above): store it.
+        job.canvas.store(&claimed, tile);
+        job.done[issued_unit] = true;
+        job.remaining -= 1;
+        job.unit_cpu[issued_unit] = render_cpu_micros;
+        job.pending.retain(|&u| u != issued_unit);
+        let frame = job.frame();
+        self.leases
+            .retain(|_, l| l.job != job_id || l.unit != issued_unit);
+        let w = self.workers.get_mut(&wid).expect("checked above");
+        let pixels = claimed.pixel_count(width) as u64;
+        w.units += 1;
+        w.pixels += pixels;
+        w.render_cpu_micros += render_cpu_micros;
+        w.recent.push_back((now, pixels));
+        while w
+            .recent
+            .front()
+            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > RATE_WINDOW)
+        {
+            w.recent.pop_front();
+        }
+        if self.jobs[&job_id].remaining == 0 {
+            self.complete_frame(job_id, now);
+        }
+        Ok(Some(Accepted {
+            job: job_id,
+            frame,
+            unit: issued_unit,
+            latency: now.saturating_duration_since(issued_at),
+        }))
+    }
+
+    /// Moves the job's complete frame's image out and starts its next frame, if any.
+    fn complete_frame(&mut self, job_id: JobId, now: Instant) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let n = job.plan.units.len();
+        let last = job.current + 1 == job.plan.frames.len();
         self.completed.push(CompletedFrame {
-            frame: self.frame(),
+            job: job_id,
+            frame: job.frame(),
             // A blank canvas of the same size stays: late duplicates are still
             // checked against it.
-            image: self.canvas.take(),
-            unit_costs: std::mem::replace(&mut self.unit_cpu, vec![0; n]),
-            unit_calls: std::mem::replace(&mut self.unit_calls, vec![0; n]),
-            render_time: self
+            image: job.canvas.take(),
+            unit_costs: std::mem::replace(&mut job.unit_cpu, vec![0; n]),
+            unit_calls: std::mem::replace(&mut job.unit_calls, vec![0; n]),
+            render_time: job
                 .frame_started
                 .take()
                 .map_or(Duration::ZERO, |t| now.saturating_duration_since(t)),
         });
+        // Duplicates still out belong to the frame just completed.
+        self.leases.retain(|_, l| l.job != job_id);
         if last {
             return;
         }
-        self.current += 1;
-        self.pending = (0..n).collect();
-        self.done = vec![false; n];
-        self.remaining = n;
-        // Duplicates still out belong to the frame just completed.
-        self.leases.clear();
-        self.failures = vec![Vec::new(); n];
+        job.current += 1;
+        job.pending = (0..n).collect();
+        job.done = vec![false; n];
+        job.remaining = n;
+        job.failures = vec![Vec::new(); n];
     }
 
     /// Whether a frame is complete and not yet taken.
@@ -545,11 +910,12 @@ impl Scheduler {
     }
 
     /// A worker gives back an assignment it could not render. The unit goes back
-    /// to the front of the queue; a worker whose scene does not build gives back
-    /// everything it holds and gets nothing more. `Ok(None)`: the assignment was
-    /// no longer this worker's, nothing changed. The render is given up
-    /// ([`Scheduler::gave_up`]) when the unit has failed [`MAX_FAILURES`] times,
-    /// or no worker present can build the scene.
+    /// to the front of its job's queue; a worker whose scene does not build gives
+    /// back everything of that job it holds and gets nothing more of it.
+    /// `Ok(None)`: the assignment was no longer this worker's, nothing changed.
+    /// The job is given up ([`Scheduler::gave_up_jobs`]) when the unit has
+    /// failed [`MAX_FAILURES`] times or, in a one-shot render, no worker
+    /// present can render it.
     pub fn fail(
         &mut self,
         worker_id: &str,
@@ -561,14 +927,13 @@ impl Scheduler {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
         let name = w.name.clone();
-        let Some(&(frame, unit)) = assignment_id
-            .checked_sub(1)
-            .and_then(|i| self.issued.get(i as usize))
-        else {
-            return Err(Refusal::NeverAssigned(assignment_id));
+        let (job_id, frame, unit) = match self.issued(assignment_id) {
+            Ok(i) => i,
+            Err(true) => return Ok(None),
+            Err(false) => return Err(Refusal::NeverAssigned(assignment_id)),
         };
-        match self.leases.get(&assignment_id) {
-            Some(lease) if lease.worker == wid && frame == self.current => {}
+        match (self.leases.get(&assignment_id), self.jobs.get(&job_id)) {
+            (Some(lease), Some(job)) if lease.worker == wid && frame == job.current => {}
             _ => return Ok(None),
         }
         let failure = UnitFailure {
@@ -577,58 +942,100 @@ impl Scheduler {
             reason: reason.to_string(),
         };
         self.leases.remove(&assignment_id);
+        let mut blocklisted = false;
         if kind == FailureKind::Scene {
-            // Deterministic on this worker: every unit it holds would fail too.
-            let w = self.workers.get_mut(&wid).expect("checked above");
-            w.cannot_build = Some(reason.to_string());
-            self.release(wid);
+            // Deterministic on this worker: every unit of the job it holds would fail too.
+            let job = self.jobs.get_mut(&job_id).expect("checked above");
+            job.cannot_build.insert(wid, reason.to_string());
+            if job_id == ONE_SHOT_JOB
+                && let Some(w) = self.workers.get_mut(&wid)
+            {
+                w.cannot_build = Some(reason.to_string());
+            }
+            self.release(wid, Some(job_id));
         } else {
-            self.failures[unit].push((wid, failure));
+            let job = self.jobs.get_mut(&job_id).expect("checked above");
+            job.failures[unit].push((wid, failure));
+            let count = job.worker_failures.entry(wid).or_insert(0);
+            *count += 1;
+            if *count == MAX_FAILURES {
+                blocklisted = true;
+                self.release(wid, Some(job_id));
+            }
         }
-        let held = self.leases.values().any(|l| l.unit == unit);
-        if !self.done[unit] && !held && !self.pending.contains(&unit) {
-            self.pending.push_front(unit);
+        let held = self
+            .leases
+            .values()
+            .any(|l| l.job == job_id && l.unit == unit);
+        let one_shot = self.one_shot;
+        let able = self.able_for(job_id);
+        let job = self.jobs.get_mut(&job_id).expect("checked above");
+        if !job.done[unit] && !held && !job.pending.contains(&unit) {
+            job.pending.push_front(unit);
         }
-        if self.gave_up.is_none() {
-            if self.failures[unit].len() >= MAX_FAILURES {
-                self.gave_up = Some(GiveUp::Unit {
+        if job.gave_up.is_none() {
+            if job.failures[unit].len() >= MAX_FAILURES {
+                job.gave_up = Some(GiveUp::Unit {
                     index: unit,
-                    unit: self.units[unit],
-                    failures: self.failures[unit].iter().map(|(_, f)| f.clone()).collect(),
+                    unit: job.plan.units[unit],
+                    failures: job.failures[unit].iter().map(|(_, f)| f.clone()).collect(),
                 });
-            } else if kind == FailureKind::Scene && self.able() == 0 {
-                let mut failures: Vec<(Instant, UnitFailure)> = self
-                    .workers
-                    .values()
-                    .filter_map(|w| {
-                        let reason = w.cannot_build.clone()?;
+            } else if one_shot && kind == FailureKind::Scene && able == 0 {
+                let mut failures: Vec<(Instant, UnitFailure)> = job
+                    .cannot_build
+                    .iter()
+                    .filter_map(|(id, reason)| {
+                        let w = self.workers.get(id)?;
                         Some((
                             w.joined,
                             UnitFailure {
                                 worker: w.name.clone(),
                                 kind: FailureKind::Scene,
-                                reason,
+                                reason: reason.clone(),
                             },
                         ))
                     })
                     .collect();
                 failures.sort_by_key(|f| f.0);
-                self.gave_up = Some(GiveUp::Scene {
+                job.gave_up = Some(GiveUp::Scene {
                     failures: failures.into_iter().map(|(_, f)| f).collect(),
                 });
+            } else if one_shot && blocklisted && able == 0 {
+                let mut names: Vec<String> = job
+                    .worker_failures
+                    .iter()
+                    .filter(|&(_, &n)| n >= MAX_FAILURES)
+                    .filter_map(|(id, _)| self.workers.get(id).map(|w| w.name.clone()))
+                    .collect();
+                names.sort();
+                job.gave_up = Some(GiveUp::Blocklisted { workers: names });
+            }
+            if job.gave_up.is_some() {
+                job.ended = true;
+                self.leases.retain(|_, l| l.job != job_id);
             }
         }
+        let job = &self.jobs[&job_id];
         Ok(Some(Counted {
+            job: job_id,
             worker: name,
             index: unit,
-            unit: self.units[unit],
-            failures: self.failures[unit].len(),
+            unit: job.plan.units[unit],
+            failures: job.failures[unit].len(),
+            blocklisted,
         }))
     }
 
-    /// Why the render cannot go on, once it cannot.
+    /// Why the one-shot job cannot go on, once it cannot.
     pub fn gave_up(&self) -> Option<&GiveUp> {
-        self.gave_up.as_ref()
+        self.jobs.get(&ONE_SHOT_JOB)?.gave_up.as_ref()
+    }
+
+    /// Every job given up, and why.
+    pub fn gave_up_jobs(&self) -> impl Iterator<Item = (JobId, &GiveUp)> {
+        self.jobs
+            .iter()
+            .filter_map(|(&id, j)| j.gave_up.as_ref().map(|g| (id, g)))
     }
 
     /// A worker leaves cleanly; anything it still held goes back to the queue.
@@ -637,12 +1044,12 @@ impl Scheduler {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.process_cpu_micros = (process_cpu_micros > 0).then_some(process_cpu_micros);
         w.alive = false;
-        self.release(wid);
+        self.release(wid, None);
         Ok(())
     }
 
     /// Drops workers silent for longer than the lease; their units go back to the
-    /// front of the queue. Returns the names of the workers dropped.
+    /// front of their queues. Returns the names of the workers dropped.
     pub fn expire(&mut self, now: Instant) -> Vec<String> {
         let lease = self.lease;
         let lost: Vec<u64> = self
@@ -657,40 +1064,110 @@ impl Scheduler {
                 w.alive = false;
                 names.push(w.name.clone());
             }
-            self.release(id);
+            self.release(id, None);
+        }
+        // Workers gone for long are forgotten: a service runs for months.
+        if !self.one_shot {
+            self.workers.retain(|_, w| {
+                w.alive || now.saturating_duration_since(w.last_seen) < 10 * RATE_WINDOW
+            });
         }
         names
     }
 
-    fn release(&mut self, worker: u64) {
-        let mut freed: Vec<(u64, usize)> = self
+    /// Gives back the units `worker` holds (of `job`, or of every job).
+    fn release(&mut self, worker: u64, job: Option<JobId>) {
+        let mut freed: Vec<(u64, JobId, usize)> = self
             .leases
             .iter()
-            .filter(|(_, l)| l.worker == worker)
-            .map(|(&id, l)| (id, l.unit))
+            .filter(|(_, l)| l.worker == worker && job.is_none_or(|j| j == l.job))
+            .map(|(&id, l)| (id, l.job, l.unit))
             .collect();
         freed.sort_unstable();
-        for &(id, _) in &freed {
+        for &(id, _, _) in &freed {
             self.leases.remove(&id);
         }
         // Back to the front, in their original order, unless someone else holds them.
-        for &(_, unit) in freed.iter().rev() {
-            let held = self.leases.values().any(|l| l.unit == unit);
-            if !self.done[unit] && !held && !self.pending.contains(&unit) {
-                self.pending.push_front(unit);
+        for &(_, job_id, unit) in freed.iter().rev() {
+            let held = self
+                .leases
+                .values()
+                .any(|l| l.job == job_id && l.unit == unit);
+            if let Some(job) = self.jobs.get_mut(&job_id)
+                && !job.done[unit]
+                && !held
+                && !job.pending.contains(&unit)
+            {
+                job.pending.push_front(unit);
             }
         }
     }
 
-    /// Whether every unit of every frame is complete.
+    /// Whether every unit of every frame of every job is complete.
     pub fn finished(&self) -> bool {
-        self.remaining == 0
+        self.jobs.values().all(Job::finished)
     }
 
-    /// Units complete and in all, over every frame.
+    /// Units complete and in all, over every frame of the one-shot job.
     pub fn progress(&self) -> (usize, usize) {
-        let n = self.units.len();
-        (self.current * n + n - self.remaining, self.frames.len() * n)
+        self.jobs.get(&ONE_SHOT_JOB).map_or((0, 0), |j| {
+            let p = job_progress(j, &self.leases);
+            (p.units_done as usize, p.units_total as usize)
+        })
+    }
+
+    /// A job's progress.
+    pub fn job_progress(&self, job: JobId) -> Option<JobProgress> {
+        self.jobs.get(&job).map(|j| job_progress(j, &self.leases))
+    }
+
+    /// The names of the workers blocklisted for a job.
+    pub fn blocklisted(&self, job: JobId) -> Vec<String> {
+        let Some(job) = self.jobs.get(&job) else {
+            return Vec::new();
+        };
+        let mut names: Vec<String> = job
+            .worker_failures
+            .iter()
+            .filter(|&(_, &n)| n >= MAX_FAILURES)
+            .filter_map(|(id, _)| self.workers.get(id).map(|w| w.name.clone()))
+            .collect();
+        names.sort();
+        names
+    }
+
+    /// The jobs a worker is blocklisted for.
+    pub fn blocklisted_for(&self, worker_id: &str) -> Vec<JobId> {
+        let Some(id) = worker_id
+            .strip_prefix('w')
+            .and_then(|n| n.parse::<u64>().ok())
+        else {
+            return Vec::new();
+        };
+        self.jobs
+            .iter()
+            .filter(|(_, j)| j.blocklisted(id))
+            .map(|(&jid, _)| jid)
+            .collect()
+    }
+
+    /// The job a worker is rendering (its oldest lease's), if any.
+    pub fn current_job(&self, worker_id: &str) -> Option<JobId> {
+        let id = worker_id.strip_prefix('w')?.parse::<u64>().ok()?;
+        self.leases
+            .iter()
+            .filter(|(_, l)| l.worker == id)
+            .min_by_key(|(a, _)| **a)
+            .map(|(_, l)| l.job)
+    }
+
+    /// Units waiting to be handed out, over every job.
+    pub fn queued_units(&self) -> usize {
+        self.jobs
+            .values()
+            .filter(|j| !j.ended)
+            .map(|j| j.pending.len())
+            .sum()
     }
 
     /// Workers still in the farm.
@@ -698,22 +1175,77 @@ impl Scheduler {
         self.workers.values().filter(|w| w.alive).count()
     }
 
-    /// Workers still in the farm that can build the scene.
+    /// Workers still in the farm that can render the one-shot job.
     pub fn able(&self) -> usize {
+        self.able_for(ONE_SHOT_JOB)
+    }
+
+    /// Workers still in the farm that may render `job`.
+    fn able_for(&self, job: JobId) -> usize {
+        let Some(job) = self.jobs.get(&job) else {
+            return 0;
+        };
         self.workers
-            .values()
-            .filter(|w| w.alive && w.cannot_build.is_none())
+            .iter()
+            .filter(|(id, w)| {
+                w.alive
+                    && !job.cannot_build.contains_key(id)
+                    && !job.blocklisted(**id)
+                    && job.plan.require_tags.iter().all(|t| w.tags.contains(t))
+            })
             .count()
     }
 
-    /// Every worker that ever joined.
+    /// Every worker that ever joined (and, in a service, has not been forgotten).
     pub fn workers(&self) -> impl Iterator<Item = &WorkerState> {
         self.workers.values()
     }
 
-    /// The image so far, gaps filled from coarser pixel sets ([`Canvas::preview`]).
+    /// The one-shot job's image so far, gaps filled from coarser pixel sets
+    /// ([`Canvas::preview`]).
     pub fn preview(&self) -> FrameImage {
-        self.canvas.preview()
+        self.preview_of(ONE_SHOT_JOB)
+            .unwrap_or_else(|| Canvas::new(1, 1, 1, PixelFormat::Srgb8).preview())
+    }
+
+    /// A job's current frame and its image so far, gaps filled from coarser
+    /// pixel sets.
+    pub fn preview_of(&self, job: JobId) -> Option<FrameImage> {
+        self.jobs.get(&job).map(|j| j.canvas.preview())
+    }
+
+    /// The ids of the jobs in the scheduler.
+    pub fn job_ids(&self) -> Vec<JobId> {
+        self.jobs.keys().copied().collect()
+    }
+
+    /// Workers whose tags let them render `tags`, alive now.
+    pub fn tagged(&self, tags: &[String]) -> usize {
+        let set: HashSet<&String> = tags.iter().collect();
+        self.workers
+            .values()
+            .filter(|w| w.alive && set.iter().all(|t| w.tags.contains(t)))
+            .count()
+    }
+}
+
+fn job_progress(j: &Job, leases: &HashMap<u64, Lease>) -> JobProgress {
+    let n = j.plan.units.len() as u64;
+    let frames = j.plan.frames.len() as u64;
+    let current = j.current as u64;
+    let done_now = if current >= frames {
+        0
+    } else {
+        n - j.remaining as u64
+    };
+    let frames_complete = if j.finished() { frames } else { current };
+    JobProgress {
+        units_done: (current.min(frames) * n + done_now).min(frames * n),
+        units_total: frames * n,
+        frames_complete: frames_complete as u32,
+        started: j.started,
+        units_queued: if j.ended { 0 } else { j.pending.len() as u64 },
+        units_in_flight: leases.values().filter(|l| l.job == j.plan.id).count() as u64,
     }
 }
 
@@ -799,6 +1331,7 @@ mod tests {
                     assignment_id,
                     unit,
                     frame,
+                    ..
                 } => {
                     assert_eq!(frame, 3);
                     first_frame.push((assignment_id, unit));
@@ -1167,5 +1700,191 @@ mod tests {
                 && message.contains("worker a (scene): w1 broke"),
             "{message}"
         );
+    }
+
+    fn plan(id: JobId, priority: i32, tags: &[&str]) -> JobPlan {
+        JobPlan {
+            id,
+            priority,
+            units: work_units(8, 8, 8, 4096),
+            width: 8,
+            height: 8,
+            format: PixelFormat::Samples,
+            frames: vec![0],
+            require_tags: tags.iter().map(|t| t.to_string()).collect(),
+        }
+    }
+
+    fn assign_job(s: &mut Scheduler, w: &str, now: Instant) -> (u64, JobId, WorkUnit) {
+        match s.next(w, now).unwrap() {
+            Next::Assign {
+                assignment_id,
+                job,
+                unit,
+                ..
+            } => (assignment_id, job, unit),
+            other => panic!("expected an assignment, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn highest_priority_first_ties_oldest_first_and_a_new_urgent_job_goes_next() {
+        let now = Instant::now();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        assert_eq!(s.next(&a, now), Ok(Next::Wait), "a service waits for jobs");
+        s.add_job(plan(1, 0, &[]), Resume::default()).unwrap();
+        s.add_job(plan(2, 5, &[]), Resume::default()).unwrap();
+        s.add_job(plan(3, 5, &[]), Resume::default()).unwrap();
+        assert_eq!(assign_job(&mut s, &a, now).1, 2, "priority 5, older");
+        s.add_job(plan(4, 9, &[]), Resume::default()).unwrap();
+        assert_eq!(
+            assign_job(&mut s, &a, now).1,
+            4,
+            "the urgent job starts on the next unit"
+        );
+        // When job 4 has nothing left to hand out, the worker goes on with 2.
+        let n = s.jobs[&4].plan.units.len();
+        for _ in 1..n {
+            assert_eq!(assign_job(&mut s, &a, now).1, 4);
+        }
+        assert_eq!(assign_job(&mut s, &a, now).1, 2);
+    }
+
+    #[test]
+    fn units_of_two_jobs_interleave_so_no_worker_idles() {
+        let now = Instant::now();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        s.add_job(plan(1, 0, &[]), Resume::default()).unwrap();
+        s.add_job(plan(2, 0, &[]), Resume::default()).unwrap();
+        let n = work_units(8, 8, 8, 4096).len();
+        let mut seen = HashMap::new();
+        // Both workers take units until nothing is left: job 1's first, then 2's.
+        for i in 0..2 * n {
+            let w = if i % 2 == 0 { &a } else { &b };
+            let (id, job, unit) = assign_job(&mut s, w, now);
+            *seen.entry(job).or_insert(0) += 1;
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(w, id, Some(&wire), &tile(&unit, 8, 0.5), 1, now),
+                Ok(true)
+            );
+        }
+        assert_eq!(seen[&1], n);
+        assert_eq!(seen[&2], n);
+        let done = s.take_completed();
+        assert_eq!(done.iter().map(|f| f.job).collect::<Vec<_>>(), vec![1, 2]);
+        assert!(s.finished());
+        assert_eq!(s.next(&a, now), Ok(Next::Wait));
+    }
+
+    #[test]
+    fn tagged_jobs_go_only_to_workers_carrying_every_tag() {
+        let now = Instant::now();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let plain = s.register("plain", 1, now);
+        let gpu = s.register_tagged("gpu", 1, vec!["gpu".into(), "big".into()], now);
+        s.add_job(plan(1, 0, &["gpu", "big"]), Resume::default())
+            .unwrap();
+        assert_eq!(s.next(&plain, now), Ok(Next::Wait));
+        assert_eq!(assign_job(&mut s, &gpu, now).1, 1);
+    }
+
+    #[test]
+    fn a_worker_failing_three_units_of_a_job_is_blocklisted_for_it_and_other_jobs_go_on() {
+        let now = Instant::now();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let (bad, good) = (s.register("bad", 1, now), s.register("good", 1, now));
+        s.add_job(plan(1, 1, &[]), Resume::default()).unwrap();
+        s.add_job(plan(2, 0, &[]), Resume::default()).unwrap();
+        for k in 1..=MAX_FAILURES {
+            let (id, job, _) = assign_job(&mut s, &bad, now);
+            assert_eq!(job, 1);
+            let counted = fail(&mut s, &bad, id, FailureKind::Render, now).unwrap();
+            assert_eq!(counted.blocklisted, k == MAX_FAILURES);
+        }
+        assert_eq!(s.blocklisted(1), vec!["bad".to_string()]);
+        assert_eq!(s.blocklisted_for(&bad), vec![1]);
+        assert!(
+            s.gave_up_jobs().next().is_none(),
+            "good can still render job 1"
+        );
+        // bad now gets job 2's units; good gets job 1's.
+        assert_eq!(assign_job(&mut s, &bad, now).1, 2);
+        assert_eq!(assign_job(&mut s, &good, now).1, 1);
+    }
+
+    #[test]
+    fn a_unit_failing_on_three_workers_fails_its_job_only() {
+        let now = Instant::now();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let ws: Vec<String> = ["a", "b", "c"]
+            .iter()
+            .map(|n| s.register(n, 1, now))
+            .collect();
+        s.add_job(plan(1, 1, &[]), Resume::default()).unwrap();
+        s.add_job(plan(2, 0, &[]), Resume::default()).unwrap();
+        let mut unit = None;
+        for w in &ws {
+            let (id, job, u) = assign_job(&mut s, w, now);
+            assert_eq!(job, 1);
+            assert_eq!(
+                *unit.get_or_insert(u),
+                u,
+                "the failed unit goes to another worker"
+            );
+            fail(&mut s, w, id, FailureKind::Render, now).unwrap();
+        }
+        let failed: Vec<JobId> = s.gave_up_jobs().map(|(id, _)| id).collect();
+        assert_eq!(failed, vec![1]);
+        s.remove_job(1);
+        assert_eq!(assign_job(&mut s, &ws[0], now).1, 2, "other jobs go on");
+    }
+
+    #[test]
+    fn a_resumed_job_hands_out_only_the_units_not_stored_and_late_tiles_of_a_cancelled_job_are_unused()
+     {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let n = units.len();
+        let stored: Vec<(usize, Vec<u8>)> =
+            (0..n / 2).map(|u| (u, tile(&units[u], 8, 0.5))).collect();
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        s.add_job(
+            plan(7, 0, &[]),
+            Resume {
+                frames_done: 0,
+                tiles: stored,
+            },
+        )
+        .unwrap();
+        assert_eq!(s.job_progress(7).unwrap().units_done, (n / 2) as u64);
+        let (id, _, unit) = assign_job(&mut s, &a, now);
+        assert_eq!(
+            unit,
+            units[n / 2],
+            "the stored units are not rendered again"
+        );
+        assert!(s.cancel(7));
+        let wire = convert::unit_to_wire(&unit);
+        assert_eq!(
+            s.submit(&a, id, Some(&wire), &tile(&unit, 8, 0.5), 1, now),
+            Ok(false)
+        );
+        // A job whose every tile was stored is complete at once.
+        let all: Vec<(usize, Vec<u8>)> = (0..n).map(|u| (u, tile(&units[u], 8, 0.5))).collect();
+        s.add_job(
+            plan(8, 0, &[]),
+            Resume {
+                frames_done: 0,
+                tiles: all,
+            },
+        )
+        .unwrap();
+        let done = s.take_completed();
+        assert_eq!(done.len(), 1);
+        assert_eq!(done[0].job, 8);
     }
 }

@@ -36,6 +36,14 @@ pub struct Cli {
     /// for the next render). Used for the coordinator's own local workers.
     #[arg(long)]
     pub exit_when_done: bool,
+    /// A tag for jobs that require it (repeatable), e.g. --tag gpu --tag big-memory:
+    /// jobs submitted with --require-tag go only to workers carrying all their tags.
+    #[arg(long = "tag", value_name = "NAME", value_parser = tag)]
+    pub tag: Vec<String>,
+    /// Exit as soon as the process with this id is no longer this worker's
+    /// parent (set by the coordinator for its own local workers).
+    #[arg(long, value_name = "PID", hide = true)]
+    pub parent_pid: Option<u32>,
     /// Only warnings and errors.
     #[arg(long, short)]
     pub quiet: bool,
@@ -63,6 +71,7 @@ impl Cli {
             exit_when_done: self.exit_when_done,
             fault: None,
             shares_process: false,
+            tags: self.tag,
         })
     }
 }
@@ -76,4 +85,19 @@ fn default_name() -> String {
         .or_else(|| std::env::var("HOSTNAME").ok())
         .unwrap_or_else(|| "worker".into());
     format!("{host}-{}", std::process::id())
+}
+
+/// A tag: 1 to 64 of `A-Z a-z 0-9 . _ -`.
+fn tag(s: &str) -> Result<String, String> {
+    if !s.is_empty()
+        && s.len() <= 64
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
+    {
+        Ok(s.to_string())
+    } else {
+        Err(format!(
+            "expected 1 to 64 of A-Z a-z 0-9 . _ -, found {s:?}"
+        ))
+    }
 }

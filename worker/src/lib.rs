@@ -53,6 +53,9 @@ pub struct WorkerConfig {
     /// fallback), so the process's CPU is not its own: its goodbye reports
     /// none.
     pub shares_process: bool,
+    /// Tags: the coordinator hands this worker only jobs whose required tags
+    /// it carries.
+    pub tags: Vec<String>,
 }
 
 /// A failure a test asks a worker to have, to exercise what follows it.
@@ -129,6 +132,21 @@ pub async fn shutdown_signal() {
     #[cfg(not(unix))]
     {
         let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+/// Exits the process (status 1) once `parent` is no longer its parent: the
+/// coordinator that started this worker has died, however it died. (The
+/// coordinator also asks the kernel to kill it then, `PR_SET_PDEATHSIG`; this
+/// covers the rest, such as another platform.)
+pub async fn exit_when_orphaned(parent: u32) {
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    loop {
+        tick.tick().await;
+        if std::os::unix::process::parent_id() != parent {
+            eprintln!("error: the coordinator that started this worker (pid {parent}) has gone");
+            std::process::exit(1);
+        }
     }
 }
 
@@ -376,6 +394,7 @@ pub async fn run(
                 name: config.name.clone(),
                 threads: config.threads as u32,
                 arithmetic_digest,
+                tags: config.tags.clone(),
             })
             .await;
         let registered = match registered {

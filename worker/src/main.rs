@@ -8,6 +8,7 @@ use worker::cli::Cli;
 fn main() -> ExitCode {
     let cli = Cli::parse();
     worker::logging::init(cli.quiet);
+    let parent = cli.parent_pid;
     let config = match cli.into_config() {
         Ok(c) => c,
         Err(e) => {
@@ -29,6 +30,9 @@ fn main() -> ExitCode {
     };
     let result = runtime.block_on(async {
         let (stop, stopped) = tokio::sync::watch::channel(false);
+        if let Some(parent) = parent {
+            tokio::spawn(worker::exit_when_orphaned(parent));
+        }
         tokio::spawn(async move {
             worker::shutdown_signal().await;
             tracing::info!("shutting down: finishing the current unit");

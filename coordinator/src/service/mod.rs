@@ -1,9 +1,821 @@
-//! `coordinator serve`: the farm kept running (to be written).
+//! `coordinator serve`: the farm kept running, with a job queue that
+//! survives restarts.
+//!
+//! The same [`Farm`] as the one-shot render (serve, supervise, finish), with
+//! three things around it: the [`Store`] (SQLite under `--data`), which keeps
+//! every job and every accepted tile of the frames in flight, so a restart
+//! resumes where the last process stopped; the [`Control`] the HTTP API
+//! (`crate::api`) calls to submit, list and cancel jobs; and the supervisor
+//! loop, which writes each completed frame to its output, ends failed jobs and,
+//! on SIGTERM or Ctrl-C, drains: nothing more is handed out, the units in
+//! flight get `--drain-timeout` to arrive, and the process exits 0.
+//!
+//! Lock order: a job table lock, then the farm's state, then the store.
 
-use crate::CoordinatorError;
-use crate::cli::ServeArgs;
+pub mod metrics;
 
-/// Runs the service until SIGTERM or Ctrl-C.
-pub fn run(_args: ServeArgs) -> Result<(), CoordinatorError> {
-    Err(CoordinatorError::Expression("not yet".into()))
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::num::NonZeroUsize;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use hypertexture::interleave::farm_units;
+use hypertexture::{Overrides, PixelFormat, Scene};
+use serde::{Deserialize, Serialize};
+
+use crate::cli::{LogFormat, ServeArgs};
+use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
+use crate::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
+use crate::scheduler::{Accepted, CompletedFrame, JobId, JobPlan, Resume, Scheduler};
+use crate::store::{Store, StoreError};
+
+/// How the service runs.
+#[derive(Clone, Debug)]
+pub struct ServiceConfig {
+    /// Where the store lives.
+    pub data: PathBuf,
+    /// The farm: listen address, token, TLS, local workers, lease.
+    pub farm: FarmConfig,
+    /// On shutdown, how long units in flight get to arrive.
+    pub drain_timeout: Duration,
+}
+
+/// Why the service stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The store could not be opened or written.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The farm failed.
+    #[error(transparent)]
+    Farm(#[from] FarmError),
+    /// A stored job could not be read back.
+    #[error("{path}: job {id}: {message}")]
+    StoredJob {
+        /// The store's file.
+        path: PathBuf,
+        /// The job.
+        id: u64,
+        /// What is wrong.
+        message: String,
+    },
+    /// The async runtime could not be started.
+    #[error("cannot start the async runtime: {0}")]
+    Runtime(std::io::Error),
+    /// A TLS file could not be read.
+    #[error("TLS: {0}")]
+    Tls(String),
+}
+
+/// A job as the store keeps it: as submitted, and the unit layout it was
+/// given (so a restart with other flags resumes the same units).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct StoredSpec {
+    spec: JobSpec,
+    interleave: u32,
+    expected_workers: usize,
+}
+
+/// What the service knows of a job beyond the scheduler.
+struct JobMeta {
+    stored: StoredSpec,
+    state: JobState,
+    error: Option<String>,
+    outputs: Vec<String>,
+    frames: Vec<u32>,
+    units_per_frame: u64,
+    scene_name: String,
+    /// When it first ran in this process, and its units done then (for the ETA).
+    running_since: Option<(Instant, u64)>,
+    /// Its progress when it left the scheduler (ended jobs).
+    final_units: u64,
+    /// The workers blocklisted for it when it left the scheduler.
+    final_blocklisted: Vec<String>,
+}
+
+/// The running service's state: the API's [`Control`].
+pub struct Service {
+    store: Mutex<Store>,
+    jobs: Mutex<BTreeMap<JobId, JobMeta>>,
+    farm: OnceLock<Arc<Shared>>,
+    draining: std::sync::atomic::AtomicBool,
+}
+
+/// Tiles go to the store as they are accepted.
+struct StoreSink(Arc<Service>);
+
+impl TileSink for StoreSink {
+    fn tile(&self, a: &Accepted, pixels: &[u8]) {
+        let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
+        if let Err(e) = store.put_tile(a.job, a.frame, a.unit as u32, pixels) {
+            tracing::error!(
+                "job {}: cannot store unit {} of frame {}: {e}",
+                a.job,
+                a.unit,
+                a.frame
+            );
+        }
+    }
+}
+
+fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// The file of `frame` for an output pattern: each run of `#` is the frame
+/// number padded with zeros to the run's length (`fur.####.exr`, 7 →
+/// `fur.0007.exr`).
+pub fn expand_pattern(pattern: &str, frame: u32) -> String {
+    let mut out = String::with_capacity(pattern.len() + 8);
+    let mut chars = pattern.chars().peekable();
+    while let Some(c) = chars.next() {
+        if c == '#' {
+            let mut width = 1;
+            while chars.peek() == Some(&'#') {
+                chars.next();
+                width += 1;
+            }
+            out.push_str(&format!("{frame:0width$}"));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// The frames of a job.
+fn frames_of(spec: &JobSpec) -> Result<Vec<u32>, String> {
+    let frames: Vec<u32> = match spec.frames {
+        None => vec![0],
+        Some([a, b]) if a <= b && b - a < 100_000 => (a..=b).collect(),
+        Some([a, b]) => {
+            return Err(format!(
+                "frames [{a}, {b}]: the first must not be after the last, and a job has at most 100000"
+            ));
+        }
+    };
+    if frames.len() > 1 && !spec.out.contains('#') {
+        return Err(format!(
+            "out {:?}: {} frames need a # in the pattern (e.g. out/fur.####.png)",
+            spec.out,
+            frames.len()
+        ));
+    }
+    Ok(frames)
+}
+
+/// A job's spec, checked: its scene built, its frames and tile format.
+struct Checked {
+    scene: Scene,
+    frames: Vec<u32>,
+    format: PixelFormat,
+    name: String,
+}
+
+/// Units per job, for the metrics.
+type PerJob = Vec<(JobId, u64)>;
+
+/// Builds the scene of a job (its checks) and the job's plan pieces.
+fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
+    let bad = ApiError::BadRequest;
+    if spec.scene.len() > hypertexture::scene::MAX_SCENE_BYTES {
+        return Err(bad(format!(
+            "the scene is {} bytes; a scene may be at most {} bytes",
+            spec.scene.len(),
+            hypertexture::scene::MAX_SCENE_BYTES
+        )));
+    }
+    let name = spec
+        .scene_name
+        .clone()
+        .filter(|n| !n.is_empty())
+        .unwrap_or_else(|| "scene.ron".into());
+    let name: String = name.chars().filter(|c| !c.is_control()).take(256).collect();
+    let frames = frames_of(spec).map_err(bad)?;
+    for (&frame, path) in frames
+        .iter()
+        .zip(frames.iter().map(|&f| expand_pattern(&spec.out, f)))
+        .take(1)
+    {
+        let path = Path::new(&path);
+        crate::output::ImageFormat::from_path(path).map_err(|e| bad(e.to_string()))?;
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        if !dir.is_dir() {
+            return Err(bad(format!(
+                "out {:?} (frame {frame}): the directory {} does not exist on the coordinator's machine",
+                spec.out,
+                dir.display()
+            )));
+        }
+    }
+    farm::tags_from_wire(&spec.require_tags).map_err(|e| bad(format!("require_tags: {e}")))?;
+    let scene = Scene::from_text(
+        &spec.scene,
+        &name,
+        Overrides {
+            width: spec.width,
+            height: spec.height,
+            spp: spec.spp,
+            quality: spec.quality.map(Into::into),
+            knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+        },
+    )
+    .map_err(|e| bad(e.to_string()))?;
+    let outputs: Vec<PathBuf> = frames
+        .iter()
+        .map(|&f| PathBuf::from(expand_pattern(&spec.out, f)))
+        .collect();
+    let format = crate::output::pixel_format_for(outputs.iter().map(PathBuf::as_path));
+    Ok(Checked {
+        scene,
+        frames,
+        format,
+        name,
+    })
+}
+
+impl Service {
+    fn farm(&self) -> Result<&Arc<Shared>, ApiError> {
+        self.farm
+            .get()
+            .ok_or_else(|| ApiError::Unavailable("the farm is starting".into()))
+    }
+
+    /// Puts a checked job into the farm, resuming from the store.
+    fn enqueue(
+        &self,
+        id: JobId,
+        stored: &StoredSpec,
+        checked: &Checked,
+        resume: Resume,
+    ) -> Result<u64, String> {
+        let spec = &stored.spec;
+        let (scene, frames, format, scene_name) = (
+            &checked.scene,
+            &checked.frames,
+            checked.format,
+            &checked.name,
+        );
+        let units = farm_units(
+            scene.width(),
+            scene.height(),
+            stored.interleave,
+            stored.expected_workers,
+        );
+        let units_per_frame = units.len() as u64;
+        let frame_job = farm::FrameJob {
+            scene_text: spec.scene.clone(),
+            scene_name: scene_name.clone(),
+            width: scene.width(),
+            height: scene.height(),
+            frames: frames
+                .iter()
+                .map(|&frame| farm::FrameOut {
+                    frame,
+                    out: PathBuf::from(expand_pattern(&spec.out, frame)),
+                })
+                .collect(),
+            spp: spec.spp,
+            quality: spec.quality.map(Into::into),
+            knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+            pixel_format: format,
+        };
+        let plan = JobPlan {
+            id,
+            priority: spec.priority,
+            units,
+            width: scene.width(),
+            height: scene.height(),
+            format,
+            frames: frames.to_vec(),
+            require_tags: spec.require_tags.clone(),
+        };
+        let shared = self.farm().map_err(|e| e.to_string())?;
+        shared
+            .add_job(plan, resume, WireJob::of(&frame_job))
+            .map_err(|e| format!("a stored tile does not fit the job: {e}"))?;
+        Ok(units_per_frame)
+    }
+
+    fn view(&self, id: JobId, meta: &JobMeta, now: Instant) -> JobView {
+        let progress = self
+            .farm
+            .get()
+            .and_then(|f| f.lock().scheduler.job_progress(id));
+        let frames_total = meta.frames.len() as u32;
+        let units_total = meta.units_per_frame * u64::from(frames_total);
+        let units_done = match (&progress, meta.state) {
+            (_, JobState::Done) => units_total,
+            (Some(p), _) => p.units_done,
+            (None, _) => meta.final_units,
+        };
+        let eta_seconds = match (meta.state, meta.running_since) {
+            (JobState::Running, Some((since, at_start))) if units_done > at_start => {
+                let rate = (units_done - at_start) as f64
+                    / now.saturating_duration_since(since).as_secs_f64().max(1e-3);
+                Some((units_total - units_done) as f64 / rate)
+            }
+            _ => None,
+        };
+        let blocklisted = match self.farm.get() {
+            Some(f) if !meta.state.is_final() => f.lock().scheduler.blocklisted(id),
+            _ => meta.final_blocklisted.clone(),
+        };
+        JobView {
+            id,
+            state: meta.state,
+            priority: meta.stored.spec.priority,
+            scene_name: meta.scene_name.clone(),
+            out: meta.stored.spec.out.clone(),
+            frames_done: meta.outputs.len() as u32,
+            frames_total,
+            units_done,
+            units_total,
+            eta_seconds,
+            error: meta.error.clone(),
+            outputs: meta.outputs.clone(),
+            require_tags: meta.stored.spec.require_tags.clone(),
+            blocklisted,
+        }
+    }
+
+    fn store(&self) -> std::sync::MutexGuard<'_, Store> {
+        self.store.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn jobs_lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<JobId, JobMeta>> {
+        self.jobs.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Ends a job: records its final state, and takes it out of the farm.
+    fn end(&self, id: JobId, state: JobState, error: Option<String>) {
+        let mut jobs = self.jobs_lock();
+        let Some(meta) = jobs.get_mut(&id) else {
+            return;
+        };
+        if meta.state.is_final() {
+            return;
+        }
+        if let Some(shared) = self.farm.get() {
+            let state = shared.lock();
+            if let Some(p) = state.scheduler.job_progress(id) {
+                meta.final_units = p.units_done;
+            }
+            meta.final_blocklisted = state.scheduler.blocklisted(id);
+            drop(state);
+            shared.remove_job(id);
+        }
+        meta.state = state;
+        meta.error = error.clone();
+        if let Err(e) = self.store().set_state(id, state, error.as_deref()) {
+            tracing::error!("job {id}: cannot record that it is {}: {e}", state.as_str());
+        }
+        match (state, &error) {
+            (JobState::Failed, Some(e)) => tracing::error!("job {id} failed: {e}"),
+            _ => tracing::info!("job {id} {}", state.as_str()),
+        }
+    }
+
+    /// Notes jobs whose first unit has gone out as running.
+    fn note_running(&self, now: Instant) {
+        let Some(shared) = self.farm.get() else {
+            return;
+        };
+        let mut jobs = self.jobs_lock();
+        for (&id, meta) in jobs.iter_mut() {
+            if meta.state.is_final() {
+                continue;
+            }
+            let Some(p) = shared.lock().scheduler.job_progress(id) else {
+                continue;
+            };
+            if meta.running_since.is_none() && p.units_in_flight + p.units_done > 0 {
+                meta.running_since = Some((now, p.units_done));
+            }
+            if meta.state == JobState::Queued && p.started {
+                meta.state = JobState::Running;
+                if let Err(e) = self.store().set_state(id, JobState::Running, None) {
+                    tracing::error!("job {id}: cannot record that it is running: {e}");
+                }
+            }
+        }
+    }
+
+    /// A frame is complete: its image goes to its output (off the async
+    /// thread), then the store forgets its tiles and records the file.
+    async fn write_frame(self: &Arc<Self>, done: CompletedFrame) {
+        let id = done.job;
+        let path = {
+            let jobs = self.jobs_lock();
+            match jobs.get(&id) {
+                Some(meta) if !meta.state.is_final() => {
+                    expand_pattern(&meta.stored.spec.out, done.frame)
+                }
+                _ => return,
+            }
+        };
+        let image = done.image;
+        let target = PathBuf::from(&path);
+        let written =
+            tokio::task::spawn_blocking(move || crate::output::write_frame_image(&image, &target))
+                .await;
+        let written = match written {
+            Ok(r) => r.map_err(|e| e.to_string()),
+            Err(e) => Err(format!("the writer failed: {e}")),
+        };
+        if let Err(e) = written {
+            self.end(id, JobState::Failed, Some(e));
+            return;
+        }
+        let recorded = self.store().finish_frame(id, done.frame, &path);
+        if let Err(e) = recorded {
+            tracing::error!("job {id}: cannot record frame {}: {e}", done.frame);
+        }
+        tracing::info!(
+            "job {id}: frame {} in {:.3} s → {path}",
+            done.frame,
+            done.render_time.as_secs_f64()
+        );
+        let finished = {
+            let mut jobs = self.jobs_lock();
+            match jobs.get_mut(&id) {
+                Some(meta) => {
+                    meta.outputs.push(path);
+                    meta.outputs.len() == meta.frames.len()
+                }
+                None => false,
+            }
+        };
+        if finished {
+            self.end(id, JobState::Done, None);
+        }
+    }
+
+    /// Restores the jobs the store holds: ended ones as they were, the others
+    /// back into the farm from their stored tiles.
+    fn restore(&self) -> Result<usize, ServiceError> {
+        let (stored_jobs, path) = {
+            let store = self.store();
+            (store.jobs()?, store.path().to_path_buf())
+        };
+        let mut resumed = 0;
+        for job in stored_jobs {
+            let bad = |message: String| ServiceError::StoredJob {
+                path: path.clone(),
+                id: job.id,
+                message,
+            };
+            let stored: StoredSpec = serde_json::from_str(&job.spec_json)
+                .map_err(|e| bad(format!("unreadable job: {e}")))?;
+            let frames = frames_of(&stored.spec).map_err(bad)?;
+            let mut state = job.state;
+            if !state.is_final() && job.frames_done as usize >= frames.len() {
+                state = JobState::Done;
+                self.store().set_state(job.id, state, None)?;
+            }
+            let mut meta = JobMeta {
+                scene_name: stored
+                    .spec
+                    .scene_name
+                    .clone()
+                    .unwrap_or_else(|| "scene.ron".into()),
+                units_per_frame: 0,
+                frames,
+                state,
+                error: job.error.clone(),
+                outputs: job.outputs.clone(),
+                running_since: None,
+                final_units: 0,
+                final_blocklisted: Vec::new(),
+                stored,
+            };
+            if state.is_final() {
+                if let Ok(checked) = check_spec(&meta.stored.spec) {
+                    meta.units_per_frame = farm_units(
+                        checked.scene.width(),
+                        checked.scene.height(),
+                        meta.stored.interleave,
+                        meta.stored.expected_workers,
+                    )
+                    .len() as u64;
+                }
+                meta.final_units = meta.units_per_frame * u64::from(job.frames_done);
+                self.jobs_lock().insert(job.id, meta);
+                continue;
+            }
+            let checked = check_spec(&meta.stored.spec);
+            let checked = match checked {
+                Ok(c) => c,
+                Err(e) => {
+                    // Checked when submitted: the machine changed (a deleted
+                    // output directory, say). The job fails; others go on.
+                    self.jobs_lock().insert(job.id, meta);
+                    self.end(job.id, JobState::Failed, Some(e.to_string()));
+                    continue;
+                }
+            };
+            let frames_done = job.frames_done as usize;
+            let tiles = match checked.frames.get(frames_done) {
+                Some(&frame) => self
+                    .store()
+                    .tiles(job.id, frame)?
+                    .into_iter()
+                    .map(|(u, t)| (u as usize, t))
+                    .collect(),
+                None => Vec::new(),
+            };
+            let tile_count = tiles.len();
+            let units_per_frame = self
+                .enqueue(
+                    job.id,
+                    &meta.stored,
+                    &checked,
+                    Resume { frames_done, tiles },
+                )
+                .map_err(bad)?;
+            meta.units_per_frame = units_per_frame;
+            tracing::info!(
+                "job {} resumed: {frames_done} of {} frames written, {tile_count} units of the next stored",
+                job.id,
+                checked.frames.len()
+            );
+            self.jobs_lock().insert(job.id, meta);
+            resumed += 1;
+        }
+        Ok(resumed)
+    }
+}
+
+impl Control for Arc<Service> {
+    fn submit(&self, spec: JobSpec) -> Result<JobView, ApiError> {
+        if self.draining.load(std::sync::atomic::Ordering::Relaxed) {
+            return Err(ApiError::Unavailable(
+                "the coordinator is shutting down and takes no new jobs".into(),
+            ));
+        }
+        let checked = check_spec(&spec)?;
+        let shared = self.farm()?;
+        let (interleave, expected_workers) = shared.unit_layout();
+        let stored = StoredSpec {
+            spec,
+            interleave,
+            expected_workers,
+        };
+        let json = serde_json::to_string(&stored)
+            .map_err(|e| ApiError::Internal(format!("cannot encode the job: {e}")))?;
+        let id = self
+            .store()
+            .insert_job(&json, stored.spec.priority, unix_ms())
+            .map_err(|e| ApiError::Internal(e.to_string()))?;
+        let mut jobs = self.jobs_lock();
+        let units_per_frame = self
+            .enqueue(id, &stored, &checked, Resume::default())
+            .map_err(ApiError::Internal)?;
+        let Checked { frames, name, .. } = checked;
+        tracing::info!(
+            "job {id} queued: {name}, {} frame{}, priority {}",
+            frames.len(),
+            if frames.len() == 1 { "" } else { "s" },
+            stored.spec.priority
+        );
+        let meta = JobMeta {
+            stored,
+            state: JobState::Queued,
+            error: None,
+            outputs: Vec::new(),
+            frames,
+            units_per_frame,
+            scene_name: name,
+            running_since: None,
+            final_units: 0,
+            final_blocklisted: Vec::new(),
+        };
+        let view = self.view(id, &meta, Instant::now());
+        jobs.insert(id, meta);
+        Ok(view)
+    }
+
+    fn jobs(&self) -> Vec<JobView> {
+        let now = Instant::now();
+        let jobs = self.jobs_lock();
+        jobs.iter()
+            .rev()
+            .map(|(&id, meta)| self.view(id, meta, now))
+            .collect()
+    }
+
+    fn job(&self, id: u64) -> Result<JobView, ApiError> {
+        let jobs = self.jobs_lock();
+        jobs.get(&id)
+            .map(|meta| self.view(id, meta, Instant::now()))
+            .ok_or(ApiError::NotFound(id))
+    }
+
+    fn cancel(&self, id: u64) -> Result<JobView, ApiError> {
+        let state = self
+            .jobs_lock()
+            .get(&id)
+            .map(|m| m.state)
+            .ok_or(ApiError::NotFound(id))?;
+        if state.is_final() {
+            return Err(ApiError::Conflict(format!(
+                "job {id} has already ended ({})",
+                state.as_str()
+            )));
+        }
+        self.end(id, JobState::Cancelled, None);
+        self.job(id)
+    }
+
+    fn workers(&self) -> Vec<WorkerView> {
+        let Some(shared) = self.farm.get() else {
+            return Vec::new();
+        };
+        let now = Instant::now();
+        let state = shared.lock();
+        let s = &state.scheduler;
+        let mut views: Vec<(Instant, WorkerView)> = s
+            .workers()
+            .filter(|w| w.alive)
+            .map(|w| {
+                (
+                    w.joined,
+                    WorkerView {
+                        id: w.id.clone(),
+                        name: w.name.clone(),
+                        tags: w.tags.clone(),
+                        threads: w.threads,
+                        pixels_per_second: w.pixels_per_second(now),
+                        current_job: s.current_job(&w.id),
+                        units: w.units,
+                        blocklisted_for: s.blocklisted_for(&w.id),
+                    },
+                )
+            })
+            .collect();
+        views.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.name.cmp(&b.1.name)));
+        views.into_iter().map(|(_, v)| v).collect()
+    }
+
+    fn metrics(&self) -> String {
+        let jobs: Vec<JobView> = Control::jobs(self);
+        let workers = Control::workers(self);
+        let (stats, queued, in_flight): (_, PerJob, PerJob) = match self.farm.get() {
+            Some(shared) => {
+                let state = shared.lock();
+                let per_job: Vec<(JobId, u64, u64)> = state
+                    .scheduler
+                    .job_ids()
+                    .into_iter()
+                    .filter_map(|id| {
+                        let p = state.scheduler.job_progress(id)?;
+                        Some((id, p.units_queued, p.units_in_flight))
+                    })
+                    .collect();
+                (
+                    state.stats.clone(),
+                    per_job.iter().map(|&(id, q, _)| (id, q)).collect(),
+                    per_job.iter().map(|&(id, _, f)| (id, f)).collect(),
+                )
+            }
+            None => Default::default(),
+        };
+        metrics::render(&metrics::Snapshot {
+            jobs: &jobs,
+            workers: &workers,
+            stats: &stats,
+            queued: &queued,
+            in_flight: &in_flight,
+        })
+    }
+}
+
+/// `coordinator serve`: sets up logging and the runtime, and serves until
+/// SIGTERM or Ctrl-C.
+pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
+    crate::logging::init_with(args.quiet, args.log_format == LogFormat::Json);
+    let tls = match (&args.tls_cert, &args.tls_key) {
+        (Some(cert), Some(key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+        _ => None,
+    };
+    let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+    let config = ServiceConfig {
+        data: args.data,
+        farm: FarmConfig {
+            listen: args.listen,
+            token: args.token.filter(|t| !t.is_empty()),
+            lease: Duration::from_secs_f64(args.lease_timeout),
+            worker_timeout: Duration::MAX,
+            local_workers: args.local_workers.unwrap_or(cores),
+            local_threads: args.threads.get(),
+            preview_every: None,
+            tls,
+            interleave: args.interleave,
+            progress: false,
+        },
+        drain_timeout: Duration::from_secs_f64(args.drain_timeout),
+    };
+    // One thread serves the farm and the API: per unit it checks, stores and
+    // persists a tile, and any thread more competes with the local workers.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(crate::CoordinatorError::Runtime)?;
+    runtime
+        .block_on(serve(config, worker::shutdown_signal()))
+        .map_err(|e| crate::CoordinatorError::Service(Box::new(e)))
+}
+
+/// Serves until `shutdown` resolves, then drains and returns.
+pub async fn serve(
+    config: ServiceConfig,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), ServiceError> {
+    let store = Store::open(&config.data)?;
+    tracing::info!("store {}", store.path().display());
+    let service = Arc::new(Service {
+        store: Mutex::new(store),
+        jobs: Mutex::new(BTreeMap::new()),
+        farm: OnceLock::new(),
+        draining: std::sync::atomic::AtomicBool::new(false),
+    });
+    let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
+    let routes = crate::api::router(control, config.farm.token.clone());
+    // Units sized as for a LAN farm of the paper's 64 processors (at least one
+    // unit each), or for the local workers when there are more.
+    let expected = config.farm.local_workers.max(64);
+    let mut farm = Farm::start(
+        config.farm.clone(),
+        Scheduler::service(config.farm.lease),
+        Some(routes),
+        Some(Arc::new(StoreSink(Arc::clone(&service)))),
+    )
+    .await?;
+    farm.shared()
+        .set_unit_layout(config.farm.interleave, expected);
+    let _ = service.farm.set(Arc::clone(farm.shared()));
+    let started = Instant::now();
+    let resumed = service.restore()?;
+    tracing::info!(
+        "serving on {}://{} (API at /api/v1, metrics at /metrics); {resumed} jobs resumed in {:.3} s",
+        farm.scheme(),
+        farm.addr(),
+        started.elapsed().as_secs_f64()
+    );
+    tokio::pin!(shutdown);
+    let mut drain_deadline: Option<Instant> = None;
+    loop {
+        tokio::select! {
+            () = farm.wait(Duration::from_millis(100)) => {}
+            () = &mut shutdown, if drain_deadline.is_none() => {
+                tracing::info!(
+                    "draining: no new units; units in flight get {:.0} s to arrive",
+                    config.drain_timeout.as_secs_f64()
+                );
+                service.draining.store(true, std::sync::atomic::Ordering::Relaxed);
+                farm.shared().lock().scheduler.drain();
+                drain_deadline = Some(Instant::now() + config.drain_timeout);
+            }
+        }
+        let now = Instant::now();
+        let tick = farm.tick(now);
+        for (id, why) in tick.gave_up {
+            service.end(id, JobState::Failed, Some(why.to_string()));
+        }
+        for done in tick.completed {
+            service.write_frame(done).await;
+        }
+        service.note_running(now);
+        if let Some(deadline) = drain_deadline {
+            let in_flight = farm.shared().lock().scheduler.in_flight();
+            if in_flight == 0 {
+                tracing::info!("drained: every unit in flight has arrived");
+                break;
+            }
+            if now >= deadline {
+                tracing::warn!(
+                    "drain time-out: {in_flight} units in flight are left for the next start"
+                );
+                break;
+            }
+        }
+    }
+    farm.finish(Duration::from_secs(5), true).await;
+    tracing::info!(
+        "stopped; every job and stored unit is kept in {}",
+        config.data.display()
+    );
+    Ok(())
+}
+
+/// The address a service listens on by default.
+pub fn default_listen() -> SocketAddr {
+    SocketAddr::from(([127, 0, 0, 1], 47000))
 }

@@ -1,0 +1,214 @@
+//! The service's metrics in the Prometheus text exposition format (0.0.4),
+//! written from a snapshot of the farm at each scrape: nothing is counted
+//! twice, and nothing can drift from what `/api/v1` shows.
+
+use std::fmt::Write;
+
+use crate::farm::{FarmStats, LATENCY_BUCKETS};
+use crate::jobs::{JobState, JobView, WorkerView};
+use crate::scheduler::JobId;
+
+/// What a scrape shows.
+pub struct Snapshot<'a> {
+    /// Every job.
+    pub jobs: &'a [JobView],
+    /// Every connected worker.
+    pub workers: &'a [WorkerView],
+    /// The farm's counters.
+    pub stats: &'a FarmStats,
+    /// Units waiting to be handed out, by job.
+    pub queued: &'a [(JobId, u64)],
+    /// Units held by workers, by job.
+    pub in_flight: &'a [(JobId, u64)],
+}
+
+/// A label value with `\`, `"` and newlines escaped.
+fn label(value: &str) -> String {
+    let mut out = String::with_capacity(value.len());
+    for c in value.chars() {
+        match c {
+            '\\' => out.push_str("\\\\"),
+            '"' => out.push_str("\\\""),
+            '\n' => out.push_str("\\n"),
+            c if c.is_control() => {}
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+fn header(out: &mut String, name: &str, kind: &str, help: &str) {
+    let _ = writeln!(out, "# HELP {name} {help}");
+    let _ = writeln!(out, "# TYPE {name} {kind}");
+}
+
+/// The exposition text.
+pub fn render(s: &Snapshot<'_>) -> String {
+    let mut out = String::new();
+    header(
+        &mut out,
+        "hypertexture_workers_connected",
+        "gauge",
+        "Workers connected to the farm.",
+    );
+    let _ = writeln!(out, "hypertexture_workers_connected {}", s.workers.len());
+
+    header(
+        &mut out,
+        "hypertexture_units_queued_total",
+        "gauge",
+        "Units waiting to be handed out, over every job (what an autoscaler watches).",
+    );
+    let queued: u64 = s.queued.iter().map(|(_, n)| n).sum();
+    let _ = writeln!(out, "hypertexture_units_queued_total {queued}");
+
+    header(
+        &mut out,
+        "hypertexture_units_queued",
+        "gauge",
+        "Units of the frame rendering waiting to be handed out, by job.",
+    );
+    for (job, n) in s.queued {
+        let _ = writeln!(out, "hypertexture_units_queued{{job=\"{job}\"}} {n}");
+    }
+    header(
+        &mut out,
+        "hypertexture_units_in_flight",
+        "gauge",
+        "Units held by workers, by job.",
+    );
+    for (job, n) in s.in_flight {
+        let _ = writeln!(out, "hypertexture_units_in_flight{{job=\"{job}\"}} {n}");
+    }
+    header(
+        &mut out,
+        "hypertexture_units_done",
+        "gauge",
+        "Units complete, over every frame, by job.",
+    );
+    for j in s.jobs {
+        let _ = writeln!(
+            out,
+            "hypertexture_units_done{{job=\"{}\"}} {}",
+            j.id, j.units_done
+        );
+    }
+    header(&mut out, "hypertexture_jobs", "gauge", "Jobs by state.");
+    for state in JobState::ALL {
+        let n = s.jobs.iter().filter(|j| j.state == state).count();
+        let _ = writeln!(out, "hypertexture_jobs{{state=\"{}\"}} {n}", state.as_str());
+    }
+    header(
+        &mut out,
+        "hypertexture_worker_pixels_per_second",
+        "gauge",
+        "Pixels per second over the last minute, by worker.",
+    );
+    for w in s.workers {
+        let _ = writeln!(
+            out,
+            "hypertexture_worker_pixels_per_second{{worker=\"{}\",name=\"{}\"}} {}",
+            label(&w.id),
+            label(&w.name),
+            w.pixels_per_second
+        );
+    }
+    header(
+        &mut out,
+        "hypertexture_unit_latency_seconds",
+        "histogram",
+        "From a unit's assignment to its accepted tile.",
+    );
+    let mut cumulative = 0;
+    for (i, bound) in LATENCY_BUCKETS.iter().enumerate() {
+        cumulative += s.stats.latency_buckets[i];
+        let _ = writeln!(
+            out,
+            "hypertexture_unit_latency_seconds_bucket{{le=\"{bound}\"}} {cumulative}"
+        );
+    }
+    cumulative += s.stats.latency_buckets[LATENCY_BUCKETS.len()];
+    let _ = writeln!(
+        out,
+        "hypertexture_unit_latency_seconds_bucket{{le=\"+Inf\"}} {cumulative}"
+    );
+    let _ = writeln!(
+        out,
+        "hypertexture_unit_latency_seconds_sum {}",
+        s.stats.latency_sum
+    );
+    let _ = writeln!(
+        out,
+        "hypertexture_unit_latency_seconds_count {}",
+        s.stats.latency_count
+    );
+    for (name, help, value) in [
+        (
+            "hypertexture_unit_retries_total",
+            "Units given back by a worker (ReportFailure) and queued again.",
+            s.stats.retries,
+        ),
+        (
+            "hypertexture_workers_blocklisted_total",
+            "Workers blocklisted for a job after failing 3 of its units.",
+            s.stats.blocklisted,
+        ),
+        (
+            "hypertexture_workers_refused_total",
+            "Registrations refused (protocol or arithmetic mismatch).",
+            s.stats.refused_workers,
+        ),
+        (
+            "hypertexture_calls_unauthenticated_total",
+            "Worker calls refused for a missing or wrong token.",
+            s.stats.unauthenticated,
+        ),
+    ] {
+        header(&mut out, name, "counter", help);
+        let _ = writeln!(out, "{name} {value}");
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_exposition_is_well_formed_and_escapes_labels() {
+        let mut stats = FarmStats::default();
+        stats.latency_buckets[0] = 2;
+        stats.latency_buckets[LATENCY_BUCKETS.len()] = 1;
+        stats.latency_count = 3;
+        let workers = [WorkerView {
+            id: "w1".into(),
+            name: "evil\"\nname".into(),
+            tags: vec![],
+            threads: 1,
+            pixels_per_second: 10.0,
+            current_job: None,
+            units: 1,
+            blocklisted_for: vec![],
+        }];
+        let text = render(&Snapshot {
+            jobs: &[],
+            workers: &workers,
+            stats: &stats,
+            queued: &[(4, 7)],
+            in_flight: &[(4, 1)],
+        });
+        assert!(
+            text.contains("hypertexture_units_queued_total 7\n"),
+            "{text}"
+        );
+        assert!(text.contains("hypertexture_units_queued{job=\"4\"} 7\n"));
+        assert!(text.contains("name=\"evil\\\"\\nname\""), "{text}");
+        assert!(text.contains("hypertexture_unit_latency_seconds_bucket{le=\"+Inf\"} 3\n"));
+        assert!(text.contains("hypertexture_unit_latency_seconds_bucket{le=\"0.005\"} 2\n"));
+        assert!(text.contains("hypertexture_jobs{state=\"queued\"} 0\n"));
+        for line in text.lines().filter(|l| !l.starts_with('#')) {
+            let value = line.rsplit(' ').next().unwrap();
+            assert!(value.parse::<f64>().is_ok(), "{line}");
+        }
+    }
+}

@@ -1,0 +1,609 @@
+//! `coordinator serve`: the farm as a service, driven through its CLI clients
+//! and HTTP API. Restart and resume after SIGKILL, priorities, cancel, jobs
+//! interleaved on shared workers, blocklists and failed jobs, the graceful
+//! drain, the API's refusals, and local workers that never outlive their
+//! coordinator. Every image is compared with the in-process render, byte for
+//! byte. Loopback only; every wait is bounded.
+
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use support::{Running, coordinator, scene, scratch};
+
+/// A service on a free loopback port; returns it and its URL.
+fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
+    let mut args = vec![
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+    ];
+    args.extend_from_slice(extra);
+    let mut s = Running::coordinator(&args);
+    let port = s.port();
+    s.wait_for("serving on", 30);
+    (s, format!("http://127.0.0.1:{port}"))
+}
+
+/// `coordinator <args>` as a client; returns (success, stdout, stderr).
+fn client(args: &[&str]) -> (bool, String, String) {
+    let out = coordinator(args);
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Submits a job with the CLI; returns its id.
+fn submit(url: &str, scene_name: &str, out: &Path, extra: &[&str]) -> u64 {
+    let scene = scene(scene_name);
+    let mut args = vec![
+        "submit",
+        "--server",
+        url,
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    let (ok, stdout, stderr) = client(&args);
+    assert!(ok, "submit failed: {stderr}");
+    stdout
+        .trim()
+        .parse()
+        .unwrap_or_else(|_| panic!("an id: {stdout:?}"))
+}
+
+/// GET a JSON document of the API.
+fn get_json(url: &str, path: &str) -> serde_json::Value {
+    let body = ureq::get(&format!("{url}{path}"))
+        .call()
+        .unwrap_or_else(|e| panic!("GET {path}: {e}"))
+        .into_body()
+        .read_to_string()
+        .unwrap();
+    serde_json::from_str(&body).unwrap()
+}
+
+fn job(url: &str, id: u64) -> serde_json::Value {
+    get_json(url, &format!("/api/v1/jobs/{id}"))
+}
+
+/// Polls a job (at most `secs`) until `until` holds; returns it.
+fn poll_job(
+    url: &str,
+    id: u64,
+    secs: u64,
+    until: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let j = job(url, id);
+        if until(&j) {
+            return j;
+        }
+        assert!(Instant::now() < deadline, "job {id} after {secs} s: {j}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `coordinator wait`: exit status and stdout.
+fn wait(url: &str, id: u64) -> (bool, String) {
+    let (ok, stdout, _) = client(&["wait", "--server", url, &id.to_string()]);
+    (ok, stdout)
+}
+
+/// The in-process render of a scene, as the reference bytes.
+fn reference(scene_name: &str, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
+    let out = dir.join(name);
+    let scene = scene(scene_name);
+    let mut args = vec![
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--in-process",
+        "--quiet",
+    ];
+    args.extend_from_slice(extra);
+    let o = coordinator(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    out
+}
+
+fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+/// A metric's value from the exposition.
+fn metric(url: &str, name: &str) -> f64 {
+    let text = ureq::get(&format!("{url}/metrics"))
+        .call()
+        .unwrap()
+        .into_body()
+        .read_to_string()
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in\n{text}"))
+}
+
+/// The processes whose parent is `pid`.
+fn children(pid: u32) -> Vec<u32> {
+    let mut out = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        if let Ok(list) = std::fs::read_to_string(task.path().join("children")) {
+            out.extend(
+                list.split_whitespace()
+                    .filter_map(|p| p.parse::<u32>().ok()),
+            );
+        }
+    }
+    out
+}
+
+fn alive(pid: u32) -> bool {
+    // A zombie has exited; only its entry waits for its parent.
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .map(|s| !s.split(") ").nth(1).is_some_and(|r| r.starts_with('Z')))
+        .unwrap_or(false)
+}
+
+/// SIGKILL mid-frame, restart: every stored unit counts, none is rendered
+/// again, and the frames come out byte-identical to the in-process render.
+/// Local workers die with their coordinator.
+#[test]
+fn a_killed_service_resumes_from_its_stored_units_without_rendering_them_again() {
+    let dir = scratch("service-resume");
+    let data = dir.join("data");
+    let expected = reference(
+        "fur",
+        &dir,
+        "ref.png",
+        &["--width", "96", "--height", "96", "--spp", "2"],
+    );
+    let (s, url) = serve(&data, &["--local-workers", "1"]);
+    let pid = s.child.id();
+    let out = dir.join("fur.#.png");
+    let id = submit(
+        &url,
+        "fur",
+        &out,
+        &[
+            "--width", "96", "--height", "96", "--spp", "2", "--frames", "0..=1",
+        ],
+    );
+    // Kill it in the middle of the second frame.
+    let before = poll_job(&url, id, 120, |j| {
+        let (done, total) = (
+            j["units_done"].as_u64().unwrap(),
+            j["units_total"].as_u64().unwrap(),
+        );
+        done > total / 2 + total / 8
+    });
+    let workers = children(pid);
+    assert_eq!(workers.len(), 1, "one local worker process");
+    s.signal(9);
+    let _ = s.finish(10);
+    let units_before = before["units_done"].as_u64().unwrap();
+    let total = before["units_total"].as_u64().unwrap();
+    assert!(units_before < total, "killed before the end: {before}");
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while workers.iter().any(|&w| alive(w)) {
+        assert!(
+            Instant::now() < deadline,
+            "a local worker outlived its coordinator"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(
+        dir.join("fur.0.png").exists(),
+        "the first frame was written before the kill"
+    );
+
+    // Restart with no worker first: what was stored is all there.
+    let (s2, url) = serve(&data, &["--local-workers", "0"]);
+    let after = job(&url, id);
+    let units_after = after["units_done"].as_u64().unwrap();
+    assert!(
+        units_after >= units_before,
+        "{units_after} < {units_before}"
+    );
+    assert_eq!(after["frames_done"], 1, "{after}");
+    let _w = Running::worker(&["--coordinator", &url, "--threads", "1"]);
+    let (ok, stdout) = wait(&url, id);
+    assert!(ok, "{stdout}");
+    // Units accepted by this process: exactly those not stored before.
+    let accepted = metric(&url, "hypertexture_unit_latency_seconds_count") as u64;
+    assert_eq!(accepted, total - units_after, "units rendered again");
+    drop(s2);
+    same_bytes(&dir.join("fur.0.png"), &expected);
+    same_bytes(&dir.join("fur.1.png"), &expected);
+    let done = job_after_restart(&data, id);
+    assert_eq!(done["state"], "done");
+    assert_eq!(done["outputs"].as_array().unwrap().len(), 2);
+}
+
+/// Restarts the service on `data` (no workers) and returns a job.
+fn job_after_restart(data: &Path, id: u64) -> serde_json::Value {
+    let (_s, url) = serve(data, &["--local-workers", "0"]);
+    job(&url, id)
+}
+
+/// Highest priority first; two jobs share the workers and both come out
+/// exact; a cancelled job ends, and `wait` says it did not finish.
+#[test]
+fn priorities_cancel_and_two_jobs_interleaved_on_shared_workers() {
+    let dir = scratch("service-queue");
+    let data = dir.join("data");
+    let expected_a = reference(
+        "noisy_sphere",
+        &dir,
+        "a_ref.png",
+        &["--width", "48", "--height", "48"],
+    );
+    let expected_b = reference(
+        "eroded_cube",
+        &dir,
+        "b_ref.exr",
+        &["--width", "40", "--height", "40"],
+    );
+    let (mut s, url) = serve(&data, &["--local-workers", "0"]);
+    let a = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("a.png"),
+        &["--width", "48", "--height", "48"],
+    );
+    let b = submit(
+        &url,
+        "eroded_cube",
+        &dir.join("b.exr"),
+        &["--width", "40", "--height", "40", "--priority", "5"],
+    );
+    let big = submit(&url, "fur", &dir.join("big.png"), &["--priority", "-1"]);
+    assert_eq!(job(&url, a)["state"], "queued");
+    let (ok, table, _) = client(&["status", "--server", &url]);
+    assert!(ok && table.contains("queued"), "{table}");
+    // Cancel the big one before any worker comes.
+    let (ok, stdout, _) = client(&["cancel", "--server", &url, &big.to_string()]);
+    assert!(ok, "{stdout}");
+    assert_eq!(job(&url, big)["state"], "cancelled");
+    let (ok, _) = wait(&url, big);
+    assert!(!ok, "wait exits non-zero for a cancelled job");
+    let (ok, _, stderr) = client(&["cancel", "--server", &url, &big.to_string()]);
+    assert!(!ok && stderr.contains("409"), "{stderr}");
+
+    let _w1 = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "one"]);
+    let _w2 = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "two"]);
+    assert!(wait(&url, a).0);
+    assert!(wait(&url, b).0);
+    same_bytes(&dir.join("a.png"), &expected_a);
+    same_bytes(&dir.join("b.exr"), &expected_b);
+    // The higher priority's frame was written first.
+    let log = s.wait_for(&format!("job {a}: frame 0"), 10);
+    assert!(
+        s.log
+            .iter()
+            .any(|l| l.contains(&format!("job {b}: frame 0"))),
+        "job {b} (priority 5) before job {a}: {log}\n{}",
+        s.log.join("\n")
+    );
+    let workers = get_json(&url, "/api/v1/workers");
+    assert_eq!(workers.as_array().unwrap().len(), 2, "{workers}");
+}
+
+/// Runs an in-process worker with a fault (the library the binary calls).
+fn faulty_worker(
+    url: &str,
+    name: &str,
+    fault: Option<worker::Fault>,
+) -> (tokio::runtime::Runtime, tokio::sync::watch::Sender<bool>) {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let config = worker::WorkerConfig {
+        coordinator: url.to_string(),
+        threads: 1,
+        token: None,
+        name: name.to_string(),
+        ca: None,
+        exit_when_done: false,
+        fault,
+        shares_process: true,
+        tags: Vec::new(),
+    };
+    runtime.spawn(worker::run(config, stopped));
+    (runtime, stop)
+}
+
+/// A worker that fails 3 units of a job is blocklisted for it (and `status`
+/// shows it) while a good worker finishes the job; a job whose unit fails on
+/// 3 workers fails with their reasons, and other jobs go on.
+#[test]
+fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its_job() {
+    let dir = scratch("service-failures");
+    let data = dir.join("data");
+    let expected = reference(
+        "noisy_sphere",
+        &dir,
+        "ref.png",
+        &["--width", "32", "--height", "32"],
+    );
+    let (_s, url) = serve(&data, &["--local-workers", "0"]);
+    let id = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("ok.png"),
+        &["--width", "32", "--height", "32"],
+    );
+    let bad = faulty_worker(&url, "flaky", Some(worker::Fault::Panic));
+    poll_job(&url, id, 60, |j| {
+        !j["blocklisted"].as_array().unwrap().is_empty()
+    });
+    let (ok, table, _) = client(&["status", "--server", &url]);
+    assert!(ok && table.contains("flaky"), "{table}");
+    let good = faulty_worker(&url, "good", None);
+    assert!(wait(&url, id).0);
+    same_bytes(&dir.join("ok.png"), &expected);
+    let j = job(&url, id);
+    assert_eq!(j["blocklisted"][0], "flaky", "{j}");
+    assert!(metric(&url, "hypertexture_workers_blocklisted_total") >= 1.0);
+    for (_, stop) in [&good, &bad] {
+        let _ = stop.send(true);
+    }
+    drop((good, bad));
+
+    // Failing workers, one after another: each fails 3 units and is
+    // blocklisted; the third failure of a unit, on a third worker, fails the
+    // job with every reason.
+    let doomed = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("never.png"),
+        &["--width", "32", "--height", "32"],
+    );
+    let mut flaky = Vec::new();
+    for k in 2..=4 {
+        flaky.push(faulty_worker(
+            &url,
+            &format!("flaky{k}"),
+            Some(worker::Fault::Panic),
+        ));
+        poll_job(&url, doomed, 60, |j| {
+            j["state"] == "failed" || j["blocklisted"].as_array().unwrap().len() >= k - 1
+        });
+    }
+    let (ok, _) = wait(&url, doomed);
+    assert!(!ok);
+    let j = job(&url, doomed);
+    assert_eq!(j["state"], "failed", "{j}");
+    let error = j["error"].as_str().unwrap();
+    assert!(
+        error.contains("failed 3 times") && error.contains("flaky2") && error.contains("flaky4"),
+        "{error}"
+    );
+    // Other jobs go on.
+    let after = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("after.png"),
+        &["--width", "32", "--height", "32"],
+    );
+    for (_, stop) in &flaky {
+        let _ = stop.send(true);
+    }
+    let _good = faulty_worker(&url, "good2", None);
+    assert!(wait(&url, after).0);
+    same_bytes(&dir.join("after.png"), &expected);
+}
+
+/// SIGTERM drains: units in flight arrive, everything is stored, the process
+/// exits 0, its local workers are gone, and the next start finishes the job
+/// exactly.
+#[test]
+fn sigterm_drains_and_the_next_start_finishes_the_job() {
+    let dir = scratch("service-drain");
+    let data = dir.join("data");
+    let expected = reference(
+        "tribble",
+        &dir,
+        "ref.png",
+        &["--width", "64", "--height", "64"],
+    );
+    let (mut s, url) = serve(&data, &["--local-workers", "1", "--drain-timeout", "20"]);
+    let pid = s.child.id();
+    let id = submit(
+        &url,
+        "tribble",
+        &dir.join("t.png"),
+        &["--width", "64", "--height", "64"],
+    );
+    poll_job(&url, id, 60, |j| j["units_done"].as_u64().unwrap() > 0);
+    let workers = children(pid);
+    s.signal(15);
+    s.wait_for("draining", 10);
+    let (status, log) = s.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
+    assert!(
+        log.iter()
+            .any(|l| l.contains("drained") || l.contains("drain time-out"))
+    );
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        workers.iter().all(|&w| !alive(w)),
+        "local workers left behind"
+    );
+    let (_s2, url) = serve(&data, &["--local-workers", "1"]);
+    assert!(wait(&url, id).0);
+    same_bytes(&dir.join("t.png"), &expected);
+}
+
+/// The API's refusals: 400 with file:line:column, 401 without the token,
+/// 404, 413, all JSON; and the OpenAPI document lists the routes.
+#[test]
+fn the_api_refuses_bad_requests_with_json_errors() {
+    let dir = scratch("service-api");
+    let data = dir.join("data");
+    let (_s, url) = serve(&data, &["--local-workers", "0", "--token", "sesame"]);
+    let post = |body: &str, token: Option<&str>| {
+        let mut req = ureq::post(&format!("{url}/api/v1/jobs"))
+            .header("content-type", "application/json")
+            .config()
+            .http_status_as_error(false)
+            .build();
+        if let Some(t) = token {
+            req = req.header("authorization", &format!("Bearer {t}"));
+        }
+        let mut resp = req.send(body).unwrap();
+        let status = resp.status().as_u16();
+        let body: serde_json::Value =
+            serde_json::from_str(&resp.body_mut().read_to_string().unwrap()).unwrap();
+        (status, body)
+    };
+    let out = dir.join("x.png");
+    let good = serde_json::json!({"scene": std::fs::read_to_string(scene("noisy_sphere")).unwrap(), "out": out});
+    let (status, body) = post(&good.to_string(), None);
+    assert_eq!(status, 401, "{body}");
+    assert!(body["error"].is_string());
+    let (status, body) = post(&good.to_string(), Some("wrong"));
+    assert_eq!(status, 401, "{body}");
+    let broken = serde_json::json!({"scene": "(\n  objects: [\n    Sphre(radius: 1.0),\n  ],\n)", "scene_name": "broken.ron", "out": out});
+    let (status, body) = post(&broken.to_string(), Some("sesame"));
+    assert_eq!(status, 400, "{body}");
+    let message = body["error"].as_str().unwrap();
+    assert!(
+        message.contains("broken.ron:"),
+        "file:line:column: {message}"
+    );
+    let huge = serde_json::json!({"scene": "x".repeat(70 * 1024), "out": out});
+    let (status, body) = post(&huge.to_string(), Some("sesame"));
+    assert_eq!(status, 413, "{body}");
+    let (status, body) = post("{not json", Some("sesame"));
+    assert_eq!(status, 400, "{body}");
+    let mut resp = ureq::get(&format!("{url}/api/v1/jobs/999"))
+        .header("authorization", "Bearer sesame")
+        .config()
+        .http_status_as_error(false)
+        .build()
+        .call()
+        .unwrap();
+    assert_eq!(resp.status().as_u16(), 404);
+    let body: serde_json::Value =
+        serde_json::from_str(&resp.body_mut().read_to_string().unwrap()).unwrap();
+    assert!(body["error"].as_str().unwrap().contains("999"));
+    let (status, body) = post(&good.to_string(), Some("sesame"));
+    assert_eq!(status, 201, "{body}");
+    assert_eq!(body["state"], "queued");
+    let doc: serde_json::Value = serde_json::from_str(
+        &ureq::get(&format!("{url}/api/v1/openapi.json"))
+            .header("authorization", "Bearer sesame")
+            .call()
+            .unwrap()
+            .into_body()
+            .read_to_string()
+            .unwrap(),
+    )
+    .unwrap();
+    for path in [
+        "/api/v1/jobs",
+        "/api/v1/jobs/{id}",
+        "/api/v1/jobs/{id}/cancel",
+        "/api/v1/workers",
+    ] {
+        assert!(
+            doc["paths"].get(path).is_some(),
+            "{path} in the OpenAPI document"
+        );
+    }
+}
+
+/// A store locked by a running coordinator, or corrupt, is refused with a
+/// message naming the directory; nothing is emptied.
+#[test]
+fn a_locked_or_corrupt_store_is_refused_with_its_directory() {
+    let dir = scratch("service-store");
+    let data = dir.join("data");
+    let (_s, _url) = serve(&data, &["--local-workers", "0"]);
+    let (ok, _, stderr) = client(&[
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+    ]);
+    assert!(
+        !ok && stderr.contains(data.to_str().unwrap()) && stderr.contains("in use"),
+        "{stderr}"
+    );
+    let bad = dir.join("bad");
+    std::fs::create_dir_all(&bad).unwrap();
+    std::fs::write(bad.join("farm.sqlite"), vec![0x5a; 8192]).unwrap();
+    let (ok, _, stderr) = client(&[
+        "serve",
+        "--data",
+        bad.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+    ]);
+    assert!(!ok && stderr.contains("farm.sqlite"), "{stderr}");
+    assert_eq!(
+        std::fs::read(bad.join("farm.sqlite")).unwrap(),
+        vec![0x5a; 8192]
+    );
+}
+
+/// A job that requires a tag waits for a worker carrying it.
+#[test]
+fn tagged_jobs_wait_for_a_worker_with_their_tags() {
+    let dir = scratch("service-tags");
+    let data = dir.join("data");
+    let expected = reference(
+        "noisy_sphere",
+        &dir,
+        "ref.png",
+        &["--width", "24", "--height", "24"],
+    );
+    let (_s, url) = serve(&data, &["--local-workers", "0"]);
+    let _plain = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "plain"]);
+    let id = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("t.png"),
+        &["--width", "24", "--height", "24", "--require-tag", "big"],
+    );
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(
+        job(&url, id)["units_done"],
+        0,
+        "the untagged worker rendered none"
+    );
+    let _big = Running::worker(&["--coordinator", &url, "--threads", "1", "--tag", "big"]);
+    assert!(wait(&url, id).0);
+    same_bytes(&dir.join("t.png"), &expected);
+    let workers = get_json(&url, "/api/v1/workers");
+    assert!(
+        workers
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|w| w["tags"][0] == "big"),
+        "{workers}"
+    );
+}
