@@ -815,6 +815,20 @@ pub async fn serve(
     Ok(())
 }
 
+/// A job as the store keeps it (its JSON), for tools that fill a store
+/// directly: the spec as submitted and the unit layout it is rendered with.
+pub fn stored_spec_json(
+    spec: &JobSpec,
+    interleave: u32,
+    expected_workers: usize,
+) -> Result<String, serde_json::Error> {
+    serde_json::to_string(&StoredSpec {
+        spec: spec.clone(),
+        interleave,
+        expected_workers,
+    })
+}
+
 /// The address a service listens on by default.
 pub fn default_listen() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], 47000))
