@@ -607,3 +607,80 @@ fn tagged_jobs_wait_for_a_worker_with_their_tags() {
         "{workers}"
     );
 }
+
+/// TLS covers the workers' gRPC and the API alike, on one port: with a
+/// token, a client needs both the CA and the token; the image is exact.
+#[test]
+fn tls_and_the_token_cover_the_api_and_the_workers() {
+    let dir = scratch("service-tls");
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec!["localhost".to_string()])
+        .unwrap()
+        .self_signed(&key)
+        .unwrap();
+    let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, key.serialize_pem()).unwrap();
+    let expected = reference(
+        "fire_ball",
+        &dir,
+        "ref.exr",
+        &["--width", "24", "--height", "24"],
+    );
+    let data = dir.join("data");
+    let mut s = Running::coordinator(&[
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "1",
+        "--token",
+        "sesame",
+        "--tls-cert",
+        cert_path.to_str().unwrap(),
+        "--tls-key",
+        key_path.to_str().unwrap(),
+    ]);
+    let port = s.port();
+    s.wait_for("serving on https://", 30);
+    let url = format!("https://localhost:{port}");
+    let scene = scene("fire_ball");
+    let out = dir.join("tls.exr");
+    let submit = |extra: &[&str]| {
+        let mut args = vec![
+            "submit",
+            "--server",
+            &url,
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "24",
+            "--height",
+            "24",
+        ];
+        args.extend_from_slice(extra);
+        client(&args)
+    };
+    let (ok, _, stderr) = submit(&["--token", "sesame"]);
+    assert!(!ok, "no CA: the certificate cannot be verified: {stderr}");
+    let (ok, _, stderr) = submit(&["--ca", cert_path.to_str().unwrap()]);
+    assert!(!ok && stderr.contains("401"), "no token: {stderr}");
+    let (ok, stdout, stderr) = submit(&["--ca", cert_path.to_str().unwrap(), "--token", "sesame"]);
+    assert!(ok, "{stderr}");
+    let id = stdout.trim().to_string();
+    let (ok, stdout, stderr) = client(&[
+        "wait",
+        "--server",
+        &url,
+        "--ca",
+        cert_path.to_str().unwrap(),
+        "--token",
+        "sesame",
+        &id,
+    ]);
+    assert!(ok, "{stdout}{stderr}");
+    same_bytes(&out, &expected);
+}
