@@ -684,3 +684,45 @@ fn tls_and_the_token_cover_the_api_and_the_workers() {
     assert!(ok, "{stdout}{stderr}");
     same_bytes(&out, &expected);
 }
+
+/// `--log-format json` writes one JSON object per event; plain logs to a
+/// pipe carry no colour codes.
+#[test]
+fn logs_are_json_on_request_and_plain_without_colour_codes() {
+    let dir = scratch("service-logs");
+    let data = dir.join("data");
+    let mut s = Running::coordinator(&[
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+        "--log-format",
+        "json",
+    ]);
+    let line = s.wait_for("serving on", 30);
+    let event: serde_json::Value = serde_json::from_str(&line).expect("a JSON object per line");
+    assert_eq!(event["level"], "INFO", "{line}");
+    assert!(
+        event["fields"]["message"]
+            .as_str()
+            .unwrap()
+            .starts_with("serving on"),
+        "{line}"
+    );
+    drop(s);
+    let data = dir.join("data2");
+    let mut s = Running::coordinator(&[
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+    ]);
+    s.wait_for("serving on", 30);
+    assert!(s.log.iter().all(|l| !l.contains('\u{1b}')), "{:?}", s.log);
+}
