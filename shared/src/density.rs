@@ -10,10 +10,10 @@ use glam::Vec3;
 use crate::distortion::Distortion;
 use crate::dual::{Dual, DualPoint};
 use crate::motion::Pose;
-use crate::noise::{LANES, Lanes, Noise, VNOISE_OFFSET, clamped_octaves};
+use crate::noise::{Noise, VNOISE_OFFSET, clamped_octaves};
 use crate::scene::desc::{DmfDesc, ObjectDesc};
 use crate::shaping::{Bias, Gain};
-use crate::simd::Isa;
+use crate::simd::{Isa, LANES, Lanes};
 use crate::soft::{Falloff, SoftBox, SoftSphere, SoftTorus, boolean};
 
 /// Where and when the field is evaluated: the noise tables and the drift of the

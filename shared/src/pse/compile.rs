@@ -1299,11 +1299,11 @@ mod tests {
         let value = p.eval(super::super::eval::Inputs { x, d: 0.25 }, &f);
         // The lane-parallel register code gives the same bits on every path.
         let mut points = crate::density::Points::default();
-        for l in 0..crate::noise::LANES {
+        for l in 0..crate::simd::LANES {
             points.set(l, x);
         }
         for isa in crate::simd::Isa::available() {
-            let lanes = p.eval_lanes(&points, &[0.25; crate::noise::LANES], &f, isa);
+            let lanes = p.eval_lanes(&points, &[0.25; crate::simd::LANES], &f, isa);
             for (c, lane) in lanes.iter().enumerate() {
                 for v in lane {
                     assert_eq!(v.to_bits(), value[c].to_bits(), "{src} on {isa:?}");
@@ -1326,10 +1326,10 @@ mod tests {
         let f = field(&noise);
         let mut points = crate::density::Points::default();
         let at = |l: usize| Vec3::new(l as f32 * 0.3 - 1.0, (l % 3) as f32 * 0.7, 0.2 * l as f32);
-        for l in 0..crate::noise::LANES {
+        for l in 0..crate::simd::LANES {
             points.set(l, at(l));
         }
-        let d: [f32; crate::noise::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
+        let d: [f32; crate::simd::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
         for src in [
             "if x.x > 0 { noise(x * freq) } else { sq(x.y) + d }",
             "if x.x > 0.5 { 1 } else if x.y > 0.5 { vnoise(x).y } else if d > 0.3 { 3 } else { x.z }",
@@ -1340,7 +1340,7 @@ mod tests {
             let p = compile_expression(src, Kind::Probe, &ctx).unwrap();
             for isa in crate::simd::Isa::available() {
                 let lanes = p.eval_lanes(&points, &d, &f, isa);
-                for l in 0..crate::noise::LANES {
+                for l in 0..crate::simd::LANES {
                     let one = p.eval(super::super::eval::Inputs { x: at(l), d: d[l] }, &f);
                     for c in 0..3 {
                         assert_eq!(
