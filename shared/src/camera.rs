@@ -21,6 +21,31 @@ impl Ray {
     }
 }
 
+/// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
+/// t ≥ 0, or `None` when it misses (the slab test).
+#[inline]
+pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
+    let mut t0: f32 = 0.0;
+    let mut t1 = f32::INFINITY;
+    for axis in 0..3 {
+        let (o, d) = (ray.origin[axis], ray.direction[axis]);
+        if d == 0.0 {
+            if o < min[axis] || o > max[axis] {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d;
+        let (mut near, mut far) = ((min[axis] - o) * inv, (max[axis] - o) * inv);
+        if near > far {
+            std::mem::swap(&mut near, &mut far);
+        }
+        t0 = t0.max(near);
+        t1 = t1.min(far);
+    }
+    (t0 <= t1).then_some((t0, t1))
+}
+
 /// A camera ready to generate rays for an image of a given size.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
@@ -124,5 +149,38 @@ mod tests {
         let b = cam.ray(3, 1, (0.5, 0.5));
         assert_eq!(a.direction, b.direction);
         assert!((a.origin - Vec3::new(-1.5, 0.5, 5.0)).length() < 1e-6);
+    }
+
+    #[test]
+    fn slab_clips_rays() {
+        let (min, max) = (Vec3::splat(-1.0), Vec3::splat(1.0));
+        let hit = Ray {
+            origin: Vec3::new(0.0, 0.0, 5.0),
+            direction: Vec3::NEG_Z,
+        };
+        assert_eq!(slab(&hit, min, max), Some((4.0, 6.0)));
+        let miss = Ray {
+            origin: Vec3::new(2.0, 0.0, 5.0),
+            direction: Vec3::NEG_Z,
+        };
+        assert_eq!(slab(&miss, min, max), None);
+        let away = Ray {
+            origin: Vec3::new(0.0, 0.0, 5.0),
+            direction: Vec3::Z,
+        };
+        assert_eq!(slab(&away, min, max), None);
+        let inside = Ray {
+            origin: Vec3::ZERO,
+            direction: Vec3::new(1.0, 1.0, 0.0).normalize(),
+        };
+        let (t0, t1) = slab(&inside, min, max).unwrap();
+        assert_eq!(t0, 0.0);
+        assert!((t1 - 2f32.sqrt()).abs() < 1e-6);
+        let diagonal = Ray {
+            origin: Vec3::new(-3.0, -3.0, -3.0),
+            direction: Vec3::ONE.normalize(),
+        };
+        let (t0, t1) = slab(&diagonal, min, max).unwrap();
+        assert!((t0 - 2.0 * 3f32.sqrt()).abs() < 1e-5 && (t1 - 4.0 * 3f32.sqrt()).abs() < 1e-5);
     }
 }

@@ -11,8 +11,31 @@
 //! ≥ 10⁻³, and within 2·10⁻⁷·(1 + |log₂ result|) everywhere (the exponent
 //! e·log₂ x is rounded to f32). An 8-bit output level is 4·10⁻³.
 
+use crate::simd::{Isa, LANES, Lanes};
+
 /// 1 / ln 2.
 const INV_LN2: f32 = std::f32::consts::LOG2_E;
+
+/// ⌊x⌋, exactly as `f32::floor` for every finite x, from a conversion and a
+/// compare: the SSE2 baseline has no rounding instruction and would call libm,
+/// and Rust's saturating `as i32` would keep the lanes from vectorising.
+#[inline(always)]
+pub fn floor(x: f32) -> f32 {
+    // |x| ≥ 2²³ is already an integer (NaN stays NaN: the compare fails).
+    let small = x.abs() < 8_388_608.0;
+    let t = lattice(if small { x } else { 0.0 }) as f32;
+    let floor = if t > x { t - 1.0 } else { t };
+    if small { floor } else { x }
+}
+
+/// The integer of an integral `x` (a lattice coordinate), 0 where it would not
+/// fit an i32 (and for NaN): the same in every lane and on every path.
+#[inline(always)]
+pub fn lattice(x: f32) -> i32 {
+    let fits = x.abs() < 2_147_483_520.0; // the largest f32 below 2³¹
+    // SAFETY: the argument is finite and within i32's range.
+    unsafe { (if fits { x } else { 0.0 }).to_int_unchecked::<i32>() }
+}
 
 /// log₂ x for finite x > 0 (subnormals included). Not for 0, negatives or NaN:
 /// callers clamp first.
@@ -46,7 +69,7 @@ pub fn exp2(y: f32) -> f32 {
     // max/min (not clamp) so that NaN becomes −126 rather than staying NaN.
     #[allow(clippy::manual_clamp)]
     let y = y.max(-126.0).min(127.0);
-    let k = crate::noise::floor(y + 0.5);
+    let k = floor(y + 0.5);
     let f = y - k; // [−0.5, 0.5]
     // 2^f = e^(f ln 2): Taylor to degree 7 (remainder < 6·10⁻⁹ on [−½, ½]).
     const C1: f32 = std::f32::consts::LN_2;
@@ -57,7 +80,7 @@ pub fn exp2(y: f32) -> f32 {
     const C6: f32 = 0.000_154_035_3; // ln⁶2 / 720
     const C7: f32 = 0.000_015_252_734; // ln⁷2 / 5040
     let p = 1.0 + f * (C1 + f * (C2 + f * (C3 + f * (C4 + f * (C5 + f * (C6 + f * C7))))));
-    let k = crate::noise::lattice(k);
+    let k = lattice(k);
     // 2^k built from its exponent bits; 0 at the bottom of the range.
     let scale = f32::from_bits(((k.max(-126) + 127) as u32) << 23);
     if k <= -126 { 0.0 } else { p * scale }
@@ -74,6 +97,58 @@ pub fn pow01(x: f32, e: f32) -> f32 {
         return 1.0;
     }
     exp2(e * log2(x))
+}
+
+/// `pow01(x, e)` lane by lane on `isa`, one exponent for all.
+#[inline]
+pub fn pow01_on(isa: Isa, x: &Lanes, e: f32) -> Lanes {
+    match isa {
+        Isa::Scalar => x.map(|x| pow01(x, e)),
+        // SAFETY: a scene only carries a path that `Isa::available` reported,
+        // and `Scene::with_isa` refuses the others.
+        #[cfg(target_arch = "x86_64")]
+        Isa::Sse41 => unsafe { x86::pow01_sse41(x, e) },
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => unsafe { x86::pow01_avx2(x, e) },
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => pow01_on(Isa::Scalar, x, e),
+    }
+}
+
+/// `pow01` written lane-parallel: both branches computed, then selected, so the
+/// loop vectorises; each lane's value is the scalar one.
+#[inline(always)]
+pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        let v = x[l];
+        // Keep log2's argument in range for the lanes whose result is discarded.
+        let safe = if v > 0.0 && v < 1.0 { v } else { 0.5 };
+        let p = exp2(e * log2(safe));
+        out[l] = if v <= 0.0 {
+            if e == 0.0 { 1.0 } else { 0.0 }
+        } else if v >= 1.0 {
+            1.0
+        } else {
+            p
+        };
+    }
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn pow01_avx2(x: &Lanes, e: f32) -> Lanes {
+        pow01_lanes(x, e)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn pow01_sse41(x: &Lanes, e: f32) -> Lanes {
+        pow01_lanes(x, e)
+    }
 }
 
 #[cfg(test)]
@@ -136,5 +211,24 @@ mod tests {
         assert_eq!(pow01(0.0, 0.0), 1.0);
         assert_eq!(pow01(1.0, 3.0), 1.0);
         assert_eq!(pow01(0.25, 0.5), 0.5);
+    }
+
+    #[test]
+    fn every_path_gives_the_scalar_powers() {
+        let mut r = SplitMix64::new(9);
+        for _ in 0..20_000 {
+            // The exact powers' edge cases in every round.
+            let x = [r.next_f32(), 0.0, 1.0, 1e-30, 0.5, 0.999, 2.0, -1.0];
+            let e = r.next_f32() * 6.0;
+            let reference = pow01_on(Isa::Scalar, &x, e);
+            for isa in Isa::available() {
+                let got = pow01_on(isa, &x, e);
+                assert_eq!(
+                    got.map(f32::to_bits),
+                    reference.map(f32::to_bits),
+                    "{isa:?}"
+                );
+            }
+        }
     }
 }

@@ -4,9 +4,8 @@
 
 use glam::Vec3;
 
-use crate::camera::Ray;
+use crate::camera::{Ray, slab};
 use crate::density::Field;
-use crate::march::slab;
 use crate::scene::Scene;
 use crate::shaping::clamp01;
 

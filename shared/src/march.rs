@@ -12,40 +12,15 @@
 
 use glam::Vec3;
 
-use crate::camera::Ray;
+use crate::camera::{Ray, slab};
 use crate::density::{Field, Points, Support};
 use crate::fastmath;
 use crate::film::Sample;
-use crate::noise::{LANES, Lanes};
 use crate::pse::surface as pse;
 use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
 use crate::simd::Isa;
-
-/// The entry and exit parameters of `ray` through the box `(min, max)`, clipped to
-/// t ≥ 0, or `None` when it misses (the slab test).
-#[inline]
-pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
-    let mut t0: f32 = 0.0;
-    let mut t1 = f32::INFINITY;
-    for axis in 0..3 {
-        let (o, d) = (ray.origin[axis], ray.direction[axis]);
-        if d == 0.0 {
-            if o < min[axis] || o > max[axis] {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d;
-        let (mut near, mut far) = ((min[axis] - o) * inv, (max[axis] - o) * inv);
-        if near > far {
-            std::mem::swap(&mut near, &mut far);
-        }
-        t0 = t0.max(near);
-        t1 = t1.min(far);
-    }
-    (t0 <= t1).then_some((t0, t1))
-}
+use crate::simd::{LANES, Lanes};
 
 /// The parameters where `ray` enters and leaves the ball of `radius` about
 /// `centre` (either may be negative), or `None` when it misses.
@@ -269,9 +244,9 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
     }
     let e = scene.opacity_exponent;
     let p = if simd {
-        crate::simd::pow01_lanes(&transmit, e)
+        crate::fastmath::pow01_lanes(&transmit, e)
     } else {
-        Isa::Scalar.pow01(&transmit, e)
+        fastmath::pow01_on(Isa::Scalar, &transmit, e)
     };
     let mut alpha = [0.0; LANES];
     for l in 0..LANES {
@@ -393,7 +368,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             // Colours and textures belong to the object: its point, not the world's.
             let object_x = field.object_point(x);
             let shading_normal = if lit {
-                pse::perturb_normal(scene, object_x, f, shading_normal, field)
+                pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
             } else {
                 shading_normal // `shade` reads it only for lights
             };
@@ -409,7 +384,14 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                     0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
                 }
             };
-            let base = pse::surface_colour(scene, object_x, f, key, field);
+            let base = pse::surface_colour(
+                &scene.expressions,
+                &scene.colour_map,
+                object_x,
+                f,
+                key,
+                field,
+            );
             let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
@@ -578,39 +560,6 @@ fn refract(d: Vec3, n: Vec3, eta: f32) -> Vec3 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn slab_clips_rays() {
-        let (min, max) = (Vec3::splat(-1.0), Vec3::splat(1.0));
-        let hit = Ray {
-            origin: Vec3::new(0.0, 0.0, 5.0),
-            direction: Vec3::NEG_Z,
-        };
-        assert_eq!(slab(&hit, min, max), Some((4.0, 6.0)));
-        let miss = Ray {
-            origin: Vec3::new(2.0, 0.0, 5.0),
-            direction: Vec3::NEG_Z,
-        };
-        assert_eq!(slab(&miss, min, max), None);
-        let away = Ray {
-            origin: Vec3::new(0.0, 0.0, 5.0),
-            direction: Vec3::Z,
-        };
-        assert_eq!(slab(&away, min, max), None);
-        let inside = Ray {
-            origin: Vec3::ZERO,
-            direction: Vec3::new(1.0, 1.0, 0.0).normalize(),
-        };
-        let (t0, t1) = slab(&inside, min, max).unwrap();
-        assert_eq!(t0, 0.0);
-        assert!((t1 - 2f32.sqrt()).abs() < 1e-6);
-        let diagonal = Ray {
-            origin: Vec3::new(-3.0, -3.0, -3.0),
-            direction: Vec3::ONE.normalize(),
-        };
-        let (t0, t1) = slab(&diagonal, min, max).unwrap();
-        assert!((t0 - 2.0 * 3f32.sqrt()).abs() < 1e-5 && (t1 - 4.0 * 3f32.sqrt()).abs() < 1e-5);
-    }
 
     #[test]
     fn snell() {

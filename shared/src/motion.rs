@@ -15,8 +15,8 @@
 use glam::Vec3;
 
 use crate::density::{Aabb, Points, Support};
-use crate::noise::LANES;
 use crate::scene::desc::TransformDesc;
+use crate::simd::LANES;
 
 /// The object's motion over time.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -20,8 +20,9 @@ use std::sync::LazyLock;
 
 use glam::Vec3;
 
+use crate::fastmath::{floor, lattice};
 use crate::random::SplitMix64;
-use crate::simd::Isa;
+use crate::simd::{Isa, LANES, Lanes, deinterleave};
 
 /// The seed of the default tables (the year of the paper).
 pub const DEFAULT_SEED: u64 = 1989;
@@ -432,31 +433,119 @@ impl Noise {
     }
 }
 
-/// Points per batch in the vectorised paths.
-pub const LANES: usize = 8;
+/// The lane kernels behind the instruction-set dispatch.
+impl Noise {
+    /// `noise` at each of the lanes' points on `isa`, through that path's
+    /// `#[target_feature]` copy.
+    #[inline]
+    pub fn noise_on(&self, isa: Isa, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        let n = self;
+        match isa {
+            Isa::Scalar => {
+                let mut out = [0.0; LANES];
+                for l in 0..LANES {
+                    out[l] = n.noise(Vec3::new(x[l], y[l], z[l]));
+                }
+                out
+            }
+            // SAFETY: a scene only carries a path that `Isa::available` reported,
+            // and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { batch::noise_sse41(n, x, y, z) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { batch::noise_avx2(n, x, y, z) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => n.noise_on(Isa::Scalar, x, y, z),
+        }
+    }
 
-/// One f32 per lane.
-pub type Lanes = [f32; LANES];
-
-/// ⌊x⌋, exactly as `f32::floor` for every finite x, from a conversion and a
-/// compare: the SSE2 baseline has no rounding instruction and would call libm,
-/// and Rust's saturating `as i32` would keep the lanes from vectorising.
-#[inline(always)]
-pub fn floor(x: f32) -> f32 {
-    // |x| ≥ 2²³ is already an integer (NaN stays NaN: the compare fails).
-    let small = x.abs() < 8_388_608.0;
-    let t = lattice(if small { x } else { 0.0 }) as f32;
-    let floor = if t > x { t - 1.0 } else { t };
-    if small { floor } else { x }
+    /// `noise` at every point of `points`, into `out` (at least as long).
+    pub fn noise_batch(&self, isa: Isa, points: &[Vec3], out: &mut [f32]) {
+        let n = self;
+        match isa {
+            Isa::Scalar => {
+                for (o, &p) in out.iter_mut().zip(points) {
+                    *o = n.noise(p);
+                }
+            }
+            // SAFETY: as in `noise`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { batch::noise_batch_sse41(n, points, out) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { batch::noise_batch_avx2(n, points, out) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => n.noise_batch(Isa::Scalar, points, out),
+        }
+    }
 }
 
-/// The integer of an integral `x` (a lattice coordinate), 0 where it would not
-/// fit an i32 (and for NaN): the same in every lane and on every path.
+/// `noise` over a slice, 4 points at a time: 4 `Vec3`s are 3 loads, turned
+/// into x, y and z vectors by shuffles (the last batch padded).
+#[cfg(target_arch = "x86_64")]
 #[inline(always)]
-pub fn lattice(x: f32) -> i32 {
-    let fits = x.abs() < 2_147_483_520.0; // the largest f32 below 2³¹
-    // SAFETY: the argument is finite and within i32's range.
-    unsafe { (if fits { x } else { 0.0 }).to_int_unchecked::<i32>() }
+fn noise_batch_lanes(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let out = &mut out[..points.len()];
+    let mut quads = points.chunks_exact(4);
+    let mut outs = out.chunks_exact_mut(4);
+    for (p, o) in (&mut quads).zip(&mut outs) {
+        // SAFETY: `o` holds 4 f32; SSE is part of the x86-64 baseline.
+        unsafe {
+            let (x, y, z) = deinterleave(p);
+            _mm_storeu_ps(o.as_mut_ptr(), n.noise4(x, y, z));
+        }
+    }
+    let rest = quads.remainder();
+    let (mut x, mut y, mut z) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
+    for (l, q) in rest.iter().enumerate() {
+        (x[l], y[l], z[l]) = (q.x, q.y, q.z);
+    }
+    let v = n.noise_lanes(&x, &y, &z);
+    let o = outs.into_remainder();
+    o.copy_from_slice(&v[..o.len()]);
+}
+
+#[cfg(target_arch = "x86_64")]
+mod batch {
+    use std::arch::x86_64::*;
+
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn noise_batch_avx2(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+        let out = &mut out[..points.len()];
+        let mut eights = points.chunks_exact(8);
+        let mut outs = out.chunks_exact_mut(8);
+        for (p, o) in (&mut eights).zip(&mut outs) {
+            let ((x0, y0, z0), (x1, y1, z1)) = (deinterleave(&p[..4]), deinterleave(&p[4..]));
+            // SAFETY: this function is compiled for AVX2 (and only called on
+            // CPUs that have it); `o` holds 8 f32.
+            unsafe {
+                let n = n.noise8(
+                    _mm256_set_m128(x1, x0),
+                    _mm256_set_m128(y1, y0),
+                    _mm256_set_m128(z1, z0),
+                );
+                _mm256_storeu_ps(o.as_mut_ptr(), n);
+            }
+        }
+        noise_batch_lanes(n, eights.remainder(), outs.into_remainder())
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn noise_batch_sse41(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+        noise_batch_lanes(n, points, out)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        n.noise_lanes_on(Isa::Avx2, x, y, z)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn noise_sse41(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        n.noise_lanes(x, y, z)
+    }
 }
 
 /// ω(t) = 2|t|³ − 3|t|² + 1 for |t| < 1, else 0: the knot's cubic drop-off.
@@ -640,7 +729,7 @@ pub fn perlin_batch(points: &[Vec3], out: &mut [f32]) {
         out.len() >= points.len(),
         "perlin_batch: output shorter than input"
     );
-    crate::simd::Isa::detect().noise_batch(&DEFAULT, points, out);
+    DEFAULT.noise_batch(Isa::detect(), points, out);
 }
 
 /// Perlin's permutation from the reference implementation of improved noise.
@@ -905,5 +994,33 @@ mod tests {
             let _ = n.turbulence(p, 8);
         }
         let _ = improved(f64::NAN, f64::INFINITY, -1e300);
+    }
+
+    #[test]
+    fn every_path_gives_the_scalar_noise() {
+        let n = Noise::new(77);
+        let mut r = SplitMix64::new(9);
+        for round in 0..20_000 {
+            let scale = if round % 2 == 0 { 8.0 } else { 3.0e4 };
+            let mut p = [[0.0f32; LANES]; 3];
+            for axis in &mut p {
+                for v in axis.iter_mut() {
+                    *v = (r.next_f32() - 0.5) * scale;
+                }
+            }
+            // Lattice points too.
+            if round == 0 {
+                p[0] = [0.0, -0.0, 1.0, -1.0, 255.0, 256.0, -300.0, 1.0e9];
+            }
+            let reference = n.noise_on(Isa::Scalar, &p[0], &p[1], &p[2]);
+            for isa in Isa::available() {
+                let got = n.noise_on(isa, &p[0], &p[1], &p[2]);
+                assert_eq!(
+                    got.map(f32::to_bits),
+                    reference.map(f32::to_bits),
+                    "{isa:?}"
+                );
+            }
+        }
     }
 }

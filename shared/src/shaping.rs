@@ -4,8 +4,8 @@
 //! [`fastmath::pow01`](crate::fastmath::pow01): basic IEEE operations only, so that
 //! every machine of the farm, and every SIMD path, computes the same bits.
 
-use crate::noise::{LANES, Lanes};
 use crate::simd::Isa;
+use crate::simd::{LANES, Lanes};
 
 /// `bias_b(t) = t^(ln b / ln 0.5)`: pushes values in the unit interval up (b > 0.5)
 /// or down (b < 0.5) while keeping `bias_b(0) = 0`, `bias_b(1/2) = b`,
@@ -70,7 +70,7 @@ impl Bias {
     #[inline]
     pub fn apply_lanes(&self, t: &Lanes, isa: Isa) -> Lanes {
         let t = t.map(clamp01);
-        self.finish(&t, &isa.pow01(&t, self.exponent))
+        self.finish(&t, &crate::fastmath::pow01_on(isa, &t, self.exponent))
     }
 
     /// [`Bias::apply_lanes`] inlined into a SIMD path's code (never the
@@ -78,7 +78,7 @@ impl Bias {
     #[inline(always)]
     pub(crate) fn apply_simd(&self, t: &Lanes) -> Lanes {
         let t = t.map(clamp01);
-        self.finish(&t, &crate::simd::pow01_lanes(&t, self.exponent))
+        self.finish(&t, &crate::fastmath::pow01_lanes(&t, self.exponent))
     }
 
     /// 0 where t is 0, else the power `p`.

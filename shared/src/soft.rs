@@ -8,7 +8,7 @@
 
 use glam::Vec3;
 
-use crate::noise::{LANES, Lanes};
+use crate::simd::{LANES, Lanes};
 
 /// The paper's quadratic falloff, with the squared radii precomputed.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -65,48 +65,97 @@ pub struct Context<'a> {
     pub colour_map: Option<&'a Curve<3>>,
 }
 
-/// Names that are not functions a scene may define.
-const BUILTINS: [&str; 39] = [
-    "noise",
-    "vnoise",
-    "dnoise",
-    "turbulence",
-    "fbm",
-    "bias",
-    "gain",
-    "abs",
-    "floor",
-    "fract",
-    "sin",
-    "cos",
-    "tan",
-    "exp",
-    "log",
-    "sqrt",
-    "sign",
-    "pow",
-    "min",
-    "max",
-    "atan2",
-    "step",
-    "clamp",
-    "smoothstep",
-    "mix",
-    "length",
-    "normalize",
-    "direction",
-    "dot",
-    "cross",
-    "project",
-    "colour_map",
-    "improved",
-    "vec",
-    "D",
-    "x",
-    "t",
-    "frame",
-    "d",
+/// The family of a built-in function: which of the compiler's emitters
+/// compiles its call (each family type-checks, folds constants and emits its
+/// operations alike).
+#[derive(Clone, Copy, Debug)]
+enum Family {
+    /// A point in, noise (or its projection) out: `noise`, `improved`,
+    /// `vnoise`, `dnoise`, `project`.
+    Point,
+    /// `turbulence` and `fbm`: a point and an octave count (6 by default).
+    Octaves,
+    /// `bias` and `gain`: a parameter and an argument.
+    Shaping,
+    /// A function of one number, component-wise on vectors.
+    Unary(Fn1),
+    /// A function of two numbers (`min` and `max` also of two vectors).
+    Binary(Fn2),
+    /// `clamp` and `smoothstep`: three numbers.
+    Ternary,
+    /// `mix(a, b, t)`: numbers or vectors a and b.
+    Mix,
+    /// Vector functions: `length`, `normalize`, `direction`, `dot`, `cross`,
+    /// `colour_map`, `vec`.
+    Vector,
+}
+
+/// A built-in function: its name, the argument counts it accepts and its family.
+struct Builtin {
+    /// The name a call uses.
+    name: &'static str,
+    /// The numbers of arguments it accepts.
+    arity: &'static [usize],
+    /// The emitter that compiles it.
+    family: Family,
+}
+
+/// Shorthand for the table's rows.
+const fn builtin(name: &'static str, arity: &'static [usize], family: Family) -> Builtin {
+    Builtin {
+        name,
+        arity,
+        family,
+    }
+}
+
+/// Every built-in function. To add one: a row here, and its operation in the
+/// family's emitter (or a new family).
+const BUILTINS: &[Builtin] = &[
+    builtin("noise", &[1], Family::Point),
+    builtin("vnoise", &[1], Family::Point),
+    builtin("dnoise", &[1], Family::Point),
+    builtin("turbulence", &[1, 2], Family::Octaves),
+    builtin("fbm", &[1, 2], Family::Octaves),
+    builtin("bias", &[2], Family::Shaping),
+    builtin("gain", &[2], Family::Shaping),
+    builtin("abs", &[1], Family::Unary(Fn1::Abs)),
+    builtin("floor", &[1], Family::Unary(Fn1::Floor)),
+    builtin("fract", &[1], Family::Unary(Fn1::Fract)),
+    builtin("sin", &[1], Family::Unary(Fn1::Sin)),
+    builtin("cos", &[1], Family::Unary(Fn1::Cos)),
+    builtin("tan", &[1], Family::Unary(Fn1::Tan)),
+    builtin("exp", &[1], Family::Unary(Fn1::Exp)),
+    builtin("log", &[1], Family::Unary(Fn1::Log)),
+    builtin("sqrt", &[1], Family::Unary(Fn1::Sqrt)),
+    builtin("sign", &[1], Family::Unary(Fn1::Sign)),
+    builtin("pow", &[2], Family::Binary(Fn2::Pow)),
+    builtin("min", &[2], Family::Binary(Fn2::Min)),
+    builtin("max", &[2], Family::Binary(Fn2::Max)),
+    builtin("atan2", &[2], Family::Binary(Fn2::Atan2)),
+    builtin("step", &[2], Family::Binary(Fn2::Step)),
+    builtin("clamp", &[3], Family::Ternary),
+    builtin("smoothstep", &[3], Family::Ternary),
+    builtin("mix", &[3], Family::Mix),
+    builtin("length", &[1], Family::Vector),
+    builtin("normalize", &[1], Family::Vector),
+    builtin("direction", &[1], Family::Vector),
+    builtin("dot", &[2], Family::Vector),
+    builtin("cross", &[2], Family::Vector),
+    builtin("project", &[1], Family::Point),
+    builtin("colour_map", &[1], Family::Vector),
+    builtin("improved", &[1, 3], Family::Point),
+    builtin("vec", &[3], Family::Vector),
 ];
+
+/// Names that are not functions but that a scene may not define either: the
+/// object `D` and the inputs.
+const RESERVED: [&str; 5] = ["D", "x", "t", "frame", "d"];
+
+/// Whether `name` belongs to the language (a built-in function or a reserved name).
+fn is_builtin(name: &str) -> bool {
+    BUILTINS.iter().any(|b| b.name == name) || RESERVED.contains(&name)
+}
 
 /// Parses the scene's function definitions and checks their names and parameters.
 pub fn parse_functions(src: &str) -> Result<Vec<FnDef>, ExprError> {
@@ -118,7 +167,7 @@ pub fn parse_functions(src: &str) -> Result<Vec<FnDef>, ExprError> {
         ));
     }
     for (i, f) in defs.iter().enumerate() {
-        if BUILTINS.contains(&f.name.as_str()) || f.name == "pi" {
+        if is_builtin(&f.name) || f.name == "pi" {
             return Err(ExprError::new(
                 f.at,
                 format!("`{}` is a built-in name; choose another", f.name),
@@ -553,7 +602,7 @@ impl<'a> Compiler<'a> {
                 known.dedup();
                 let hint = if self.ctx.objects.iter().any(|(n, _)| n == name)
                     || self.ctx.functions.iter().any(|f| f.name == name)
-                    || BUILTINS.contains(&name)
+                    || is_builtin(name)
                 {
                     format!(" (`{name}` is a function: call it, `{name}(...)`)")
                 } else {
@@ -844,256 +893,278 @@ impl<'a> Compiler<'a> {
             self.release(p.0);
             return Ok(Val::S(S::R(d)));
         }
-        match name {
-            "noise" | "improved" | "vnoise" | "dnoise" | "project" => {
-                let p = if name == "improved" && args.len() == 3 {
-                    let [a, b, c] = self.args::<3>(name, args, at)?;
-                    let v = [
-                        self.scalar(a.0, a.1, "x")?,
-                        self.scalar(b.0, b.1, "y")?,
-                        self.scalar(c.0, c.1, "z")?,
-                    ];
-                    (Val::V(v), at)
-                } else {
-                    let [p] = self.args::<1>(name, args, at)?;
-                    p
-                };
-                let pv = self.vector(p.0, p.1, &format!("the argument of {name}"))?;
-                if name == "improved"
-                    && let [S::K(a), S::K(b), S::K(c)] = pv
-                {
-                    return Ok(Val::S(S::K(crate::noise::improved(a, b, c))));
-                }
-                if name == "project" && self.ctx.surface.is_none() {
-                    return Err(ExprError::new(
-                        at,
-                        "project(p) projects onto the inner surface of the scene's object, which must then be a Sphere, Box or Torus",
-                    ));
-                }
-                let rp = self.reg_v(pv, at)?;
-                let out = match name {
-                    "noise" | "improved" => {
-                        let d = self.alloc(at)?;
-                        let op = if name == "noise" {
-                            Op::Noise(d, rp)
-                        } else {
-                            Op::Improved(d, rp)
-                        };
-                        self.emit(op, at)?;
-                        Val::S(S::R(d))
-                    }
-                    _ => {
-                        let d = self.alloc_v(at)?;
-                        let op = match name {
-                            "vnoise" => Op::VNoise(d, rp),
-                            "dnoise" => Op::DNoise(d, rp),
-                            _ => Op::Project(d, rp),
-                        };
-                        self.emit(op, at)?;
-                        Val::V(d.map(S::R))
-                    }
-                };
-                self.release(p.0);
-                Ok(out)
-            }
-            "turbulence" | "fbm" => {
-                let (p, n) = match args.len() {
-                    1 => {
-                        let [p] = self.args::<1>(name, args, at)?;
-                        (p, (Val::S(S::K(6.0)), at))
-                    }
-                    _ => {
-                        let [p, n] = self.args::<2>(name, args, at)?;
-                        (p, n)
-                    }
-                };
-                let pv = self.vector(p.0, p.1, &format!("the point of {name}(p, octaves)"))?;
-                let ns = self.scalar(n.0, n.1, "the octave count")?;
-                let rp = self.reg_v(pv, at)?;
-                let rn = self.reg(ns, at)?;
+        let Some(builtin) = BUILTINS.iter().find(|b| b.name == name) else {
+            let mut names: Vec<&str> = BUILTINS.iter().map(|b| b.name).collect();
+            names.extend(self.ctx.objects.iter().map(|(n, _)| n.as_str()));
+            names.extend(
+                self.ctx.functions[..self.visible]
+                    .iter()
+                    .map(|f| f.name.as_str()),
+            );
+            names.sort_unstable();
+            names.dedup();
+            return Err(ExprError::new(
+                at,
+                format!(
+                    "unknown function `{name}`; expected one of: {}",
+                    names.join(", ")
+                ),
+            ));
+        };
+        if !builtin.arity.contains(&args.len()) {
+            let counts: Vec<String> = builtin.arity.iter().map(usize::to_string).collect();
+            return Err(ExprError::new(
+                at,
+                format!(
+                    "{name} takes {} argument{}, found {}",
+                    counts.join(" or "),
+                    if builtin.arity == [1] { "" } else { "s" },
+                    args.len()
+                ),
+            ));
+        }
+        match builtin.family {
+            Family::Point => self.point_builtin(name, args, at),
+            Family::Octaves => self.octaves_builtin(name, args, at),
+            Family::Shaping => self.shaping_builtin(name, args, at),
+            Family::Unary(f) => self.unary_builtin(f, name, args, at),
+            Family::Binary(f) => self.binary_builtin(f, name, args, at),
+            Family::Ternary => self.ternary_builtin(name, args, at),
+            Family::Mix => self.mix_builtin(name, args, at),
+            Family::Vector => self.vector_builtin(name, args, at),
+        }
+    }
+
+    /// `noise`, `improved`, `vnoise`, `dnoise`, `project`: a point in.
+    fn point_builtin(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
+        let p = if name == "improved" && args.len() == 3 {
+            let [a, b, c] = self.args::<3>(name, args, at)?;
+            let v = [
+                self.scalar(a.0, a.1, "x")?,
+                self.scalar(b.0, b.1, "y")?,
+                self.scalar(c.0, c.1, "z")?,
+            ];
+            (Val::V(v), at)
+        } else {
+            let [p] = self.args::<1>(name, args, at)?;
+            p
+        };
+        let pv = self.vector(p.0, p.1, &format!("the argument of {name}"))?;
+        if name == "improved"
+            && let [S::K(a), S::K(b), S::K(c)] = pv
+        {
+            return Ok(Val::S(S::K(crate::noise::improved(a, b, c))));
+        }
+        if name == "project" && self.ctx.surface.is_none() {
+            return Err(ExprError::new(
+                at,
+                "project(p) projects onto the inner surface of the scene's object, which must then be a Sphere, Box or Torus",
+            ));
+        }
+        let rp = self.reg_v(pv, at)?;
+        let out = match name {
+            "noise" | "improved" => {
                 let d = self.alloc(at)?;
-                let op = if name == "fbm" {
-                    Op::Fbm(d, rp, rn)
+                let op = if name == "noise" {
+                    Op::Noise(d, rp)
                 } else {
-                    Op::Turbulence(d, rp, rn)
+                    Op::Improved(d, rp)
                 };
                 self.emit(op, at)?;
-                self.release(p.0);
-                self.release(n.0);
-                Ok(Val::S(S::R(d)))
-            }
-            "bias" | "gain" => {
-                let [b, t] = self.args::<2>(name, args, at)?;
-                let sb = self.scalar(b.0, b.1, &format!("the parameter of {name}"))?;
-                let st = self.scalar(t.0, t.1, &format!("the argument of {name}"))?;
-                let f = if name == "bias" { Fn2::Bias } else { Fn2::Gain };
-                if let (S::K(kb), S::K(kt)) = (sb, st) {
-                    return Ok(Val::S(S::K(fold2(f, kb, kt))));
-                }
-                let rt = self.reg(st, at)?;
-                let d = self.alloc(at)?;
-                let op = match sb {
-                    S::K(k) if name == "bias" => Op::BiasK(d, rt, Bias::new(k as f32)),
-                    S::K(k) => Op::GainK(d, rt, Gain::new(k as f32)),
-                    S::R(rb) => Op::F2(f, d, rb, rt),
-                };
-                self.emit(op, at)?;
-                self.release(t.0);
-                self.release(b.0);
-                Ok(Val::S(S::R(d)))
-            }
-            "abs" | "floor" | "fract" | "sin" | "cos" | "tan" | "exp" | "log" | "sqrt" | "sign" => {
-                let f = match name {
-                    "abs" => Fn1::Abs,
-                    "floor" => Fn1::Floor,
-                    "fract" => Fn1::Fract,
-                    "sin" => Fn1::Sin,
-                    "cos" => Fn1::Cos,
-                    "tan" => Fn1::Tan,
-                    "exp" => Fn1::Exp,
-                    "log" => Fn1::Log,
-                    "sqrt" => Fn1::Sqrt,
-                    _ => Fn1::Sign,
-                };
-                let [a] = self.args::<1>(name, args, at)?;
-                // Component-wise on vectors.
-                let mut out = Vec::new();
-                for s in a.0.scalars() {
-                    out.push(match s {
-                        S::K(k) => S::K(fold1(f, k)),
-                        S::R(r) => {
-                            let d = self.alloc(at)?;
-                            self.emit(Op::F1(f, d, r), at)?;
-                            S::R(d)
-                        }
-                    });
-                }
-                self.release(a.0);
-                Ok(match out[..] {
-                    [s] => Val::S(s),
-                    [x, y, z] => Val::V([x, y, z]),
-                    _ => unreachable!("values have 1 or 3 components"),
-                })
-            }
-            "pow" | "atan2" | "step" | "min" | "max" => {
-                let f = match name {
-                    "pow" => Fn2::Pow,
-                    "atan2" => Fn2::Atan2,
-                    "step" => Fn2::Step,
-                    "min" => Fn2::Min,
-                    _ => Fn2::Max,
-                };
-                let [a, b] = self.args::<2>(name, args, at)?;
-                let pairs: Vec<(S, S)> = match (a.0, b.0) {
-                    (Val::S(x), Val::S(y)) => vec![(x, y)],
-                    (Val::V(x), Val::V(y)) if matches!(f, Fn2::Min | Fn2::Max) => {
-                        (0..3).map(|i| (x[i], y[i])).collect()
-                    }
-                    _ => {
-                        let bad = if matches!(a.0, Val::V(_)) { a } else { b };
-                        return Err(ExprError::new(
-                            bad.1,
-                            format!(
-                                "the arguments of {name} must be numbers, but this is a vector"
-                            ),
-                        ));
-                    }
-                };
-                let mut out = Vec::new();
-                for (x, y) in pairs {
-                    out.push(match (x, y) {
-                        (S::K(x), S::K(y)) => S::K(fold2(f, x, y)),
-                        _ => {
-                            let (rx, ry) = (self.reg(x, at)?, self.reg(y, at)?);
-                            let d = self.alloc(at)?;
-                            self.emit(Op::F2(f, d, rx, ry), at)?;
-                            S::R(d)
-                        }
-                    });
-                }
-                self.release(a.0);
-                self.release(b.0);
-                Ok(match out[..] {
-                    [s] => Val::S(s),
-                    [x, y, z] => Val::V([x, y, z]),
-                    _ => unreachable!("values have 1 or 3 components"),
-                })
-            }
-            "clamp" | "smoothstep" => {
-                let [a, b, c] = self.args::<3>(name, args, at)?;
-                let sa = self.scalar(a.0, a.1, &format!("each argument of {name}"))?;
-                let sb = self.scalar(b.0, b.1, &format!("each argument of {name}"))?;
-                let sc = self.scalar(c.0, c.1, &format!("each argument of {name}"))?;
-                if let (S::K(x), S::K(y), S::K(z)) = (sa, sb, sc) {
-                    let v = if name == "clamp" {
-                        fold2(Fn2::Max, fold2(Fn2::Min, x, z), y)
-                    } else {
-                        let t = ((z - x) / (y - x)).clamp(0.0, 1.0);
-                        t * t * (3.0 - 2.0 * t)
-                    };
-                    return Ok(Val::S(S::K(v)));
-                }
-                let (ra, rb, rc) = (self.reg(sa, at)?, self.reg(sb, at)?, self.reg(sc, at)?);
-                let d = self.alloc(at)?;
-                let op = if name == "clamp" {
-                    Op::Clamp(d, ra, rb, rc)
-                } else {
-                    Op::Smoothstep(d, ra, rb, rc)
-                };
-                self.emit(op, at)?;
-                for v in [a.0, b.0, c.0] {
-                    self.release(v);
-                }
-                Ok(Val::S(S::R(d)))
-            }
-            "mix" => {
-                let [a, b, t] = self.args::<3>(name, args, at)?;
-                let st = self.scalar(t.0, t.1, "the weight of mix")?;
-                if a.0.type_name() != b.0.type_name() {
-                    return Err(ExprError::new(
-                        b.1,
-                        format!(
-                            "mix(a, b, t) needs a and b of one type, but a is {} and this is {}",
-                            a.0.type_name(),
-                            b.0.type_name()
-                        ),
-                    ));
-                }
-                // a + (b - a) t, component by component; a stays alive throughout.
-                self.pin(a.0, 1);
-                let diff = self.binary(BinOp::Sub, b.0, a.0, b.1, a.1, at)?;
-                let scaled = self.binary(BinOp::Mul, diff, Val::S(st), at, t.1, at)?;
-                self.pin(scaled, 1);
-                let out = self.binary(BinOp::Add, a.0, scaled, a.1, at, at)?;
-                self.pin(scaled, -1);
-                self.pin(a.0, -1);
-                // (t was released by the product that consumed it.)
-                self.release(scaled);
-                self.release(a.0);
-                Ok(out)
-            }
-            "length" | "normalize" | "direction" | "dot" | "cross" | "colour_map" | "vec" => {
-                self.vector_builtin(name, args, at)
+                Val::S(S::R(d))
             }
             _ => {
-                let mut names: Vec<&str> = BUILTINS[..34].to_vec();
-                names.extend(self.ctx.objects.iter().map(|(n, _)| n.as_str()));
-                names.extend(
-                    self.ctx.functions[..self.visible]
-                        .iter()
-                        .map(|f| f.name.as_str()),
-                );
-                names.sort_unstable();
-                names.dedup();
-                Err(ExprError::new(
-                    at,
-                    format!(
-                        "unknown function `{name}`; expected one of: {}",
-                        names.join(", ")
-                    ),
-                ))
+                let d = self.alloc_v(at)?;
+                let op = match name {
+                    "vnoise" => Op::VNoise(d, rp),
+                    "dnoise" => Op::DNoise(d, rp),
+                    _ => Op::Project(d, rp),
+                };
+                self.emit(op, at)?;
+                Val::V(d.map(S::R))
             }
+        };
+        self.release(p.0);
+        Ok(out)
+    }
+
+    /// `turbulence(p, octaves)`, `fbm(p, octaves)`.
+    fn octaves_builtin(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
+        let (p, n) = match args.len() {
+            1 => {
+                let [p] = self.args::<1>(name, args, at)?;
+                (p, (Val::S(S::K(6.0)), at))
+            }
+            _ => {
+                let [p, n] = self.args::<2>(name, args, at)?;
+                (p, n)
+            }
+        };
+        let pv = self.vector(p.0, p.1, &format!("the point of {name}(p, octaves)"))?;
+        let ns = self.scalar(n.0, n.1, "the octave count")?;
+        let rp = self.reg_v(pv, at)?;
+        let rn = self.reg(ns, at)?;
+        let d = self.alloc(at)?;
+        let op = if name == "fbm" {
+            Op::Fbm(d, rp, rn)
+        } else {
+            Op::Turbulence(d, rp, rn)
+        };
+        self.emit(op, at)?;
+        self.release(p.0);
+        self.release(n.0);
+        Ok(Val::S(S::R(d)))
+    }
+
+    /// `bias(b, t)`, `gain(g, t)`: constant parameters become precomputed curves.
+    fn shaping_builtin(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
+        let [b, t] = self.args::<2>(name, args, at)?;
+        let sb = self.scalar(b.0, b.1, &format!("the parameter of {name}"))?;
+        let st = self.scalar(t.0, t.1, &format!("the argument of {name}"))?;
+        let f = if name == "bias" { Fn2::Bias } else { Fn2::Gain };
+        if let (S::K(kb), S::K(kt)) = (sb, st) {
+            return Ok(Val::S(S::K(fold2(f, kb, kt))));
         }
+        let rt = self.reg(st, at)?;
+        let d = self.alloc(at)?;
+        let op = match sb {
+            S::K(k) if name == "bias" => Op::BiasK(d, rt, Bias::new(k as f32)),
+            S::K(k) => Op::GainK(d, rt, Gain::new(k as f32)),
+            S::R(rb) => Op::F2(f, d, rb, rt),
+        };
+        self.emit(op, at)?;
+        self.release(t.0);
+        self.release(b.0);
+        Ok(Val::S(S::R(d)))
+    }
+
+    /// `f(a)` for a function of one number, component-wise on vectors.
+    fn unary_builtin(
+        &mut self,
+        f: Fn1,
+        name: &str,
+        args: &[Expr],
+        at: usize,
+    ) -> Result<Val, ExprError> {
+        let [a] = self.args::<1>(name, args, at)?;
+        // Component-wise on vectors.
+        let mut out = Vec::new();
+        for s in a.0.scalars() {
+            out.push(match s {
+                S::K(k) => S::K(fold1(f, k)),
+                S::R(r) => {
+                    let d = self.alloc(at)?;
+                    self.emit(Op::F1(f, d, r), at)?;
+                    S::R(d)
+                }
+            });
+        }
+        self.release(a.0);
+        Ok(match out[..] {
+            [s] => Val::S(s),
+            [x, y, z] => Val::V([x, y, z]),
+            _ => unreachable!("values have 1 or 3 components"),
+        })
+    }
+
+    /// `f(a, b)` for a function of two numbers (`min`, `max` also on vectors).
+    fn binary_builtin(
+        &mut self,
+        f: Fn2,
+        name: &str,
+        args: &[Expr],
+        at: usize,
+    ) -> Result<Val, ExprError> {
+        let [a, b] = self.args::<2>(name, args, at)?;
+        let pairs: Vec<(S, S)> = match (a.0, b.0) {
+            (Val::S(x), Val::S(y)) => vec![(x, y)],
+            (Val::V(x), Val::V(y)) if matches!(f, Fn2::Min | Fn2::Max) => {
+                (0..3).map(|i| (x[i], y[i])).collect()
+            }
+            _ => {
+                let bad = if matches!(a.0, Val::V(_)) { a } else { b };
+                return Err(ExprError::new(
+                    bad.1,
+                    format!("the arguments of {name} must be numbers, but this is a vector"),
+                ));
+            }
+        };
+        let mut out = Vec::new();
+        for (x, y) in pairs {
+            out.push(match (x, y) {
+                (S::K(x), S::K(y)) => S::K(fold2(f, x, y)),
+                _ => {
+                    let (rx, ry) = (self.reg(x, at)?, self.reg(y, at)?);
+                    let d = self.alloc(at)?;
+                    self.emit(Op::F2(f, d, rx, ry), at)?;
+                    S::R(d)
+                }
+            });
+        }
+        self.release(a.0);
+        self.release(b.0);
+        Ok(match out[..] {
+            [s] => Val::S(s),
+            [x, y, z] => Val::V([x, y, z]),
+            _ => unreachable!("values have 1 or 3 components"),
+        })
+    }
+
+    /// `clamp(x, lo, hi)`, `smoothstep(lo, hi, x)`.
+    fn ternary_builtin(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
+        let [a, b, c] = self.args::<3>(name, args, at)?;
+        let sa = self.scalar(a.0, a.1, &format!("each argument of {name}"))?;
+        let sb = self.scalar(b.0, b.1, &format!("each argument of {name}"))?;
+        let sc = self.scalar(c.0, c.1, &format!("each argument of {name}"))?;
+        if let (S::K(x), S::K(y), S::K(z)) = (sa, sb, sc) {
+            let v = if name == "clamp" {
+                fold2(Fn2::Max, fold2(Fn2::Min, x, z), y)
+            } else {
+                let t = ((z - x) / (y - x)).clamp(0.0, 1.0);
+                t * t * (3.0 - 2.0 * t)
+            };
+            return Ok(Val::S(S::K(v)));
+        }
+        let (ra, rb, rc) = (self.reg(sa, at)?, self.reg(sb, at)?, self.reg(sc, at)?);
+        let d = self.alloc(at)?;
+        let op = if name == "clamp" {
+            Op::Clamp(d, ra, rb, rc)
+        } else {
+            Op::Smoothstep(d, ra, rb, rc)
+        };
+        self.emit(op, at)?;
+        for v in [a.0, b.0, c.0] {
+            self.release(v);
+        }
+        Ok(Val::S(S::R(d)))
+    }
+
+    /// `mix(a, b, t)`.
+    fn mix_builtin(&mut self, name: &str, args: &[Expr], at: usize) -> Result<Val, ExprError> {
+        let [a, b, t] = self.args::<3>(name, args, at)?;
+        let st = self.scalar(t.0, t.1, "the weight of mix")?;
+        if a.0.type_name() != b.0.type_name() {
+            return Err(ExprError::new(
+                b.1,
+                format!(
+                    "mix(a, b, t) needs a and b of one type, but a is {} and this is {}",
+                    a.0.type_name(),
+                    b.0.type_name()
+                ),
+            ));
+        }
+        // a + (b - a) t, component by component; a stays alive throughout.
+        self.pin(a.0, 1);
+        let diff = self.binary(BinOp::Sub, b.0, a.0, b.1, a.1, at)?;
+        let scaled = self.binary(BinOp::Mul, diff, Val::S(st), at, t.1, at)?;
+        self.pin(scaled, 1);
+        let out = self.binary(BinOp::Add, a.0, scaled, a.1, at, at)?;
+        self.pin(scaled, -1);
+        self.pin(a.0, -1);
+        // (t was released by the product that consumed it.)
+        self.release(scaled);
+        self.release(a.0);
+        Ok(out)
     }
 
     fn dot(&mut self, a: [S; 3], b: [S; 3], at: usize) -> Result<S, ExprError> {
@@ -1299,11 +1370,11 @@ mod tests {
         let value = p.eval(super::super::eval::Inputs { x, d: 0.25 }, &f);
         // The lane-parallel register code gives the same bits on every path.
         let mut points = crate::density::Points::default();
-        for l in 0..crate::noise::LANES {
+        for l in 0..crate::simd::LANES {
             points.set(l, x);
         }
         for isa in crate::simd::Isa::available() {
-            let lanes = p.eval_lanes(&points, &[0.25; crate::noise::LANES], &f, isa);
+            let lanes = p.eval_lanes(&points, &[0.25; crate::simd::LANES], &f, isa);
             for (c, lane) in lanes.iter().enumerate() {
                 for v in lane {
                     assert_eq!(v.to_bits(), value[c].to_bits(), "{src} on {isa:?}");
@@ -1326,10 +1397,10 @@ mod tests {
         let f = field(&noise);
         let mut points = crate::density::Points::default();
         let at = |l: usize| Vec3::new(l as f32 * 0.3 - 1.0, (l % 3) as f32 * 0.7, 0.2 * l as f32);
-        for l in 0..crate::noise::LANES {
+        for l in 0..crate::simd::LANES {
             points.set(l, at(l));
         }
-        let d: [f32; crate::noise::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
+        let d: [f32; crate::simd::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
         for src in [
             "if x.x > 0 { noise(x * freq) } else { sq(x.y) + d }",
             "if x.x > 0.5 { 1 } else if x.y > 0.5 { vnoise(x).y } else if d > 0.3 { 3 } else { x.z }",
@@ -1340,7 +1411,7 @@ mod tests {
             let p = compile_expression(src, Kind::Probe, &ctx).unwrap();
             for isa in crate::simd::Isa::available() {
                 let lanes = p.eval_lanes(&points, &d, &f, isa);
-                for l in 0..crate::noise::LANES {
+                for l in 0..crate::simd::LANES {
                     let one = p.eval(super::super::eval::Inputs { x: at(l), d: d[l] }, &f);
                     for c in 0..3 {
                         assert_eq!(

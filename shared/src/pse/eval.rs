@@ -17,9 +17,10 @@ use glam::Vec3;
 
 use crate::curve::Curve;
 use crate::density::{Density, Field, Points};
-use crate::noise::{LANES, Lanes, VNOISE_OFFSET};
+use crate::noise::VNOISE_OFFSET;
 use crate::shaping::{Bias, Gain};
 use crate::simd::Isa;
+use crate::simd::{LANES, Lanes};
 
 /// Registers per program: `u8` register names index a `[f32; 256]` file.
 pub const MAX_REGISTERS: usize = 256;

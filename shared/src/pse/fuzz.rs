@@ -11,9 +11,9 @@ use super::{Context, Kind, compile_expression, parse_functions};
 use crate::curve::Curve;
 use crate::density::{Density, Field, Points};
 use crate::noise::Noise;
-use crate::noise::{LANES, Lanes};
 use crate::scene::desc::{ObjectDesc, SphereDesc, V3};
 use crate::simd::Isa;
+use crate::simd::{LANES, Lanes};
 
 /// Parses `functions`, compiles `expression` as every kind of expression, and
 /// evaluates each program that compiles at a few points (finite and not).

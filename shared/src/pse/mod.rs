@@ -23,6 +23,7 @@ pub mod surface;
 
 pub use compile::{Context, Kind, compile_expression, parse_functions};
 pub use eval::Program;
+pub use surface::SceneExpressions;
 
 /// A mistake in an expression, at a byte offset of its text.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -61,6 +62,17 @@ impl ExprError {
             " ".repeat(column - 1)
         )
     }
+}
+
+/// A compile error of one of the scene's expressions, before it is located in the file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpressionFailure {
+    /// The scene field.
+    pub field: String,
+    /// The expression text.
+    pub source: String,
+    /// What went wrong where.
+    pub error: ExprError,
 }
 
 fn floor_char_boundary(s: &str, mut i: usize) -> usize {

@@ -6,18 +6,17 @@ use std::collections::BTreeMap;
 
 use glam::Vec3;
 
+use super::ExpressionFailure;
 use super::{Context, Kind, Program, compile_expression, parse_functions};
 use crate::curve::Curve;
 use crate::density::{Density, Field};
 use crate::noise::Noise;
 use crate::scene::desc::{ObjectDesc, SceneDesc};
-use crate::scene::{ExpressionFailure, Scene};
 
-/// The compiled expressions of a scene.
-#[derive(Debug)]
+/// The compiled shading expressions of a scene: what the marcher's two hooks
+/// ([`surface_colour`], [`perturb_normal`]) run.
+#[derive(Clone, Debug, Default)]
 pub struct SceneExpressions {
-    /// The hypertexture: the `density` expression, or the native DMF chain.
-    pub density: Density,
     /// The `colour` expression.
     pub colour: Option<Program>,
     /// The `normal_perturbation` expression.
@@ -26,23 +25,21 @@ pub struct SceneExpressions {
 
 impl SceneExpressions {
     /// Compiles the expressions of `desc`; `object` is the scene's object with its
-    /// modulation (what `D` means), `step` the marching step.
+    /// modulation (what `D` means), `step` the marching step. Returns the
+    /// hypertexture (the `density` expression, or the native DMF chain) and the
+    /// shading expressions.
     pub fn build(
         desc: &SceneDesc,
         object: &ObjectDesc,
         step: f32,
         knobs: &BTreeMap<String, f64>,
         colour_map: &Curve<3>,
-    ) -> Result<SceneExpressions, ExpressionFailure> {
+    ) -> Result<(Density, SceneExpressions), ExpressionFailure> {
         let native = Density::build(object, step);
         let any =
             desc.density.is_some() || desc.colour.is_some() || desc.normal_perturbation.is_some();
         if !any {
-            return Ok(SceneExpressions {
-                density: native,
-                colour: None,
-                normal_perturbation: None,
-            });
+            return Ok((native, SceneExpressions::default()));
         }
         let fail = |field: &str, source: &str, error| ExpressionFailure {
             field: field.to_string(),
@@ -77,21 +74,30 @@ impl SceneExpressions {
             &desc.normal_perturbation,
             Kind::Normal,
         )?;
-        Ok(SceneExpressions {
-            density: density.map_or(native, |p| Density::Expression(Box::new(p))),
-            colour,
-            normal_perturbation,
-        })
+        Ok((
+            density.map_or(native, |p| Density::Expression(Box::new(p))),
+            SceneExpressions {
+                colour,
+                normal_perturbation,
+            },
+        ))
     }
 }
 
 /// The base colour of a sample of density `f` at x: the `colour` expression, or the
 /// colour map at `key`.
 #[inline]
-pub(crate) fn surface_colour(scene: &Scene, x: Vec3, f: f32, key: f32, field: &Field) -> Vec3 {
-    match &scene.colour_expression {
+pub(crate) fn surface_colour(
+    exprs: &SceneExpressions,
+    colour_map: &Curve<3>,
+    x: Vec3,
+    f: f32,
+    key: f32,
+    field: &Field,
+) -> Vec3 {
+    match &exprs.colour {
         Some(p) => p.eval_vector(x, f, field),
-        None => Vec3::from_array(scene.colour_map.eval(key)),
+        None => Vec3::from_array(colour_map.eval(key)),
     }
 }
 
@@ -99,8 +105,14 @@ pub(crate) fn surface_colour(scene: &Scene, x: Vec3, f: f32, key: f32, field: &F
 /// 1985: `normal += dnoise(x)`), renormalised; x is the object-space point, and
 /// the perturbation turns with the object.
 #[inline]
-pub(crate) fn perturb_normal(scene: &Scene, x: Vec3, f: f32, n: Vec3, field: &Field) -> Vec3 {
-    match &scene.normal_perturbation {
+pub(crate) fn perturb_normal(
+    exprs: &SceneExpressions,
+    x: Vec3,
+    f: f32,
+    n: Vec3,
+    field: &Field,
+) -> Vec3 {
+    match &exprs.normal_perturbation {
         Some(p) => (n + field.world_vector(p.eval_vector(x, f, field))).normalize_or(n),
         None => n,
     }
@@ -156,7 +168,7 @@ pub fn probe(
             let functions = parse_functions(src).map_err(|e| fail("functions", src, e))?;
             let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
             let step = desc.march.step.length((max - min).length());
-            let object = Scene::object_with_modulation(desc);
+            let object = desc.object_with_modulation();
             let mut objects = vec![("D".to_string(), Density::build(&object, step))];
             for (name, o) in &desc.objects {
                 objects.push((name.clone(), Density::build(o, step)));

@@ -101,6 +101,21 @@ pub struct SceneDesc {
     pub transform: Option<TransformDesc>,
 }
 
+impl SceneDesc {
+    /// The scene's object with its modulation: what expressions call `D`.
+    pub fn object_with_modulation(&self) -> ObjectDesc {
+        if self.modulation.is_empty() && self.distortion.is_none() {
+            self.object.clone()
+        } else {
+            ObjectDesc::Hypertexture(HypertextureDesc {
+                object: Box::new(self.object.clone()),
+                modulation: self.modulation.clone(),
+                distortion: self.distortion.clone(),
+            })
+        }
+    }
+}
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename = "Scene")]
 struct SceneFields {

@@ -18,8 +18,9 @@ use crate::curve::Curve;
 use crate::density::{Density, Support};
 use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
+use crate::pse::{ExpressionFailure, SceneExpressions};
 use crate::simd::Isa;
-use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, ObjectDesc, SceneDesc};
+use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, SceneDesc};
 
 /// The largest scene file we read. The paper's whole database was under 5 KB.
 pub const MAX_SCENE_BYTES: usize = 64 * 1024;
@@ -91,17 +92,8 @@ pub struct Overrides {
     pub knobs: Vec<(String, f64)>,
 }
 
-/// A compile error of one of the scene's expressions, before it is located in the file.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ExpressionFailure {
-    /// The scene field.
-    pub field: String,
-    /// The expression text.
-    pub source: String,
-    /// What went wrong where.
-    pub error: crate::pse::ExprError,
-}
-
+/// Where [`SceneError`] meets the expressions: a compile error located in the
+/// scene file.
 impl ExpressionFailure {
     /// The error located in the scene file `text` named `path`: the file position of
     /// the spot when the expression appears verbatim in the file (no escapes), else
@@ -336,10 +328,9 @@ pub struct Scene {
     pub(crate) seed: u64,
     /// Frames per second of the expressions' time t.
     pub(crate) frame_rate: f32,
-    /// The colour of a sample, when written as an expression.
-    pub(crate) colour_expression: Option<crate::pse::Program>,
-    /// The normal perturbation expression (bumps, waves).
-    pub(crate) normal_perturbation: Option<crate::pse::Program>,
+    /// The colour of a sample and the normal perturbation (bumps, waves), when
+    /// written as expressions.
+    pub(crate) expressions: SceneExpressions,
     /// The object's rigid motion (`density` is then [`Density::Moving`]).
     pub(crate) motion: Option<Motion>,
 }
@@ -388,7 +379,7 @@ impl Scene {
     ) -> Result<Scene, ExpressionFailure> {
         let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
         let step = desc.march.step.length((max - min).length());
-        let object = Scene::object_with_modulation(desc);
+        let object = desc.object_with_modulation();
         let background = match desc.background {
             BackgroundDesc::Transparent => Background::Transparent,
             BackgroundDesc::Colour(c) => Background::Colour(Vec3::from_array(c.0)),
@@ -425,12 +416,12 @@ impl Scene {
             },
         };
         let colour_map = Curve::colours(&desc.colour_map);
-        let exprs =
-            crate::pse::surface::SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
+        let (density, expressions) =
+            SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
         let motion = desc.transform.as_ref().map(Motion::build);
         let density = match motion {
-            Some(_) => Density::Moving(Box::new(exprs.density)),
-            None => exprs.density,
+            Some(_) => Density::Moving(Box::new(density)),
+            None => density,
         };
         // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
@@ -463,23 +454,9 @@ impl Scene {
             shutter: desc.sampling.shutter.0,
             seed: desc.seed,
             frame_rate: desc.frame_rate.0,
-            colour_expression: exprs.colour,
-            normal_perturbation: exprs.normal_perturbation,
+            expressions,
             motion,
         })
-    }
-
-    /// The scene's object with its modulation: what expressions call `D`.
-    pub fn object_with_modulation(desc: &SceneDesc) -> ObjectDesc {
-        if desc.modulation.is_empty() && desc.distortion.is_none() {
-            desc.object.clone()
-        } else {
-            ObjectDesc::Hypertexture(desc::HypertextureDesc {
-                object: Box::new(desc.object.clone()),
-                modulation: desc.modulation.clone(),
-                distortion: desc.distortion.clone(),
-            })
-        }
     }
 
     /// The instruction-set path the batch kernels run on ([`Isa::detect`] by default).

@@ -1,0 +1,89 @@
+//! The fractal sphere's warp: `c + (x − c)(1 + a · Σ noise(2^i f x) / (2^i f))`.
+
+use glam::Vec3;
+
+use super::WarpDmf;
+use crate::density::Field;
+use crate::density::bounds::NOISE_BOUND;
+use crate::density::lanes::{Points, zip};
+use crate::dual::{Dual, DualPoint};
+use crate::scene::desc::DmfDesc;
+use crate::simd::{Isa, LANES};
+
+/// `c + (x − c)(1 + a · Σ noise(2^i f x) / (2^i f))`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FractalRadius {
+    /// Frequency f of the first octave.
+    frequency: f32,
+    /// Octaves, clamped by the marching step.
+    octaves: u32,
+    /// Amplitude a of the radial displacement.
+    amplitude: f32,
+    /// Centre c of the scaling.
+    centre: Vec3,
+}
+
+impl WarpDmf for FractalRadius {
+    fn from_desc(desc: &DmfDesc, step: f32) -> Option<Self> {
+        let DmfDesc::FractalRadius {
+            frequency,
+            octaves,
+            amplitude,
+            centre,
+        } = *desc
+        else {
+            return None;
+        };
+        Some(FractalRadius {
+            frequency: frequency.0,
+            octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
+            amplitude: amplitude.0,
+            centre: centre.0,
+        })
+    }
+
+    #[inline]
+    fn apply(&self, x: Vec3, field: &Field) -> Vec3 {
+        let mut sum = 0.0;
+        let mut f = self.frequency;
+        for _ in 0..self.octaves {
+            sum += field.noise(f, x) / f;
+            f *= 2.0;
+        }
+        self.centre + (x - self.centre) * (1.0 + self.amplitude * sum)
+    }
+
+    fn apply_dual(&self, x: &DualPoint, field: &Field) -> DualPoint {
+        let mut sum = Dual::constant(0.0);
+        let mut f = self.frequency;
+        for _ in 0..self.octaves {
+            sum = sum + field.noise_dual(f, x) * (1.0 / f);
+            f *= 2.0;
+        }
+        let s = sum * self.amplitude + 1.0;
+        x.offset(-self.centre).scale(s).offset(self.centre)
+    }
+
+    #[inline(always)]
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        let mut sum = [0.0; LANES];
+        let mut f = self.frequency;
+        for _ in 0..self.octaves {
+            let n = field.noise_at(f, x, isa);
+            sum = zip(&sum, &n, |s, n| s + n / f);
+            f *= 2.0;
+        }
+        x.scale_about(self.centre, &sum.map(|s| 1.0 + self.amplitude * s))
+    }
+
+    fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
+        let mut sum = 0.0;
+        let mut f = self.frequency;
+        for _ in 0..self.octaves {
+            sum += NOISE_BOUND / f;
+            f *= 2.0;
+        }
+        let a = self.amplitude.abs() * sum;
+        Some((self.centre, 1.0 - a, 1.0 + a))
+    }
+}

@@ -1,0 +1,143 @@
+//! Every DMF on every path: the lanes of SSE4.1 and AVX2 give the scalar
+//! bits, and the dual path the scalar value with a finite gradient.
+
+use std::collections::BTreeSet;
+
+use glam::Vec3;
+
+use super::{Dmf, Modulation, Warp};
+use crate::density::{Density, Field, Hypertexture, Points};
+use crate::dual::DualPoint;
+use crate::noise::Noise;
+use crate::random::SplitMix64;
+use crate::scene::desc::{DmfDesc, ObjectDesc};
+use crate::simd::{Isa, LANES};
+
+/// The registered DMF a description builds, by name. The match has no
+/// wildcard: a DMF registered without a case below does not compile.
+fn registered(dmf: &Dmf) -> &'static str {
+    match dmf {
+        Dmf::Warp(Warp::NoisyRadius(_)) => "NoisyRadius",
+        Dmf::Warp(Warp::FractalRadius(_)) => "FractalRadius",
+        Dmf::Warp(Warp::Dripping(_)) => "Dripping",
+        Dmf::Warp(Warp::TurbulentRadius(_)) => "TurbulentRadius",
+        Dmf::Value(Modulation::Bias(_)) => "Bias",
+        Dmf::Value(Modulation::Gain(_)) => "Gain",
+        Dmf::Value(Modulation::Fur(_)) => "Fur",
+    }
+}
+
+/// Every registered DMF, as a scene writes it.
+const EVERY_DMF: usize = 7;
+
+/// (object, DMFs): each DMF alone, on the objects whose code paths differ
+/// (the fur projects onto a sphere, a box or a torus), and chained.
+const CASES: &[(&str, &str)] = &[
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "NoisyRadius(frequency: 3.0, amplitude: 0.4)",
+    ),
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "FractalRadius(frequency: 2.0, octaves: 6, amplitude: 0.5)",
+    ),
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "Dripping(frequency: 5.0, amplitude: 0.9, stretch: 0.1)",
+    ),
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "TurbulentRadius(frequency: 2.0, amplitude: 1.0, octaves: 5)",
+    ),
+    ("Sphere(radius: 0.9, softness: 0.6)", "Bias(0.3)"),
+    ("Sphere(radius: 0.9, softness: 0.6)", "Gain(0.8)"),
+    ("Sphere(radius: 0.9, softness: 0.6)", "Fur(frequency: 30.0)"),
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "Fur(frequency: 30.0, bias: 0.3, gain: 0.9, curliness: 0.9)",
+    ),
+    (
+        "Box(half_size: (0.6, 0.5, 0.7), softness: 0.4)",
+        "Fur(frequency: 20.0, curliness: 0.5)",
+    ),
+    (
+        "Torus(major_radius: 0.8, minor_radius: 0.3, softness: 0.3)",
+        "Fur(frequency: 25.0, curliness: 0.7)",
+    ),
+    (
+        "Sphere(radius: 0.9, softness: 0.6)",
+        "NoisyRadius(frequency: 2.0, amplitude: 0.2), TurbulentRadius(frequency: 3.0, amplitude: 0.3, octaves: 3), Bias(0.6), Gain(0.3), Fur(frequency: 12.0, curliness: 0.4)",
+    ),
+];
+
+fn case(object: &str, dmfs: &str) -> (Density, Vec<DmfDesc>) {
+    let step = 0.01;
+    // The scene parser's extensions: `Sphere(radius: …)` for `Sphere(Sphere(…))`.
+    let ron = ron::Options::default()
+        .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
+    let object: ObjectDesc = ron.from_str(object).expect("a valid object");
+    let dmfs: Vec<DmfDesc> = ron.from_str(&format!("[{dmfs}]")).expect("valid DMFs");
+    let h = Hypertexture::build(Density::build(&object, step), &dmfs, step);
+    (Density::Hypertexture(Box::new(h)), dmfs)
+}
+
+#[test]
+fn every_dmf_gives_the_same_bits_on_every_path() {
+    let noise = Noise::new(1989);
+    let field = Field {
+        noise: &noise,
+        offset: Vec3::new(0.0, 0.06, 0.0),
+        frame: 3,
+        time: 3.0,
+        frame_rate: 24.0,
+        pose: None,
+        support: None,
+    };
+    let isas = Isa::available();
+    assert!(isas.contains(&Isa::Scalar));
+    let mut seen = BTreeSet::new();
+    for &(object, dmfs) in CASES {
+        let (density, descs) = case(object, dmfs);
+        for d in &descs {
+            seen.insert(registered(&Dmf::build(d, 0.01)));
+        }
+        let mut r = SplitMix64::new(18);
+        let mut non_zero = 0;
+        for _ in 0..1000 / LANES {
+            let mut points = Points::default();
+            for l in 0..LANES {
+                let p = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 3.0 - 1.5;
+                points.set(l, p);
+            }
+            let scalar: [f32; LANES] = std::array::from_fn(|l| density.eval(points.get(l), &field));
+            non_zero += scalar.iter().filter(|&&v| v > 0.0).count();
+            for &isa in &isas {
+                let lanes = density.eval_lanes(&points, &field, isa);
+                assert_eq!(
+                    lanes.map(f32::to_bits),
+                    scalar.map(f32::to_bits),
+                    "{dmfs} on {object}, {isa:?} at {points:?}"
+                );
+            }
+            for (l, &v) in scalar.iter().enumerate() {
+                let p = points.get(l);
+                let dual = density.eval_dual(&DualPoint::at(p), &field, 0.01);
+                assert!(
+                    (dual.v - v).abs() <= 1e-5,
+                    "{dmfs} on {object}, dual {} against {v} at {p}",
+                    dual.v
+                );
+                assert!(
+                    dual.d.is_finite(),
+                    "{dmfs} on {object}: gradient {} at {p}",
+                    dual.d
+                );
+            }
+        }
+        assert!(
+            non_zero > 50,
+            "{dmfs} on {object}: only {non_zero} points inside"
+        );
+    }
+    assert_eq!(seen.len(), EVERY_DMF, "DMFs tested: {seen:?}");
+}

@@ -1,0 +1,86 @@
+//! The fiery sphere's warp: `c + (x − c)(1 + a · turbulence(f x))`.
+
+use glam::Vec3;
+
+use super::WarpDmf;
+use crate::density::Field;
+use crate::density::bounds::NOISE_BOUND;
+use crate::density::lanes::{Points, zip};
+use crate::dual::{Dual, DualPoint};
+use crate::scene::desc::DmfDesc;
+use crate::simd::{Isa, LANES};
+
+/// `c + (x − c)(1 + a · turbulence(f x))`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TurbulentRadius {
+    /// Frequency f of the first octave.
+    frequency: f32,
+    /// Amplitude a of the radial displacement.
+    amplitude: f32,
+    /// Octaves, clamped by the marching step.
+    octaves: u32,
+    /// Centre c of the scaling.
+    centre: Vec3,
+}
+
+impl WarpDmf for TurbulentRadius {
+    fn from_desc(desc: &DmfDesc, step: f32) -> Option<Self> {
+        let DmfDesc::TurbulentRadius {
+            frequency,
+            amplitude,
+            octaves,
+            centre,
+        } = *desc
+        else {
+            return None;
+        };
+        Some(TurbulentRadius {
+            frequency: frequency.0,
+            amplitude: amplitude.0,
+            octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
+            centre: centre.0,
+        })
+    }
+
+    #[inline]
+    fn apply(&self, x: Vec3, field: &Field) -> Vec3 {
+        let t = field.turbulence(self.frequency, x, self.octaves);
+        self.centre + (x - self.centre) * (1.0 + self.amplitude * t)
+    }
+
+    fn apply_dual(&self, x: &DualPoint, field: &Field) -> DualPoint {
+        let q = x.offset(-field.offset).times(self.frequency);
+        let mut sum = Dual::constant(0.0);
+        let mut scale = 1.0f32;
+        for _ in 0..self.octaves {
+            sum = sum + field.noise.noise_dual(&q.times(scale)).abs() * (1.0 / scale);
+            scale *= 2.0;
+        }
+        let s = sum * self.amplitude + 1.0;
+        x.offset(-self.centre).scale(s).offset(self.centre)
+    }
+
+    #[inline(always)]
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        let q = x.map(|p| (p - field.offset) * self.frequency);
+        let mut sum = [0.0; LANES];
+        let mut scale = 1.0f32;
+        for _ in 0..self.octaves {
+            let n = field.noise_lanes(&q.map(|p| p * scale), isa);
+            sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
+            scale *= 2.0;
+        }
+        x.scale_about(self.centre, &sum.map(|t| 1.0 + self.amplitude * t))
+    }
+
+    fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
+        let mut t = 0.0;
+        let mut scale = 1.0;
+        for _ in 0..self.octaves {
+            t += NOISE_BOUND / scale;
+            scale *= 2.0;
+        }
+        let a = self.amplitude * t;
+        Some((self.centre, 1.0 + a.min(0.0), 1.0 + a.max(0.0)))
+    }
+}

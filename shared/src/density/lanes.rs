@@ -1,0 +1,249 @@
+//! The density at [`LANES`] points at once: [`Density::eval_lanes`], the same
+//! bits lane by lane as [`Density::eval`], with the noise and the powers
+//! computed a batch at a time. On a SIMD path the whole tree below a
+//! `#[target_feature]` copy (`x86` below) is `#[inline(always)]`: the
+//! primitives, the warps and value DMFs' lane forms ([`super::dmf`]), noise
+//! and `pow01`, so the lanes stay in that instruction set's registers; only a
+//! non-primitive child node is a call.
+
+use glam::Vec3;
+
+use super::{Density, Field, Hypertexture};
+use crate::simd::{Isa, LANES, Lanes};
+use crate::soft::boolean;
+
+/// [`LANES`] points, one coordinate per array: the batch the vectorised paths
+/// evaluate (several samples along a ray, or the gradient's neighbours).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Points {
+    /// x of each point.
+    pub x: Lanes,
+    /// y of each point.
+    pub y: Lanes,
+    /// z of each point.
+    pub z: Lanes,
+}
+
+impl Points {
+    /// Point `l`.
+    #[inline(always)]
+    pub fn get(&self, l: usize) -> Vec3 {
+        Vec3::new(self.x[l], self.y[l], self.z[l])
+    }
+
+    /// Sets point `l`.
+    #[inline(always)]
+    pub fn set(&mut self, l: usize, p: Vec3) {
+        self.x[l] = p.x;
+        self.y[l] = p.y;
+        self.z[l] = p.z;
+    }
+
+    /// The points `c + (x − c)·s` lane by lane: a warp's scaling about `centre`.
+    #[inline(always)]
+    pub(crate) fn scale_about(&self, centre: Vec3, s: &Lanes) -> Points {
+        let mut out = Points::default();
+        for (l, &s) in s.iter().enumerate() {
+            out.set(l, centre + (self.get(l) - centre) * s);
+        }
+        out
+    }
+
+    /// The points `f(point)`, lane by lane.
+    #[inline(always)]
+    pub(crate) fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, f(self.get(l)));
+        }
+        out
+    }
+}
+
+/// `f(point)` lane by lane.
+#[inline(always)]
+fn each(x: &Points, f: impl Fn(Vec3) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = f(x.get(l));
+    }
+    out
+}
+
+/// `f(a, b)` lane by lane.
+#[inline(always)]
+pub(super) fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        out[l] = f(a[l], b[l]);
+    }
+    out
+}
+
+impl Field<'_> {
+    /// `noise` at the points: the lane kernel itself, inlined into the
+    /// per-instruction-set copy of [`Density::eval_lanes`] (`isa` is a
+    /// constant there).
+    #[inline(always)]
+    pub(super) fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
+        self.noise.noise_lanes_on(isa, &p.x, &p.y, &p.z)
+    }
+
+    /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
+    #[inline(always)]
+    pub(super) fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
+        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
+    }
+}
+
+impl Density {
+    /// [`Density::project`] at each point.
+    #[inline(always)]
+    pub(crate) fn project_lanes(&self, x: &Points) -> Points {
+        match self {
+            Density::Sphere(s) => x.map(|p| s.project(p)),
+            Density::Box(b) => x.map(|p| b.project(p)),
+            Density::Torus(t) => {
+                let mut p = *x;
+                t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
+                p
+            }
+            _ => *x,
+        }
+    }
+
+    /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
+    /// the noise and the powers computed a batch at a time on `isa`.
+    #[inline]
+    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match isa {
+            Isa::Scalar => each(x, |p| self.eval(p, field)),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => each(x, |p| self.eval(p, field)),
+        }
+    }
+
+    /// [`Density::eval_lanes`] on a SIMD path: written once, inlined into a
+    /// copy per instruction set (`x86` below) together with everything it
+    /// calls but its children, so the lanes stay in that set's registers
+    /// from the points to the powers.
+    #[inline(always)]
+    pub(crate) fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Box(b) => each(x, |p| b.density(p)),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            Density::Expression(program) => {
+                program.eval_lanes(x, &[0.0; LANES], field, isa)[0].map(crate::shaping::clamp01)
+            }
+            Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), boolean::union)
+            }),
+            Density::Intersection(v) => {
+                let mut a = [1.0; LANES];
+                for d in v {
+                    if a.iter().all(|&a| a == 0.0) {
+                        break;
+                    }
+                    let b = d.eval_child(x, field, isa);
+                    // A lane that reached 0 stopped there (`eval` breaks out).
+                    a = zip(&a, &b, |a, b| {
+                        if a == 0.0 {
+                            a
+                        } else {
+                            boolean::intersection(a, b)
+                        }
+                    });
+                }
+                a
+            }
+            Density::Difference(a, b) => {
+                let a = a.eval_child(x, field, isa);
+                if a.iter().all(|&a| a == 0.0) {
+                    return [0.0; LANES];
+                }
+                let b = b.eval_child(x, field, isa);
+                zip(&a, &b, |a, b| {
+                    if a == 0.0 {
+                        0.0
+                    } else {
+                        boolean::difference(a, b)
+                    }
+                })
+            }
+            Density::Complement(a) => a.eval_child(x, field, isa).map(boolean::complement),
+            Density::Max(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), f32::max)
+            }),
+            Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), f32::min)
+            }),
+            Density::Hypertexture(h) => h.eval_lanes_simd(x, field, isa),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_child(&pose.to_object_lanes(x), field, isa),
+                None => d.eval_child(x, field, isa),
+            },
+        }
+    }
+}
+
+impl Density {
+    /// A child's lanes inside [`Density::eval_lanes_simd`]: the primitives
+    /// inline, the rest through [`Density::eval_lanes`].
+    #[inline(always)]
+    fn eval_child(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            _ => self.eval_lanes(x, field, isa),
+        }
+    }
+}
+
+/// The copies of [`Density::eval_lanes_simd`] per instruction set: the one
+/// `#[target_feature]` function at the top of the density's hot path.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Sse41)
+    }
+}
+
+impl Hypertexture {
+    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
+    /// [`Density::eval_lanes_simd`]).
+    #[inline(always)]
+    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let mut p = *x;
+        for w in &self.warps {
+            p = w.apply_lanes(&p, field, isa);
+        }
+        if let Some(d) = &self.distortion {
+            p = p.map(|q| d.apply(q, &self.object, field));
+        }
+        let mut v = self.object.eval_child(&p, field, isa);
+        for m in &self.modulation {
+            if v.iter().all(|&v| v == 0.0) {
+                break;
+            }
+            let next = m.apply_lanes(&v, &p, &self.object, field, isa);
+            // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
+            v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
+        }
+        v
+    }
+}
