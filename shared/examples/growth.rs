@@ -1,4 +1,4 @@
-//! Cost growth of the furry donut with resolution (issue 4, point 5): with the
+//! Cost growth of the furry donut with resolution: with the
 //! marching step tied to the pixel size the work per pixel grows with n, so the
 //! frame costs O(n³), as the paper says; with the step fixed it costs O(n²).
 //!

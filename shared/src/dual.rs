@@ -1,5 +1,5 @@
 //! Forward-mode differentiation: the density and its gradient in one pass
-//! through the density chain (point 4 of the speed issue, `gradient: Dual`).
+//! through the density chain (`gradient: Dual`).
 //!
 //! A [`Dual`] is a number with its gradient with respect to the world point x
 //! (a dual number with three infinitesimal parts); a [`DualPoint`] is a point
@@ -18,7 +18,7 @@
 //! The gradient is the derivative of the density, where the paper's differences
 //! are its slope over a step: the two differ where the density bends within a
 //! step (fine noise, the edge of a hair), so the image differs slightly, and
-//! the 1989 differences stay the default (BENCHMARKS.md measures both).
+//! the 1989 differences stay the default (docs/benchmark-log.md, "The dual-number gradient", measures both).
 //! Like the rest of the library it uses basic IEEE operations in a fixed order
 //! (no fused multiply-add), so every CPU computes the same bits.
 

@@ -128,7 +128,7 @@ pub fn bayer_rank(interleave: u32, x: u32, y: u32) -> u32 {
 ///   they only add calls, about 0.1 ms of a worker's CPU each on our VM. At
 ///   64 workers on the 512² corner frame (3.4 ms per worker), 448 units,
 ///   finer at the end, simulated 86–95% efficiency; whole sets, 96–97%
-///   (BENCHMARKS.md, session 13). A straggler is covered by the scheduler's
+///   (docs/benchmark-log.md, "equal units for large farms"). A straggler is covered by the scheduler's
 ///   speculative duplicates.
 pub fn farm_units(width: u32, height: u32, interleave: u32, workers: usize) -> Vec<WorkUnit> {
     let pixels = u64::from(width) * u64::from(height);

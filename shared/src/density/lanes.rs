@@ -112,6 +112,18 @@ impl Density {
         }
     }
 
+    /// [`Density::project_lanes`] in place: the points are not copied (the
+    /// fur's hot path).
+    #[inline(always)]
+    pub(crate) fn project_lanes_in_place(&self, x: &mut Points) {
+        match self {
+            Density::Sphere(s) => *x = x.map(|p| s.project(p)),
+            Density::Box(b) => *x = x.map(|p| b.project(p)),
+            Density::Torus(t) => t.project_lanes(&mut x.x, &mut x.y, &mut x.z),
+            _ => {}
+        }
+    }
+
     /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
     /// the noise and the powers computed a batch at a time on `isa`.
     #[inline]

@@ -14,7 +14,7 @@ use crate::noise::Noise;
 use crate::scene::desc::{ObjectDesc, SceneDesc};
 
 /// The compiled shading expressions of a scene: what the marcher's two hooks
-/// ([`surface_colour`], [`perturb_normal`]) run.
+/// (`surface_colour`, `perturb_normal`) run.
 #[derive(Clone, Debug, Default)]
 pub struct SceneExpressions {
     /// The `colour` expression.

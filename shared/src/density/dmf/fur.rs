@@ -91,7 +91,7 @@ impl ValueDmf for Fur {
         field: &Field,
         isa: Isa,
     ) -> Lanes {
-        let x = if self.curliness > 0.0 {
+        let mut x = if self.curliness > 0.0 {
             let q = x.map(|x| x - field.offset);
             let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
             let b = field.noise_lanes(&q, isa);
@@ -106,8 +106,9 @@ impl ValueDmf for Fur {
         } else {
             *x
         };
+        object.project_lanes_in_place(&mut x);
         let s = field
-            .noise_at(self.frequency, &object.project_lanes(&x), isa)
+            .noise_at(self.frequency, &x, isa)
             .map(|n| 0.5 * (1.0 + n));
         let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
         zip(&shaped, d, |f, d| f * d)

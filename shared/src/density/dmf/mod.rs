@@ -5,7 +5,7 @@
 //!
 //! Adding a DMF is one file implementing [`WarpDmf`] (it moves the point
 //! where D is evaluated) or [`ValueDmf`] (it reshapes the density), and one
-//! line in [`warps!`] or [`modulations!`] below, which builds the enum that
+//! line in `warps!` or `modulations!` below, which builds the enum that
 //! dispatches to it and reads it from its [`DmfDesc`]. The test at the bottom
 //! runs every registered DMF on every path.
 
