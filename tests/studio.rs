@@ -384,3 +384,85 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     let _ = studio.child.kill();
     let _ = studio.child.wait();
 }
+
+/// Latency of the studio on the PSE fur at 512² with 2 local workers,
+/// measured in the page (`performance.now()` from the slider's input event):
+/// `cargo test --release -p coordinator --test studio -- --ignored --nocapture latency`.
+#[test]
+#[ignore = "a measurement: run it on purpose, in release"]
+fn latency() {
+    let chromium = chromium().expect("Chromium (scripts/test-deps/chromium.sh)");
+    let dir = scratch("studio-latency");
+    let scene = root().join("scenes/pse/fur.ron");
+    let one_shot = Instant::now();
+    let out = coordinator(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        dir.join("one-shot.png").to_str().unwrap(),
+        "--local-workers",
+        "2",
+        "--quiet",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let one_shot = one_shot.elapsed().as_secs_f64();
+    let data = dir.join("data");
+    let mut studio = Running::coordinator(&[
+        "studio",
+        scene.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "2",
+        "--data",
+        data.to_str().unwrap(),
+    ]);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut browser = Browser::start(&chromium, &dir.join("profile"));
+    browser.call(
+        "Page.navigate",
+        json!({ "url": format!("http://127.0.0.1:{port}/") }),
+    );
+    browser.wait_until(COMPLETE_HIGH, 300);
+    // One step of a slider, then rest.
+    let g = browser.eval("studio.generation").as_u64().unwrap();
+    browser.eval(
+        "(() => { const k = document.getElementById('knob-fineness'); \
+         k.value = 41; k.dispatchEvent(new Event('input')); })()",
+    );
+    browser.wait_until(
+        &format!("studio.generation > {} && {COMPLETE_HIGH}", g + 1),
+        300,
+    );
+    let timings = browser.eval(&format!(
+        "JSON.stringify(studio.timings.filter(t => t.generation > {g}))"
+    ));
+    let seconds = browser.eval("studio.serverSeconds");
+    // Dragging: a step every 33 ms for 4 s.
+    let drawn = browser.eval("studio.framesDrawn").as_u64().unwrap();
+    let g = browser.eval("studio.generation").as_u64().unwrap();
+    browser.eval(
+        "new Promise(done => { let v = 20, n = 0; const k = document.getElementById('knob-fineness'); \
+         const t = setInterval(() => { k.value = v += 0.5; k.dispatchEvent(new Event('input')); \
+         if (++n === 120) { clearInterval(t); done(); } }, 33); })",
+    );
+    let drawn = browser.eval("studio.framesDrawn").as_u64().unwrap() - drawn;
+    let drag = browser.eval(&format!(
+        "JSON.stringify(studio.timings.filter(t => t.generation > {g} && t.first !== null).length)"
+    ));
+    eprintln!(
+        "one-shot farm (2 local workers, process start to exit): {one_shot:.2} s\n\
+         after one slider step, per generation (ms from the input event: first image, whole frame): {timings}\n\
+         high-quality frame, first unit out to last tile (server): {seconds} s\n\
+         dragging 4 s: {drawn} canvas updates ({:.1}/s), {drag} frames with an image",
+        drawn as f64 / 3.96
+    );
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
