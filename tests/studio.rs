@@ -159,10 +159,12 @@ impl Browser {
         r["result"]["value"].clone()
     }
 
-    /// Waits (at most `secs`) until `expression` is true.
+    /// Waits (at most `secs`) until `expression` is true (once the page's
+    /// script has run).
     fn wait_until(&mut self, expression: &str, secs: u64) {
         let deadline = Instant::now() + Duration::from_secs(secs);
-        while self.eval(expression) != json!(true) {
+        let guarded = format!("typeof studio !== 'undefined' && ({expression})");
+        while self.eval(&guarded) != json!(true) {
             assert!(
                 Instant::now() < deadline,
                 "not true within {secs} s: {expression}; studio: {}",
