@@ -424,7 +424,7 @@ impl Auth {
 }
 
 /// Whether `given` equals `secret`, in a time that depends only on their lengths.
-fn same_secret(given: &[u8], secret: &[u8]) -> bool {
+pub(crate) fn same_secret(given: &[u8], secret: &[u8]) -> bool {
     let mut diff = given.len() ^ secret.len();
     for i in 0..given.len().max(secret.len()) {
         let a = given.get(i).copied().unwrap_or(0);

@@ -130,6 +130,10 @@ pub enum Command {
     /// workers that stay between jobs, an HTTP/JSON API and metrics on the
     /// workers' port.
     Serve(ServeArgs),
+    /// The live studio: the service with its local workers and SCENE open in
+    /// a page (at the printed URL) that refines the image as units arrive,
+    /// with a slider per knob and the scene's text editable.
+    Studio(StudioArgs),
     /// Queue a job on a running service; prints its id.
     Submit(SubmitArgs),
     /// Show a service's jobs and workers (or one job).
@@ -194,6 +198,34 @@ pub struct ServeArgs {
     /// Log lines as text or JSON.
     #[arg(long, value_name = "FORMAT", default_value = "plain")]
     pub log_format: LogFormat,
+    /// Only warnings and errors.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// Arguments of `coordinator studio`.
+#[derive(Debug, clap::Args)]
+pub struct StudioArgs {
+    /// The scene file (RON) to open; Save writes it back (the old file to SCENE.bak).
+    #[arg(value_name = "SCENE")]
+    pub scene: PathBuf,
+    /// Where to listen (port 0: any free port). Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:47000")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// The service's store (default: a new directory under the system's temporary directory).
+    #[arg(long, value_name = "DIR")]
+    pub data: Option<PathBuf>,
+    /// Shared secret workers and the page must present.
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
     /// Only warnings and errors.
     #[arg(long, short)]
     pub quiet: bool,

@@ -41,6 +41,9 @@ fn main() -> ExitCode {
         Some(Command::Serve(args)) => coordinator::service::run(args)
             .map(|()| ExitCode::SUCCESS)
             .map_err(|e| e.to_string()),
+        Some(Command::Studio(args)) => coordinator::service::run_studio(args)
+            .map(|()| ExitCode::SUCCESS)
+            .map_err(|e| e.to_string()),
         Some(Command::Submit(args)) => coordinator::client::submit(&args)
             .map(|id| {
                 println!("{id}");

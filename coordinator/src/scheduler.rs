@@ -201,7 +201,7 @@ pub struct Counted {
 }
 
 /// A tile accepted into a canvas: what the service stores.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Accepted {
     /// The job.
     pub job: JobId,
@@ -209,6 +209,8 @@ pub struct Accepted {
     pub frame: u32,
     /// The unit's index.
     pub unit: usize,
+    /// The name of the worker that rendered it.
+    pub worker: String,
     /// From the unit's assignment to its tile.
     pub latency: Duration,
 }
@@ -863,6 +865,7 @@ impl Scheduler {
             job: job_id,
             frame,
             unit: issued_unit,
+            worker: self.workers[&wid].name.clone(),
             latency: now.saturating_duration_since(issued_at),
         }))
     }

@@ -13,6 +13,7 @@
 //! Lock order: a job table lock, then the farm's state, then the store.
 
 pub mod metrics;
+pub mod studio;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -40,6 +41,8 @@ pub struct ServiceConfig {
     pub farm: FarmConfig,
     /// On shutdown, how long units in flight get to arrive.
     pub drain_timeout: Duration,
+    /// The scene the studio (at `/`) opens, if any (`coordinator studio SCENE`).
+    pub studio_scene: Option<PathBuf>,
 }
 
 /// Why the service stopped with an error.
@@ -67,6 +70,9 @@ pub enum ServiceError {
     /// A TLS file could not be read.
     #[error("TLS: {0}")]
     Tls(String),
+    /// The studio's scene file could not be read.
+    #[error("{0}")]
+    Studio(String),
 }
 
 /// A job as the store keeps it: as submitted, and the unit layout it was
@@ -103,11 +109,16 @@ pub struct Service {
     draining: std::sync::atomic::AtomicBool,
 }
 
-/// Tiles go to the store as they are accepted.
-struct StoreSink(Arc<Service>);
+/// Tiles go to the store as they are accepted; the studio's live frames'
+/// tiles go to the studio instead.
+struct StoreSink(Arc<Service>, Arc<studio::Studio>);
 
 impl TileSink for StoreSink {
     fn tile(&self, a: &Accepted, pixels: &[u8]) {
+        if self.1.owns(a.job) {
+            self.1.tile(a, pixels);
+            return;
+        }
         let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
         if let Err(e) = store.put_tile(a.job, a.frame, a.unit as u32, pixels) {
             tracing::error!(
@@ -721,9 +732,44 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
             progress: false,
         },
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
+        studio_scene: None,
     };
     // One thread serves the farm and the API: per unit it checks, stores and
     // persists a tile, and any thread more competes with the local workers.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(crate::CoordinatorError::Runtime)?;
+    runtime
+        .block_on(serve(config, worker::shutdown_signal()))
+        .map_err(|e| crate::CoordinatorError::Service(Box::new(e)))
+}
+
+/// `coordinator studio SCENE`: the service with its local workers, the
+/// scene open at `/`; prints the page's URL and serves until SIGTERM or Ctrl-C.
+pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::CoordinatorError> {
+    crate::logging::init_with(args.quiet, false);
+    let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+    let data = args.data.unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("hypertexture-studio-{}", std::process::id()))
+    });
+    let config = ServiceConfig {
+        data,
+        farm: FarmConfig {
+            listen: args.listen,
+            token: args.token.filter(|t| !t.is_empty()),
+            lease: Duration::from_secs(10),
+            worker_timeout: Duration::MAX,
+            local_workers: args.local_workers.unwrap_or(cores),
+            local_threads: 1,
+            preview_every: None,
+            tls: None,
+            interleave: hypertexture::interleave::DEFAULT_INTERLEAVE,
+            progress: false,
+        },
+        drain_timeout: Duration::from_secs(5),
+        studio_scene: Some(args.scene),
+    };
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -747,7 +793,16 @@ pub async fn serve(
         draining: std::sync::atomic::AtomicBool::new(false),
     });
     let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
-    let routes = crate::api::router(control, config.farm.token.clone());
+    let studio = Arc::new(
+        studio::Studio::new(
+            config.studio_scene.as_deref(),
+            &config.data,
+            config.farm.token.clone(),
+        )
+        .map_err(ServiceError::Studio)?,
+    );
+    let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
+        .merge(crate::api::router(control, config.farm.token.clone()));
     // Units sized as for a LAN farm of the paper's 64 processors (at least one
     // unit each), or for the local workers when there are more.
     let expected = config.farm.local_workers.max(64);
@@ -755,7 +810,10 @@ pub async fn serve(
         config.farm.clone(),
         Scheduler::service(config.farm.lease),
         Some(routes),
-        Some(Arc::new(StoreSink(Arc::clone(&service)))),
+        Some(Arc::new(StoreSink(
+            Arc::clone(&service),
+            Arc::clone(&studio),
+        ))),
     )
     .await?;
     farm.shared()
@@ -763,6 +821,14 @@ pub async fn serve(
     let _ = service.farm.set(Arc::clone(farm.shared()));
     let started = Instant::now();
     let resumed = service.restore()?;
+    studio.attach(Arc::clone(farm.shared()));
+    if config.studio_scene.is_some() {
+        let mut at = farm.addr();
+        if at.ip().is_unspecified() {
+            at.set_ip(std::net::Ipv4Addr::LOCALHOST.into());
+        }
+        println!("studio: {}://{at}/", farm.scheme());
+    }
     tracing::info!(
         "serving on {}://{} (API at /api/v1, metrics at /metrics); {resumed} jobs resumed in {:.3} s",
         farm.scheme(),
@@ -780,6 +846,7 @@ pub async fn serve(
                     config.drain_timeout.as_secs_f64()
                 );
                 service.draining.store(true, std::sync::atomic::Ordering::Relaxed);
+                studio.stop();
                 farm.shared().lock().scheduler.drain();
                 drain_deadline = Some(Instant::now() + config.drain_timeout);
             }
@@ -787,10 +854,18 @@ pub async fn serve(
         let now = Instant::now();
         let tick = farm.tick(now);
         for (id, why) in tick.gave_up {
-            service.end(id, JobState::Failed, Some(why.to_string()));
+            if studio.owns(id) {
+                studio.leave(id, Some(why.to_string()));
+            } else {
+                service.end(id, JobState::Failed, Some(why.to_string()));
+            }
         }
         for done in tick.completed {
-            service.write_frame(done).await;
+            if studio.owns(done.job) {
+                studio.leave(done.job, None);
+            } else {
+                service.write_frame(done).await;
+            }
         }
         service.note_running(now);
         if let Some(deadline) = drain_deadline {

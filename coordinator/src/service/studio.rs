@@ -1,0 +1,834 @@
+//! The live studio: a page at `/` of the service that shows one scene
+//! refining as its units arrive, with a slider per knob and the scene's text
+//! editable.
+//!
+//! A *live frame* is a scheduler job of its own (ids from [`LIVE_JOBS`] on,
+//! the highest priority, never stored): each change of the text or of a knob
+//! takes the frame in flight out of the farm (its units are no longer handed
+//! out, and tiles still coming are ignored) and adds the new one. Knob values
+//! travel to workers in `Job.knobs` over the unchanged scene text.
+//!
+//! Tiles reach the page by Server-Sent Events (`/studio/events`): the farm's
+//! [`TileSink`](crate::farm::TileSink) hands each accepted tile of a live
+//! frame to an unbounded channel (it runs with the farm's state locked, so it
+//! only copies); the recorder task encodes it once (base64 of the 8-bit sRGB
+//! tile, with its unit), keeps it for browsers that connect later, and
+//! broadcasts it. A browser that falls behind the broadcast is disconnected
+//! (its `EventSource` reconnects and is sent the frame again); a closed tab's
+//! receiver is dropped with its stream.
+//!
+//! Lock order: the studio's state, then the farm's state. The tile sink takes
+//! no studio lock.
+//!
+//! | Method and path          | What                                                      |
+//! |--------------------------|-----------------------------------------------------------|
+//! | `GET /`                  | the page (and `/studio/studio.js`, `/studio/studio.css`)  |
+//! | `GET /studio/scene`      | the scene: its text for the current knob values, the knobs |
+//! | `POST /studio/scene`     | new text and/or knob values and a quality: a new frame     |
+//! | `POST /studio/save`      | writes the text back to SCENE, the old file to SCENE.bak  |
+//! | `GET /studio/events`     | Server-Sent Events: `frame`, `tile`, `done`, `status`, `error` |
+//!
+//! With a token, the data routes (not the static page, which holds nothing of
+//! the service) need `Authorization: Bearer <token>` or `?token=<token>` (an
+//! `EventSource` cannot send a header).
+
+use std::collections::{BTreeMap, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use axum::Json;
+use axum::Router;
+use axum::extract::{Request, State};
+use axum::http::{StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use base64::Engine as _;
+use hypertexture::interleave::{WorkUnit, farm_units};
+use hypertexture::scene::desc::KnobDesc;
+use hypertexture::{Overrides, PixelFormat, Scene};
+use serde::{Deserialize, Serialize};
+use tokio::sync::{broadcast, mpsc};
+
+use crate::farm::{self, Shared, WireJob};
+use crate::jobs::{Control, JobSpec, QualitySpec};
+use crate::scheduler::{Accepted, JobId, JobPlan, Resume};
+
+/// Live frames' job ids start here (the store's ids are far below).
+pub const LIVE_JOBS: JobId = 1 << 48;
+
+/// Events a browser may fall behind by before it is disconnected.
+const BROADCAST_CAPACITY: usize = 4096;
+
+/// How often each browser is sent the workers and the job queue.
+const STATUS_EVERY: Duration = Duration::from_millis(500);
+
+/// One Server-Sent Event, encoded once for every browser.
+#[derive(Debug)]
+pub struct Event {
+    name: &'static str,
+    data: String,
+}
+
+/// A tile of a live frame as the farm accepted it.
+struct RawTile {
+    job: JobId,
+    unit: usize,
+    worker: String,
+    pixels: Vec<u8>,
+}
+
+/// The frame rendering (or last rendered).
+struct LiveFrame {
+    job: JobId,
+    generation: u64,
+    units: Vec<WorkUnit>,
+    /// Per unit: recorded yet.
+    recorded: Vec<bool>,
+    remaining: usize,
+    started: Instant,
+    /// The frame event and every tile event so far (for browsers that
+    /// connect later).
+    events: Vec<Arc<Event>>,
+}
+
+/// What the studio shows.
+struct Live {
+    /// The scene text as loaded or edited (workers get this text).
+    text: String,
+    /// The knob values: every knob of the scene.
+    knobs: BTreeMap<String, f64>,
+    /// The text with the knob values as defaults (what Save writes).
+    shown: String,
+    /// The scene's knobs as declared.
+    declared: BTreeMap<String, KnobDesc>,
+    /// The last edit's error (the last good frame stays).
+    error: Option<String>,
+    /// The quality of the frame asked last.
+    quality: QualitySpec,
+    frame: Option<LiveFrame>,
+    generation: u64,
+}
+
+/// The studio of a service.
+pub struct Studio {
+    /// The scene file opened (Save writes it), if any.
+    path: Option<PathBuf>,
+    /// The scene's name in messages.
+    name: String,
+    /// Where "render final" writes its image.
+    final_out: String,
+    live: Mutex<Live>,
+    raw: mpsc::UnboundedSender<RawTile>,
+    raw_rx: Mutex<Option<mpsc::UnboundedReceiver<RawTile>>>,
+    events: broadcast::Sender<Arc<Event>>,
+    farm: OnceLock<Arc<Shared>>,
+    next_job: AtomicU64,
+    token: Option<String>,
+}
+
+/// A change asked by the page.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Change {
+    /// New scene text (knobs take its defaults); absent: the current text.
+    #[serde(default)]
+    pub text: Option<String>,
+    /// Knob values (over the current text).
+    #[serde(default)]
+    pub knobs: BTreeMap<String, f64>,
+    /// `interactive` while a slider moves, `high` once it rests.
+    pub quality: QualitySpec,
+}
+
+/// A knob as the page shows it.
+#[derive(Clone, Debug, Serialize)]
+pub struct KnobView {
+    name: String,
+    value: f64,
+    min: f64,
+    max: f64,
+    default: f64,
+}
+
+/// The scene as the page shows it.
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneView {
+    name: String,
+    /// Whether Save can write the file.
+    savable: bool,
+    /// The text for the current knob values.
+    text: String,
+    knobs: Vec<KnobView>,
+    error: Option<String>,
+    /// A job spec for "render final": the shown text at the scene's own size,
+    /// quality and samples.
+    final_job: JobSpec,
+    generation: u64,
+}
+
+/// An error answered as `{"error": …}`.
+struct Refused(StatusCode, String);
+
+impl IntoResponse for Refused {
+    fn into_response(self) -> Response {
+        (self.0, Json(serde_json::json!({ "error": self.1 }))).into_response()
+    }
+}
+
+/// `text` with each knob's `default:` set to `values` (the knobs' map found
+/// after `knobs:`); `None` when the text does not have that shape.
+pub fn with_knob_values(text: &str, values: &BTreeMap<String, f64>) -> Option<String> {
+    let knobs_at = find_field(text, "knobs")?;
+    let mut edits: Vec<(usize, usize, String)> = Vec::new();
+    for (name, value) in values {
+        let quoted = format!("\"{name}\"");
+        let at = knobs_at + text[knobs_at..].find(&quoted)?;
+        let default_at = at + text[at..].find("default")?;
+        let after = default_at + "default".len();
+        let rest = &text[after..];
+        let colon = rest.find(':')?;
+        if !rest[..colon].trim().is_empty() {
+            return None;
+        }
+        let start =
+            after + colon + 1 + (rest[colon + 1..].len() - rest[colon + 1..].trim_start().len());
+        let len = text[start..]
+            .find(|c: char| !(c.is_ascii_digit() || matches!(c, '-' | '+' | '.' | 'e' | 'E')))
+            .unwrap_or(text.len() - start);
+        if len == 0 {
+            return None;
+        }
+        edits.push((start, start + len, format!("{value:?}")));
+    }
+    edits.sort_by_key(|e| std::cmp::Reverse(e.0));
+    let mut out = text.to_string();
+    for (start, end, with) in edits {
+        out.replace_range(start..end, &with);
+    }
+    Some(out)
+}
+
+/// The byte offset just after `name:` as a field (not in a comment or a string).
+fn find_field(text: &str, name: &str) -> Option<usize> {
+    let mut from = 0;
+    while let Some(i) = text[from..].find(name) {
+        let at = from + i;
+        let line_start = text[..at].rfind('\n').map_or(0, |n| n + 1);
+        let before = &text[line_start..at];
+        let after = text[at + name.len()..].trim_start();
+        if !before.contains("//") && before.trim().is_empty() && after.starts_with(':') {
+            return Some(at + name.len());
+        }
+        from = at + name.len();
+    }
+    None
+}
+
+/// A checked change: the scene built, its knobs and the text to show.
+struct Checked {
+    text: String,
+    knobs: BTreeMap<String, f64>,
+    declared: BTreeMap<String, KnobDesc>,
+    shown: String,
+    width: u32,
+    height: u32,
+}
+
+/// Parses and builds `text` at `quality` with `knobs` (clamped to their
+/// ranges; absent ones at their defaults): the CLI's parser and messages.
+fn check(
+    text: &str,
+    name: &str,
+    knobs: &BTreeMap<String, f64>,
+    quality: QualitySpec,
+) -> Result<Checked, String> {
+    let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
+    let values: BTreeMap<String, f64> = desc
+        .knobs
+        .iter()
+        .map(|(k, d)| {
+            let v = knobs.get(k).copied().unwrap_or(d.default);
+            let v = if v.is_finite() {
+                v.clamp(d.min, d.max)
+            } else {
+                d.default
+            };
+            (k.clone(), v)
+        })
+        .collect();
+    let scene = Scene::from_text(
+        text,
+        name,
+        Overrides {
+            quality: Some(quality.into()),
+            knobs: overrides(&values, &desc.knobs),
+            ..Overrides::default()
+        },
+    )
+    .map_err(|e| e.to_string())?;
+    let shown = with_knob_values(text, &values).unwrap_or_else(|| text.to_string());
+    Ok(Checked {
+        text: text.to_string(),
+        knobs: values,
+        declared: desc.knobs,
+        shown,
+        width: scene.width(),
+        height: scene.height(),
+    })
+}
+
+/// The knobs whose value is not their default, as `--set` gives them.
+fn overrides(
+    values: &BTreeMap<String, f64>,
+    declared: &BTreeMap<String, KnobDesc>,
+) -> Vec<(String, f64)> {
+    values
+        .iter()
+        .filter(|(k, v)| declared.get(*k).is_none_or(|d| d.default != **v))
+        .map(|(k, v)| (k.clone(), *v))
+        .collect()
+}
+
+impl Studio {
+    /// A studio of the scene at `path` (none: an empty editor), whose final
+    /// renders go beside the scene (or into `data`).
+    pub fn new(path: Option<&Path>, data: &Path, token: Option<String>) -> Result<Studio, String> {
+        let (text, name, final_out) = match path {
+            Some(p) => {
+                let text = std::fs::read_to_string(p)
+                    .map_err(|e| format!("{}: cannot read the scene: {e}", p.display()))?;
+                let stem = p
+                    .file_stem()
+                    .map_or_else(|| "scene".into(), |s| s.to_string_lossy().into_owned());
+                let dir = match p.parent() {
+                    Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+                    _ => PathBuf::from("."),
+                };
+                let out = std::path::absolute(dir.join(format!("{stem}.final.png")))
+                    .unwrap_or_else(|_| dir.join(format!("{stem}.final.png")));
+                (text, p.display().to_string(), out.display().to_string())
+            }
+            None => (
+                String::new(),
+                "scene.ron".to_string(),
+                data.join("studio.final.png").display().to_string(),
+            ),
+        };
+        let (raw, raw_rx) = mpsc::unbounded_channel();
+        Ok(Studio {
+            path: path.map(Path::to_path_buf),
+            name,
+            final_out,
+            live: Mutex::new(Live {
+                shown: text.clone(),
+                text,
+                knobs: BTreeMap::new(),
+                declared: BTreeMap::new(),
+                error: None,
+                quality: QualitySpec::High,
+                frame: None,
+                generation: 0,
+            }),
+            raw,
+            raw_rx: Mutex::new(Some(raw_rx)),
+            events: broadcast::channel(BROADCAST_CAPACITY).0,
+            farm: OnceLock::new(),
+            next_job: AtomicU64::new(LIVE_JOBS),
+            token,
+        })
+    }
+
+    fn live(&self) -> std::sync::MutexGuard<'_, Live> {
+        self.live.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether `job` is a live frame of the studio.
+    pub fn owns(&self, job: JobId) -> bool {
+        job >= LIVE_JOBS
+    }
+
+    /// Connects the studio to the running farm: starts the recorder and, when
+    /// a scene is open, its first frame at high quality.
+    pub fn attach(self: &Arc<Self>, shared: Arc<Shared>) {
+        let _ = self.farm.set(shared);
+        if let Some(rx) = self.raw_rx.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            tokio::spawn(Arc::clone(self).record(rx));
+        }
+        let text = self.live().text.clone();
+        if !text.is_empty() {
+            let _ = self.change(Change {
+                text: Some(text),
+                knobs: BTreeMap::new(),
+                quality: QualitySpec::High,
+            });
+        }
+    }
+
+    /// Hands a live frame's accepted tile to the recorder (called with the
+    /// farm's state locked: a copy and a channel send).
+    pub fn tile(&self, a: &Accepted, pixels: &[u8]) {
+        let _ = self.raw.send(RawTile {
+            job: a.job,
+            unit: a.unit,
+            worker: a.worker.clone(),
+            pixels: pixels.to_vec(),
+        });
+    }
+
+    /// A live frame is complete in the scheduler, or given up: it leaves it.
+    pub fn leave(&self, job: JobId, gave_up: Option<String>) {
+        if let Some(shared) = self.farm.get() {
+            shared.remove_job(job);
+        }
+        if let Some(why) = gave_up {
+            self.send(Event {
+                name: "error",
+                data: serde_json::json!({ "error": why }).to_string(),
+            });
+        }
+    }
+
+    /// Takes the frame in flight out of the farm (the service is stopping).
+    pub fn stop(&self) {
+        let job = self.live().frame.as_ref().map(|f| f.job);
+        if let (Some(job), Some(shared)) = (job, self.farm.get()) {
+            shared.remove_job(job);
+        }
+    }
+
+    fn send(&self, event: Event) -> Arc<Event> {
+        let event = Arc::new(event);
+        let _ = self.events.send(Arc::clone(&event));
+        event
+    }
+
+    /// Records tiles as they come: encodes each once, keeps it for browsers
+    /// that connect later and broadcasts it.
+    async fn record(self: Arc<Self>, mut rx: mpsc::UnboundedReceiver<RawTile>) {
+        while let Some(raw) = rx.recv().await {
+            let mut live = self.live();
+            let Some(frame) = live.frame.as_mut() else {
+                continue;
+            };
+            if frame.job != raw.job || frame.recorded.get(raw.unit) != Some(&false) {
+                continue;
+            }
+            let unit = frame.units[raw.unit];
+            frame.recorded[raw.unit] = true;
+            frame.remaining -= 1;
+            let data = serde_json::json!({
+                "generation": frame.generation,
+                "unit": raw.unit,
+                "set": unit.set.index,
+                "first_row": unit.first_row,
+                "row_count": unit.row_count,
+                "row_stride": unit.row_stride,
+                "worker": raw.worker,
+                "pixels": base64::engine::general_purpose::STANDARD.encode(&raw.pixels),
+            });
+            let event = self.send(Event {
+                name: "tile",
+                data: data.to_string(),
+            });
+            frame.events.push(event);
+            if frame.remaining == 0 {
+                let data = serde_json::json!({
+                    "generation": frame.generation,
+                    "seconds": frame.started.elapsed().as_secs_f64(),
+                });
+                let event = self.send(Event {
+                    name: "done",
+                    data: data.to_string(),
+                });
+                frame.events.push(event);
+            }
+        }
+    }
+
+    /// Applies a change from the page: the text is parsed and built; when it
+    /// is good, the frame in flight leaves the farm and the new one starts.
+    /// The error (with line:column) is the CLI's.
+    pub fn change(&self, change: Change) -> Result<SceneView, String> {
+        let shared = self
+            .farm
+            .get()
+            .ok_or_else(|| "the farm is starting".to_string())?;
+        let mut live = self.live();
+        let (text, knobs) = match change.text {
+            Some(text) => (text, BTreeMap::new()),
+            None => (live.text.clone(), change.knobs),
+        };
+        let checked = match check(&text, &self.name, &knobs, change.quality) {
+            Ok(c) => c,
+            Err(e) => {
+                live.error = Some(e.clone());
+                return Err(e);
+            }
+        };
+        let same = live.frame.is_some()
+            && live.text == checked.text
+            && live.knobs == checked.knobs
+            && live.quality == change.quality;
+        live.error = None;
+        if !same {
+            if let Some(old) = live.frame.take() {
+                shared.remove_job(old.job);
+            }
+            live.generation += 1;
+            let job = self.next_job.fetch_add(1, Ordering::Relaxed);
+            let (interleave, expected) = shared.unit_layout();
+            let units = farm_units(checked.width, checked.height, interleave, expected);
+            let knob_overrides = overrides(&checked.knobs, &checked.declared);
+            let frame_job = farm::FrameJob {
+                scene_text: checked.text.clone(),
+                scene_name: self.name.clone(),
+                width: checked.width,
+                height: checked.height,
+                frames: vec![farm::FrameOut {
+                    frame: 0,
+                    out: PathBuf::new(),
+                }],
+                spp: None,
+                quality: Some(change.quality.into()),
+                knobs: knob_overrides,
+                pixel_format: PixelFormat::Srgb8,
+            };
+            let plan = JobPlan {
+                id: job,
+                priority: i32::MAX,
+                units: units.clone(),
+                width: checked.width,
+                height: checked.height,
+                format: PixelFormat::Srgb8,
+                frames: vec![0],
+                require_tags: Vec::new(),
+            };
+            let data = serde_json::json!({
+                "generation": live.generation,
+                "width": checked.width,
+                "height": checked.height,
+                "interleave": interleave,
+                "units": units.len(),
+                "quality": change.quality,
+            });
+            let event = self.send(Event {
+                name: "frame",
+                data: data.to_string(),
+            });
+            live.frame = Some(LiveFrame {
+                job,
+                generation: live.generation,
+                recorded: vec![false; units.len()],
+                remaining: units.len(),
+                units,
+                started: Instant::now(),
+                events: vec![event],
+            });
+            shared
+                .add_job(plan, Resume::default(), WireJob::of(&frame_job))
+                .map_err(|e| e.to_string())?;
+        }
+        live.text = checked.text;
+        live.knobs = checked.knobs;
+        live.shown = checked.shown;
+        live.declared = checked.declared;
+        live.quality = change.quality;
+        Ok(self.view(&live))
+    }
+
+    fn view(&self, live: &Live) -> SceneView {
+        SceneView {
+            name: self.name.clone(),
+            savable: self.path.is_some(),
+            text: live.shown.clone(),
+            knobs: live
+                .declared
+                .iter()
+                .map(|(name, d)| KnobView {
+                    name: name.clone(),
+                    value: live.knobs.get(name).copied().unwrap_or(d.default),
+                    min: d.min,
+                    max: d.max,
+                    default: d.default,
+                })
+                .collect(),
+            error: live.error.clone(),
+            final_job: JobSpec {
+                scene: live.shown.clone(),
+                scene_name: Some(self.name.clone()),
+                out: self.final_out.clone(),
+                frames: None,
+                priority: 0,
+                width: None,
+                height: None,
+                spp: None,
+                quality: None,
+                knobs: BTreeMap::new(),
+                require_tags: Vec::new(),
+            },
+            generation: live.generation,
+        }
+    }
+
+    /// Writes the shown text to the scene file, the file before to `SCENE.bak`.
+    fn save(&self) -> Result<String, String> {
+        let path = self.path.as_ref().ok_or_else(|| {
+            "no scene file is open (start with `coordinator studio SCENE`)".to_string()
+        })?;
+        let text = self.live().shown.clone();
+        let mut backup = path.clone().into_os_string();
+        backup.push(".bak");
+        let backup = PathBuf::from(backup);
+        if path.exists() {
+            std::fs::copy(path, &backup)
+                .map_err(|e| format!("{}: cannot back up: {e}", backup.display()))?;
+        }
+        let mut tmp = path.clone().into_os_string();
+        tmp.push(".tmp");
+        let tmp = PathBuf::from(tmp);
+        std::fs::write(&tmp, &text).map_err(|e| format!("{}: {e}", tmp.display()))?;
+        std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(format!(
+            "saved {} (the previous file is {})",
+            path.display(),
+            backup.display()
+        ))
+    }
+
+    /// The events of the frame so far, and a receiver of those to come (taken
+    /// under one lock: none is missed or sent twice).
+    fn subscribe(&self) -> (Vec<Arc<Event>>, broadcast::Receiver<Arc<Event>>) {
+        let live = self.live();
+        let rx = self.events.subscribe();
+        let backlog = live
+            .frame
+            .as_ref()
+            .map(|f| f.events.clone())
+            .unwrap_or_default();
+        (backlog, rx)
+    }
+}
+
+/// The router's state.
+#[derive(Clone)]
+struct Ctx {
+    studio: Arc<Studio>,
+    control: Arc<dyn Control>,
+}
+
+/// The studio's routes: the page, its files, and its data routes (behind the
+/// token, from a header or a `token` query parameter).
+pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
+    let ctx = Ctx { studio, control };
+    let data = Router::new()
+        .route(
+            "/studio/scene",
+            axum::routing::get(get_scene).post(post_scene),
+        )
+        .route("/studio/save", axum::routing::post(save))
+        .route("/studio/events", axum::routing::get(events))
+        .layer(middleware::from_fn_with_state(ctx.clone(), check_token));
+    Router::new()
+        .route("/", axum::routing::get(page))
+        .route("/studio/studio.js", axum::routing::get(script))
+        .route("/studio/studio.css", axum::routing::get(style))
+        .merge(data)
+        .with_state(ctx)
+}
+
+async fn page() -> Response {
+    static_file(
+        "text/html; charset=utf-8",
+        include_str!("../../studio/index.html"),
+    )
+}
+
+async fn script() -> Response {
+    static_file(
+        "text/javascript; charset=utf-8",
+        include_str!("../../studio/studio.js"),
+    )
+}
+
+async fn style() -> Response {
+    static_file(
+        "text/css; charset=utf-8",
+        include_str!("../../studio/studio.css"),
+    )
+}
+
+fn static_file(content_type: &'static str, body: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+/// The value of `name` in a query string, percent-decoded.
+fn query_param(query: &str, name: &str) -> Option<String> {
+    query.split('&').find_map(|pair| {
+        let (k, v) = pair.split_once('=')?;
+        (k == name).then(|| percent_decode(v))
+    })
+}
+
+fn percent_decode(s: &str) -> String {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'%' if i + 2 < bytes.len() => match u8::from_str_radix(&s[i + 1..i + 3], 16) {
+                Ok(b) => {
+                    out.push(b);
+                    i += 3;
+                    continue;
+                }
+                Err(_) => out.push(b'%'),
+            },
+            b'+' => out.push(b' '),
+            b => out.push(b),
+        }
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// Refuses a data route without the token (401).
+async fn check_token(State(ctx): State<Ctx>, request: Request, next: Next) -> Response {
+    let Some(token) = &ctx.studio.token else {
+        return next.run(request).await;
+    };
+    let bearer = request
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(str::to_string);
+    let given = bearer.or_else(|| query_param(request.uri().query()?, "token"));
+    if given.is_some_and(|g| crate::api::same_secret(g.trim().as_bytes(), token.as_bytes())) {
+        return next.run(request).await;
+    }
+    Refused(
+        StatusCode::UNAUTHORIZED,
+        "missing or wrong token: send `Authorization: Bearer <token>` or `?token=<token>`".into(),
+    )
+    .into_response()
+}
+
+async fn get_scene(State(ctx): State<Ctx>) -> Json<SceneView> {
+    let live = ctx.studio.live();
+    Json(ctx.studio.view(&live))
+}
+
+async fn post_scene(
+    State(ctx): State<Ctx>,
+    body: Result<Json<Change>, axum::extract::rejection::JsonRejection>,
+) -> Response {
+    let Json(change) = match body {
+        Ok(b) => b,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match ctx.studio.change(change) {
+        Ok(view) => Json(view).into_response(),
+        Err(e) => Refused(StatusCode::BAD_REQUEST, e).into_response(),
+    }
+}
+
+async fn save(State(ctx): State<Ctx>) -> Response {
+    let studio = Arc::clone(&ctx.studio);
+    match tokio::task::spawn_blocking(move || studio.save()).await {
+        Ok(Ok(message)) => Json(serde_json::json!({ "saved": message })).into_response(),
+        Ok(Err(e)) => Refused(StatusCode::CONFLICT, e).into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+/// What each browser's event stream holds.
+struct Stream {
+    backlog: VecDeque<Arc<Event>>,
+    rx: broadcast::Receiver<Arc<Event>>,
+    status: tokio::time::Interval,
+    ctx: Ctx,
+}
+
+fn sse(event: &Event) -> SseEvent {
+    SseEvent::default().event(event.name).data(&event.data)
+}
+
+/// The workers (pixels per second) and the job queue.
+fn status(ctx: &Ctx) -> SseEvent {
+    let data = serde_json::json!({
+        "workers": ctx.control.workers(),
+        "jobs": ctx.control.jobs(),
+    });
+    SseEvent::default().event("status").data(data.to_string())
+}
+
+async fn events(
+    State(ctx): State<Ctx>,
+) -> Sse<impl futures_util::Stream<Item = Result<SseEvent, std::convert::Infallible>>> {
+    let (backlog, rx) = ctx.studio.subscribe();
+    let stream = Stream {
+        backlog: backlog.into(),
+        rx,
+        status: tokio::time::interval(STATUS_EVERY),
+        ctx,
+    };
+    let events = futures_util::stream::unfold(stream, |mut s| async move {
+        if let Some(e) = s.backlog.pop_front() {
+            return Some((Ok(sse(&e)), s));
+        }
+        tokio::select! {
+            received = s.rx.recv() => match received {
+                Ok(e) => Some((Ok(sse(&e)), s)),
+                // Fallen behind (or closing): end the stream; the browser
+                // reconnects and is sent the frame again.
+                Err(_) => None,
+            },
+            _ = s.status.tick() => {
+                let e = status(&s.ctx);
+                Some((Ok(e), s))
+            }
+        }
+    });
+    Sse::new(events).keep_alive(KeepAlive::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn knob_values_are_written_into_the_text() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenes/pse/fur.ron"
+        ))
+        .unwrap();
+        let values: BTreeMap<String, f64> =
+            [("curliness".to_string(), 0.6), ("length".to_string(), 0.5)].into();
+        let shown = with_knob_values(&text, &values).unwrap();
+        let desc = hypertexture::scene::parse(&shown, "fur.ron").unwrap();
+        assert_eq!(desc.knobs["curliness"].default, 0.6);
+        assert_eq!(desc.knobs["length"].default, 0.5);
+        assert_eq!(desc.knobs["fineness"].default, 40.0);
+        assert_eq!(shown.len(), text.len());
+    }
+
+    #[test]
+    fn tokens_come_from_the_query_percent_decoded() {
+        assert_eq!(
+            query_param("a=1&token=s%3Dx", "token").as_deref(),
+            Some("s=x")
+        );
+        assert_eq!(query_param("a=1", "token"), None);
+    }
+}
