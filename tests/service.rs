@@ -182,13 +182,13 @@ fn a_killed_service_resumes_from_its_stored_units_without_rendering_them_again()
             "--width", "96", "--height", "96", "--spp", "2", "--frames", "0..=1",
         ],
     );
-    // Kill it in the middle of the second frame.
+    // Kill it in the middle of the second frame, once the first is written.
     let before = poll_job(&url, id, 120, |j| {
         let (done, total) = (
             j["units_done"].as_u64().unwrap(),
             j["units_total"].as_u64().unwrap(),
         );
-        done > total / 2 + total / 8
+        j["frames_done"] == 1 && done > total / 2 + total / 8
     });
     let workers = children(pid);
     assert_eq!(workers.len(), 1, "one local worker process");

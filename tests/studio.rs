@@ -205,7 +205,7 @@ impl Drop for Browser {
     }
 }
 
-const COMPLETE_HIGH: &str = "studio.complete && studio.quality === 'high'";
+const COMPLETE_HIGH: &str = "studio.drawn && studio.quality === 'high'";
 
 #[test]
 fn the_studio_refines_live_and_matches_the_in_process_render() {

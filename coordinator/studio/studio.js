@@ -16,7 +16,8 @@ const studio = window.studio = {
   width: 0, height: 0, interleave: 8,
   units: 0,           // units of the frame
   received: 0,        // units received
-  complete: false,    // every unit drawn
+  complete: false,    // every unit received
+  drawn: false,       // every unit received and drawn on the canvas
   serverSeconds: null,
   requested: {},      // generation → performance.now() of the input that asked it
   timings: [],        // {generation, quality, first, complete} ms after the input
@@ -80,6 +81,7 @@ function startFrame(f) {
   studio.units = f.units;
   studio.received = 0;
   studio.complete = false;
+  studio.drawn = false;
   studio.serverSeconds = null;
   studio.interleave = f.interleave;
   if (f.width !== studio.width || f.height !== studio.height) {
@@ -160,6 +162,7 @@ function draw() {
   dirty = false;
   compose();
   context.putImageData(shown, 0, 0);
+  studio.drawn = studio.complete;
   studio.framesDrawn++;
   const asked = studio.requested[studio.generation];
   const now = performance.now();
@@ -186,10 +189,14 @@ function schedule() {
 
 // ---- Which worker rendered which set ---------------------------------------
 
+// Each worker gets the next hue by the golden angle, in the order the page
+// first meets it, so that any two workers are told apart.
+const palette = new Map();
 function colour(name) {
-  let hash = 0;
-  for (const c of name) hash = Math.imul(hash ^ c.charCodeAt(0), 0x9e3779b1) >>> 0;
-  return `hsl(${(hash >>> 8) % 360}, 65%, 55%)`;
+  if (!palette.has(name)) {
+    palette.set(name, `hsl(${Math.round((palette.size * 137.508 + 120) % 360)}, 65%, 55%)`);
+  }
+  return palette.get(name);
 }
 
 function drawSets() {
