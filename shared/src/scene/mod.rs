@@ -533,6 +533,11 @@ impl Scene {
         true
     }
 
+    /// The camera the rays come from.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
     /// Image width in pixels.
     pub fn width(&self) -> u32 {
         self.width
