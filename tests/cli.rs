@@ -123,3 +123,99 @@ fn bad_flags_and_outputs_fail_cleanly() {
         String::from_utf8_lossy(&out.stderr).contains("no/such/scene.ron: cannot read the scene")
     );
 }
+
+#[test]
+fn an_image_renders_again_from_the_scene_it_stores() {
+    let dir = scratch("cli-rerender");
+    let fur = scene("pse/fur");
+    for (name, farm) in [("first.png", false), ("first.exr", true)] {
+        let first = dir.join(name);
+        let mut args = vec![
+            "--scene",
+            fur.to_str().unwrap(),
+            "--out",
+            first.to_str().unwrap(),
+            "--width",
+            "20",
+            "--height",
+            "14",
+            "--frame",
+            "3",
+            "--spp",
+            "2",
+            "--quality",
+            "interactive",
+            "--set",
+            "curliness=0.6",
+            "--quiet",
+        ];
+        if !farm {
+            args.push("--in-process");
+        }
+        let out = coordinator(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        // From the image alone, in-process and on the farm: the same bytes.
+        for (again, farm) in [("again.png", farm), ("again_farm.png", !farm)] {
+            let again = dir.join(again).with_extension(first.extension().unwrap());
+            let mut args = vec![
+                "--scene",
+                first.to_str().unwrap(),
+                "--out",
+                again.to_str().unwrap(),
+                "--quiet",
+            ];
+            if !farm {
+                args.push("--in-process");
+            }
+            let out = coordinator(&args);
+            assert!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            assert!(
+                std::fs::read(&first).unwrap() == std::fs::read(&again).unwrap(),
+                "{} differs from {}",
+                again.display(),
+                first.display()
+            );
+        }
+    }
+    // An image written from no scene (a recoloured one) says what is missing.
+    let recoloured = dir.join("recoloured.png");
+    let out = coordinator(&[
+        "recolor",
+        dir.join("first.exr").to_str().unwrap(),
+        "--colormap",
+        root().join("scenes/colormaps/fire.ron").to_str().unwrap(),
+        "--out",
+        recoloured.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = coordinator(&[
+        "--scene",
+        recoloured.to_str().unwrap(),
+        "--out",
+        dir.join("x.png").to_str().unwrap(),
+        "--in-process",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        err.trim_end(),
+        format!(
+            "error: {}: the image holds no scene (no `hypertexture:scene` text chunk): it was not written by hypertexture {} or its metadata was stripped",
+            recoloured.display(),
+            env!("CARGO_PKG_VERSION")
+        )
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

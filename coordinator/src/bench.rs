@@ -261,6 +261,12 @@ fn farm_render(
         quality: None,
         knobs: Vec::new(),
         pixel_format,
+        metadata: std::sync::Arc::new(crate::output::ImageMetadata::new(
+            scene,
+            &path.display().to_string(),
+            text,
+            &Default::default(),
+        )),
     };
     let farm_config = farm::FarmConfig {
         listen: "127.0.0.1:0".parse().expect("a valid address"),

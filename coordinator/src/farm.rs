@@ -128,6 +128,8 @@ pub struct FrameJob {
     /// What the tiles carry: what the outputs need
     /// ([`crate::output::pixel_format_for`]).
     pub pixel_format: PixelFormat,
+    /// What the images record (previews too).
+    pub metadata: std::sync::Arc<crate::output::ImageMetadata>,
 }
 
 /// A frame the farm has finished.
@@ -1102,9 +1104,10 @@ pub async fn render_frames(
         if let Some((image, frame)) = preview {
             last_preview = now;
             let path = out_of(frame);
+            let meta = job.metadata.at_frame(frame);
             writing_preview =
                 Some(tokio::task::spawn_blocking(
-                    move || match crate::output::write_frame_image(&image, &path) {
+                    move || match crate::output::write_frame_image(&image, &path, &meta) {
                         Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),
                         Err(e) => tracing::warn!("preview: {e}"),
                     },

@@ -170,6 +170,7 @@ pub fn frame_path(out: &std::path::Path, frame: u32) -> PathBuf {
 pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
     output::ImageFormat::from_path(&config.out)?;
+    let (scene_text, scene_name, config) = scene_of(config)?;
     let frames: Vec<farm::FrameOut> = match config.frames {
         None => vec![farm::FrameOut {
             frame: config.frame,
@@ -182,18 +183,15 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
             })
             .collect(),
     };
-    let scene_text = hypertexture::scene::read_text(&config.scene)?;
-    let scene = Scene::from_text(
-        &scene_text,
-        &config.scene.display().to_string(),
-        Overrides {
-            width: config.width,
-            height: config.height,
-            spp: config.spp,
-            quality: config.quality,
-            knobs: config.knobs.clone(),
-        },
-    )?;
+    let overrides = Overrides {
+        width: config.width,
+        height: config.height,
+        spp: config.spp,
+        quality: config.quality,
+        knobs: config.knobs.clone(),
+    };
+    let scene = Scene::from_text(&scene_text, &scene_name, overrides.clone())?;
+    let metadata = output::ImageMetadata::new(&scene, &scene_name, &scene_text, &overrides);
     let Some(options) = &config.farm else {
         let threads = config.threads.map_or_else(
             || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
@@ -205,11 +203,45 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
             .map(|f| {
                 let (film, time) = render_in_process(&scene, f.frame, threads, config.progress)?;
                 let image = canvas::FrameImage::Film(film);
-                write_frame(&config, &scene, &image, f.frame, time, &f.out, &how)
+                let meta = metadata.at_frame(f.frame);
+                write_frame(&config, &scene, &image, &meta, time, &f.out, &how)
             })
             .collect();
     };
-    render_on_farm(&config, options, &scene, scene_text, frames)
+    render_on_farm(&config, options, &scene, metadata, frames)
+}
+
+/// The scene text and name `config` renders, and the configuration with the
+/// settings an image stores: a scene file is read as it is; a PNG or EXR written
+/// by the coordinator gives the scene it stores, its name, and its size, frame,
+/// samples, quality and knobs, so that the render comes out the same again.
+fn scene_of(config: Config) -> Result<(String, String, Config), CoordinatorError> {
+    if output::ImageFormat::from_path(&config.scene).is_err() {
+        let text = hypertexture::scene::read_text(&config.scene)?;
+        let name = config.scene.display().to_string();
+        return Ok((text, name, config));
+    }
+    let stored = output::read_stored_render(&config.scene)?;
+    tracing::info!(
+        "{}: the scene {} stored in the image",
+        config.scene.display(),
+        stored.scene_name
+    );
+    let o = stored.options;
+    let config = Config {
+        width: config.width.or(Some(stored.width)),
+        height: config.height.or(Some(stored.height)),
+        frame: if config.frames.is_some() || config.frame != 0 {
+            config.frame
+        } else {
+            stored.frame
+        },
+        spp: config.spp.or(o.spp),
+        quality: config.quality.or(o.quality),
+        knobs: o.knobs.into_iter().chain(config.knobs).collect(),
+        ..config
+    };
+    Ok((stored.scene_text, stored.scene_name, config))
 }
 
 /// Renders the one frame `config.frame` (see [`run_all`]).
@@ -226,12 +258,13 @@ fn write_frame(
     config: &Config,
     scene: &Scene,
     image: &canvas::FrameImage,
-    frame: u32,
+    meta: &output::ImageMetadata,
     render_time: Duration,
     out: &std::path::Path,
     how: &str,
 ) -> Result<Summary, CoordinatorError> {
-    output::write_frame_image(image, out)?;
+    output::write_frame_image(image, out, meta)?;
+    let frame = meta.frame;
     tracing::info!(
         "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",
         config.scene.display(),
@@ -253,16 +286,17 @@ pub fn render_on_farm(
     config: &Config,
     options: &FarmOptions,
     scene: &Scene,
-    scene_text: String,
+    metadata: output::ImageMetadata,
     frames: Vec<farm::FrameOut>,
 ) -> Result<Vec<Summary>, CoordinatorError> {
     let tls = match &options.tls {
         Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
         None => None,
     };
+    let metadata = std::sync::Arc::new(metadata);
     let job = farm::FrameJob {
-        scene_text,
-        scene_name: config.scene.display().to_string(),
+        scene_text: metadata.scene_text.clone(),
+        scene_name: metadata.scene_name.clone(),
         width: scene.width(),
         height: scene.height(),
         spp: config.spp,
@@ -270,6 +304,7 @@ pub fn render_on_farm(
         knobs: config.knobs.clone(),
         pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
         frames,
+        metadata: metadata.clone(),
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,
@@ -301,7 +336,7 @@ pub fn render_on_farm(
                         config,
                         scene,
                         &f.image,
-                        f.frame,
+                        &metadata.at_frame(f.frame),
                         f.render_time,
                         &done.out,
                         "the farm",

@@ -103,6 +103,66 @@ impl Camera {
             }
         }
     }
+
+    /// OpenEXR's `worldToCamera`: the matrix, row-major, by which a world point
+    /// as a row vector `(x, y, z, 1)` is multiplied to give camera coordinates
+    /// (x right, y up, the camera looking down −z, the eye at the origin).
+    pub fn world_to_camera(&self) -> [f32; 16] {
+        let (r, u, b) = (self.right.normalize(), self.up.normalize(), -self.forward);
+        let e = self.eye;
+        [
+            r.x,
+            u.x,
+            b.x,
+            0.0, //
+            r.y,
+            u.y,
+            b.y,
+            0.0, //
+            r.z,
+            u.z,
+            b.z,
+            0.0, //
+            -e.dot(r),
+            -e.dot(u),
+            -e.dot(b),
+            1.0,
+        ]
+    }
+
+    /// OpenEXR's `worldToNDC`: `worldToCamera` followed by the projection to
+    /// normalized device coordinates, row-major for row vectors. After the
+    /// division by w, x and y run from −1 to 1 across the image (left to right,
+    /// bottom to top); z is 1 / depth for a perspective camera (w is the depth
+    /// along the view axis) and the depth itself for an orthographic one.
+    pub fn world_to_ndc(&self) -> [f32; 16] {
+        let (sx, sy) = (1.0 / self.right.length(), 1.0 / self.up.length());
+        #[rustfmt::skip]
+        let projection = if self.perspective {
+            [
+                sx, 0.0, 0.0, 0.0,
+                0.0, sy, 0.0, 0.0,
+                0.0, 0.0, 0.0, -1.0,
+                0.0, 0.0, 1.0, 0.0,
+            ]
+        } else {
+            [
+                sx, 0.0, 0.0, 0.0,
+                0.0, sy, 0.0, 0.0,
+                0.0, 0.0, -1.0, 0.0,
+                0.0, 0.0, 0.0, 1.0,
+            ]
+        };
+        multiply(&self.world_to_camera(), &projection)
+    }
+}
+
+/// The product `a · b` of two row-major 4×4 matrices.
+fn multiply(a: &[f32; 16], b: &[f32; 16]) -> [f32; 16] {
+    std::array::from_fn(|i| {
+        let (row, col) = (i / 4, i % 4);
+        (0..4).map(|k| a[row * 4 + k] * b[k * 4 + col]).sum()
+    })
 }
 
 #[cfg(test)]
@@ -134,6 +194,43 @@ mod tests {
         // Top-left pixel centre of a 2×2 image at 90°: direction (-0.5, 0.5, -1) normalised.
         let r = cam.ray(0, 0, (0.5, 0.5));
         assert!((r.direction - Vec3::new(-0.5, 0.5, -1.0).normalize()).length() < 1e-6);
+    }
+
+    /// `p` (a row vector) times the row-major matrix `m`.
+    fn transform(p: Vec3, m: &[f32; 16]) -> [f32; 4] {
+        std::array::from_fn(|c| p.x * m[c] + p.y * m[4 + c] + p.z * m[8 + c] + m[12 + c])
+    }
+
+    #[test]
+    fn ndc_matrices_put_each_ray_on_its_pixel() {
+        let mut eyed = desc(ProjectionDesc::Perspective {
+            fov_y: FieldOfView(40.0),
+        });
+        eyed.eye = V3(Vec3::new(1.0, 2.0, 4.0));
+        let ortho = CameraDesc {
+            projection: ProjectionDesc::Orthographic {
+                height: Positive(3.0),
+            },
+            ..eyed
+        };
+        for d in [eyed, ortho] {
+            let cam = Camera::new(&d, 8, 4);
+            let to_camera = cam.world_to_camera();
+            let eye = transform(d.eye.0, &to_camera);
+            assert!(eye[..3].iter().all(|c| c.abs() < 1e-5), "{eye:?}");
+            let ahead = transform(d.eye.0 + (d.look_at.0 - d.eye.0).normalize(), &to_camera);
+            assert!((ahead[2] + 1.0).abs() < 1e-5, "looks down −z: {ahead:?}");
+            for (x, y) in [(0, 0), (7, 3), (3, 1)] {
+                let ray = cam.ray(x, y, (0.5, 0.5));
+                let ndc = transform(ray.at(2.5), &cam.world_to_ndc());
+                let (nx, ny) = (ndc[0] / ndc[3], ndc[1] / ndc[3]);
+                let want = ((x as f32 + 0.5) / 4.0 - 1.0, 1.0 - (y as f32 + 0.5) / 2.0);
+                assert!(
+                    (nx - want.0).abs() < 1e-5 && (ny - want.1).abs() < 1e-5,
+                    "{ndc:?}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -96,7 +96,7 @@ fn a_bad_transform_is_named_where_it_is() {
     let (line, _, message) = error_of(&with("(spin: 5, wobble: 1)"));
     assert_eq!(line, 6);
     assert!(
-        message.contains("wobble") && message.contains("Transform"),
+        message.contains("unknown field `wobble` in transform"),
         "{message}"
     );
     let (line, _, message) = error_of(&with("(axis: (0, 0, 0))"));
@@ -232,5 +232,90 @@ fn every_gilet_scene_loads_and_keeps_within_its_bounds() {
     assert!(
         count >= 24,
         "the Gilet & Dischler gallery, found {count} scenes"
+    );
+}
+
+/// The whole error of `text` as the user reads it.
+fn full_error(text: &str) -> String {
+    Scene::from_text(text, "bad.ron", Overrides::default())
+        .map(|_| ())
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn a_type_error_names_the_field_and_what_was_found() {
+    assert_eq!(
+        full_error(&GOOD.replace("radius: 0.8", "radius: \"big\"")),
+        "bad.ron:5:28: object.radius: expected a number, found the string \"big\""
+    );
+    assert_eq!(
+        full_error(&GOOD.replace("width: 32", "width: wide")),
+        "bad.ron:2:20: image.width: expected a whole number, found `wide`"
+    );
+    assert_eq!(
+        full_error(&GOOD.replace("(0.0, 0.0, 4.0)", "(0.0, up, 4.0)")),
+        "bad.ron:3:25: camera.eye[1]: expected a number, found `up`"
+    );
+}
+
+#[test]
+fn unknown_kinds_are_named_in_the_scene_s_words() {
+    let with_modulation = GOOD.replace(
+        "    object: Sphere(radius: 0.8, softness: 0.2),\n",
+        "    object: Sphere(radius: 0.8, softness: 0.2),\n    modulation: [Furr(amount: 1.0)],\n",
+    );
+    let message = full_error(&with_modulation);
+    assert!(
+        message.starts_with(
+            "bad.ron:6:18: unknown modulation `Furr`, expected one of `NoisyRadius`, "
+        ) && message.contains(", `Bias`, `Gain`, "),
+        "{message}"
+    );
+    assert_eq!(
+        full_error(&GOOD.replace("Sphere(", "Sphear(")),
+        "bad.ron:5:13: unknown object `Sphear`, expected one of `Sphere`, `Box`, `Torus`, `Union`, `Intersection`, `Difference`, `Complement`, `Max`, `Min`, `Hypertexture`"
+    );
+    // No type name of the program reaches the user, whatever is misspelt.
+    for (from, to) in [
+        ("Perspective(", "Persp("),
+        ("Diagonal(100)", "Diag(100)"),
+        ("softness: 0.2", "softnes: 0.2"),
+        ("image: (width: 32, height: 32),\n", ""),
+        ("step:", "stp:"),
+    ] {
+        let message = full_error(&GOOD.replace(from, to));
+        assert!(
+            !message.contains("Desc") && !message.contains("Fields"),
+            "{from} → {to}: {message}"
+        );
+    }
+}
+
+#[test]
+fn an_unclosed_bracket_is_reported_where_it_was_opened() {
+    let text = "Scene(
+    image: (width: 32, height: 32),
+    camera: (eye: (0.0, 0.0, 4.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 45.0)),
+    march: (
+        bounds: (min: (-1.0, -1.0, -1.0), max: (1.0, 1.0, 1.0),
+        step: Diagonal(100),
+        opacity: 10.0,
+    ),
+    object: Sphere(radius: 0.8, softness: 0.2),
+)";
+    assert_eq!(
+        full_error(text),
+        "bad.ron:5:17: unclosed `(`: opened here and never closed"
+    );
+    // Brackets in strings and comments do not count.
+    let commented = GOOD.replace(
+        "    object:",
+        "    // a ( in a comment /* and ( nested */\n    colour: \"[(\",\n    object:",
+    );
+    assert!(!full_error(&commented).contains("unclosed"));
+    assert_eq!(
+        full_error(&GOOD.replace("softness: 0.2),", "softness: 0.2")),
+        "bad.ron:5:19: unclosed `(`: opened here and never closed"
     );
 }

@@ -93,6 +93,8 @@ struct JobMeta {
     frames: Vec<u32>,
     units_per_frame: u64,
     scene_name: String,
+    /// What its images record (`None` for a job that has ended).
+    metadata: Option<Arc<crate::output::ImageMetadata>>,
     /// When it first ran in this process, and its units done then (for the ETA).
     running_since: Option<(Instant, u64)>,
     /// Its progress when it left the scheduler (ended jobs).
@@ -185,6 +187,8 @@ struct Checked {
     frames: Vec<u32>,
     format: PixelFormat,
     name: String,
+    /// What its images record.
+    metadata: Arc<crate::output::ImageMetadata>,
 }
 
 /// Units per job, for the metrics.
@@ -227,18 +231,21 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         }
     }
     farm::tags_from_wire(&spec.require_tags).map_err(|e| bad(format!("require_tags: {e}")))?;
-    let scene = Scene::from_text(
-        &spec.scene,
+    let overrides = Overrides {
+        width: spec.width,
+        height: spec.height,
+        spp: spec.spp,
+        quality: spec.quality.map(Into::into),
+        knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+    };
+    let scene =
+        Scene::from_text(&spec.scene, &name, overrides.clone()).map_err(|e| bad(e.to_string()))?;
+    let metadata = Arc::new(crate::output::ImageMetadata::new(
+        &scene,
         &name,
-        Overrides {
-            width: spec.width,
-            height: spec.height,
-            spp: spec.spp,
-            quality: spec.quality.map(Into::into),
-            knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
-        },
-    )
-    .map_err(|e| bad(e.to_string()))?;
+        &spec.scene,
+        &overrides,
+    ));
     let outputs: Vec<PathBuf> = frames
         .iter()
         .map(|&f| PathBuf::from(expand_pattern(&spec.out, f)))
@@ -249,6 +256,7 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         frames,
         format,
         name,
+        metadata,
     })
 }
 
@@ -297,6 +305,7 @@ impl Service {
             quality: spec.quality.map(Into::into),
             knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             pixel_format: format,
+            metadata: checked.metadata.clone(),
         };
         let plan = JobPlan {
             id,
@@ -423,20 +432,27 @@ impl Service {
     /// thread), then the store forgets its tiles and records the file.
     async fn write_frame(self: &Arc<Self>, done: CompletedFrame) {
         let id = done.job;
-        let path = {
+        let (path, metadata) = {
             let jobs = self.jobs_lock();
             match jobs.get(&id) {
-                Some(meta) if !meta.state.is_final() => {
-                    expand_pattern(&meta.stored.spec.out, done.frame)
-                }
+                Some(JobMeta {
+                    state,
+                    stored,
+                    metadata: Some(metadata),
+                    ..
+                }) if !state.is_final() => (
+                    expand_pattern(&stored.spec.out, done.frame),
+                    metadata.at_frame(done.frame),
+                ),
                 _ => return,
             }
         };
         let image = done.image;
         let target = PathBuf::from(&path);
-        let written =
-            tokio::task::spawn_blocking(move || crate::output::write_frame_image(&image, &target))
-                .await;
+        let written = tokio::task::spawn_blocking(move || {
+            crate::output::write_frame_image(&image, &target, &metadata)
+        })
+        .await;
         let written = match written {
             Ok(r) => r.map_err(|e| e.to_string()),
             Err(e) => Err(format!("the writer failed: {e}")),
@@ -498,6 +514,7 @@ impl Service {
                     .clone()
                     .unwrap_or_else(|| "scene.ron".into()),
                 units_per_frame: 0,
+                metadata: None,
                 frames,
                 state,
                 error: job.error.clone(),
@@ -552,6 +569,7 @@ impl Service {
                 )
                 .map_err(bad)?;
             meta.units_per_frame = units_per_frame;
+            meta.metadata = Some(checked.metadata.clone());
             tracing::info!(
                 "job {} resumed: {frames_done} of {} frames written, {tile_count} units of the next stored",
                 job.id,
@@ -589,7 +607,12 @@ impl Control for Arc<Service> {
         let units_per_frame = self
             .enqueue(id, &stored, &checked, Resume::default())
             .map_err(ApiError::Internal)?;
-        let Checked { frames, name, .. } = checked;
+        let Checked {
+            frames,
+            name,
+            metadata,
+            ..
+        } = checked;
         tracing::info!(
             "job {id} queued: {name}, {} frame{}, priority {}",
             frames.len(),
@@ -604,6 +627,7 @@ impl Control for Arc<Service> {
             frames,
             units_per_frame,
             scene_name: name,
+            metadata: Some(metadata),
             running_since: None,
             final_units: 0,
             final_blocklisted: Vec::new(),

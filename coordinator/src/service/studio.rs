@@ -495,6 +495,13 @@ impl Studio {
                 quality: Some(change.quality.into()),
                 knobs: knob_overrides,
                 pixel_format: PixelFormat::Srgb8,
+                // A live frame is drawn in the page, never written to a file.
+                metadata: std::sync::Arc::new(crate::output::ImageMetadata::without_scene(
+                    checked.width,
+                    checked.height,
+                    None,
+                    None,
+                )),
             };
             let plan = JobPlan {
                 id: job,

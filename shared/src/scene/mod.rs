@@ -6,6 +6,7 @@
 //! objects with every constant precomputed. After that nothing can fail.
 
 pub mod desc;
+mod diagnostic;
 pub mod distortion;
 
 use std::collections::BTreeMap;
@@ -183,17 +184,34 @@ pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
             size: text.len(),
         });
     }
+    if let Some((offset, message)) = diagnostic::check_brackets(text) {
+        let (line, column) = diagnostic::line_column(text, offset);
+        return Err(SceneError::Parse {
+            path: path.to_string(),
+            line,
+            column,
+            message,
+        });
+    }
     let options = ron::Options::default()
         .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
     options
         .from_str::<SceneDesc>(text)
-        .map_err(|e| SceneError::Parse {
-            path: path.to_string(),
-            line: e.span.start.line,
-            column: e.span.start.col,
-            message: e.code.to_string(),
-        })
+        .map_err(|e| parse_error(&e, text, path))
+}
+
+/// `ron`'s error in the scene's words ([`diagnostic::message`]).
+fn parse_error(e: &ron::error::SpannedError, text: &str, path: &str) -> SceneError {
+    let offset = diagnostic::offset_of(text, e.span.start.line, e.span.start.col);
+    let (offset, message) = diagnostic::message(&e.code, text, offset);
+    let (line, column) = diagnostic::line_column(text, offset);
+    SceneError::Parse {
+        path: path.to_string(),
+        line,
+        column,
+        message,
+    }
 }
 
 /// Parses a colour map file (the format of a scene's `colour_map`: `(interpolation:
@@ -208,12 +226,7 @@ pub fn parse_colour_map(text: &str, path: &str) -> Result<Curve<3>, SceneError> 
     ron::Options::default()
         .from_str::<desc::CurveDesc<desc::Rgb>>(text)
         .map(|d| Curve::colours(&d))
-        .map_err(|e| SceneError::Parse {
-            path: path.to_string(),
-            line: e.span.start.line,
-            column: e.span.start.col,
-            message: e.code.to_string(),
-        })
+        .map_err(|e| parse_error(&e, text, path))
 }
 
 /// Reads a scene file's text (at most [`MAX_SCENE_BYTES`], valid UTF-8).
@@ -508,6 +521,11 @@ impl Scene {
         }
         self.isa = isa;
         true
+    }
+
+    /// The camera the rays come from.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
     }
 
     /// Image width in pixels.
