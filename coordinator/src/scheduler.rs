@@ -363,6 +363,8 @@ struct Job {
 
 impl Job {
     fn new(plan: JobPlan, resume: Resume) -> Result<Job, WireError> {
+        hypertexture::interleave::check_partition(&plan.units, plan.width, plan.height)
+            .map_err(WireError::InvalidUnit)?;
         let n = plan.units.len();
         let interleave = plan.units.first().map_or(1, |u| u.set.interleave);
         let mut job = Job {
@@ -457,7 +459,8 @@ pub struct Scheduler {
 impl Scheduler {
     /// A one-shot render of `units` of a `width × height` frame whose tiles
     /// come in `format` (job [`ONE_SHOT_JOB`], frame 0); a worker silent for
-    /// `lease` loses its units.
+    /// `lease` loses its units. The units must cover every pixel exactly once
+    /// ([`hypertexture::interleave::check_partition`], which the caller runs).
     pub fn new(
         units: Vec<WorkUnit>,
         width: u32,
@@ -480,7 +483,7 @@ impl Scheduler {
             },
             Resume::default(),
         )
-        .expect("a new job has no stored tiles");
+        .expect("a new job has no stored tiles, and the caller checked its units");
         s
     }
 
@@ -591,7 +594,8 @@ impl Scheduler {
     }
 
     fn worker_mut(&mut self, worker_id: &str) -> Result<(u64, &mut WorkerState), Refusal> {
-        let unknown = || Refusal::UnknownWorker(worker_id.to_string());
+        let unknown =
+            || Refusal::UnknownWorker(hypertexture_proto::convert::name_from_wire(worker_id));
         let id: u64 = worker_id
             .strip_prefix('w')
             .and_then(|n| n.parse().ok())
@@ -790,7 +794,37 @@ impl Scheduler {
     /// Accepts a tile: `Ok(Some(_))` when it was stored in its frame's canvas,
     /// `Ok(None)` when it is valid but the unit was already complete (or its
     /// job has ended).
+    ///
+    /// A malformed tile, or one of another unit, for an assignment its worker
+    /// holds counts as a failure of the unit ([`Scheduler::fail`]): the unit
+    /// goes to another worker, and [`MAX_FAILURES`] of them give the job up
+    /// with the refusals as reasons, rather than waiting forever for a tile
+    /// that will never be right.
     pub fn accept(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        unit: Option<&pb::Unit>,
+        values: &[u8],
+        render_cpu_micros: u64,
+        now: Instant,
+    ) -> Result<Option<Accepted>, Refusal> {
+        let accepted = self.accept_tile(
+            worker_id,
+            assignment_id,
+            unit,
+            values,
+            render_cpu_micros,
+            now,
+        );
+        if let Err(r @ (Refusal::Malformed { .. } | Refusal::WrongUnit(_))) = &accepted {
+            let reason = format!("tile refused: {r}");
+            let _ = self.fail(worker_id, assignment_id, FailureKind::Render, &reason, now);
+        }
+        accepted
+    }
+
+    fn accept_tile(
         &mut self,
         worker_id: &str,
         assignment_id: u64,

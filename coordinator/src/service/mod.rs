@@ -194,7 +194,7 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         .clone()
         .filter(|n| !n.is_empty())
         .unwrap_or_else(|| "scene.ron".into());
-    let name: String = name.chars().filter(|c| !c.is_control()).take(256).collect();
+    let name = hypertexture_proto::convert::untrusted(&name, 256);
     let frames = frames_of(spec).map_err(bad)?;
     for (&frame, path) in frames
         .iter()
@@ -771,6 +771,7 @@ pub async fn serve(
     );
     tokio::pin!(shutdown);
     let mut drain_deadline: Option<Instant> = None;
+    let mut failed = None;
     loop {
         tokio::select! {
             () = farm.wait(Duration::from_millis(100)) => {}
@@ -786,6 +787,10 @@ pub async fn serve(
         }
         let now = Instant::now();
         let tick = farm.tick(now);
+        if let Some(p) = tick.panicked {
+            failed = Some(FarmError::Panicked(p));
+            break;
+        }
         for (id, why) in tick.gave_up {
             service.end(id, JobState::Failed, Some(why.to_string()));
         }
@@ -812,7 +817,10 @@ pub async fn serve(
         "stopped; every job and stored unit is kept in {}",
         config.data.display()
     );
-    Ok(())
+    match failed {
+        Some(e) => Err(e.into()),
+        None => Ok(()),
+    }
 }
 
 /// The address a service listens on by default.
