@@ -1484,6 +1484,10 @@ mod tests {
             s.submit(&a, id, None, &good, 0, now),
             Err(Refusal::Malformed { .. })
         ));
+        // The first malformed tile counted as a failure of the unit: it went
+        // back to the queue, and comes first to the next worker asking.
+        let (again, unit_again) = assign(&mut s, &b, now);
+        assert_eq!(unit_again, unit);
         let (_, other) = assign(&mut s, &b, now);
         let other_wire = convert::unit_to_wire(&other);
         assert_eq!(
@@ -1497,7 +1501,44 @@ mod tests {
                 .all(|p| *p == Sample::default()),
             "nothing written"
         );
-        assert_eq!(s.submit(&a, id, Some(&wire), &good, 0, now), Ok(true));
+        assert_eq!(
+            s.submit(&a, id, Some(&wire), &good, 0, now),
+            Err(Refusal::NotHeld(id))
+        );
+        assert_eq!(s.submit(&b, again, Some(&wire), &good, 0, now), Ok(true));
+    }
+
+    #[test]
+    fn a_unit_whose_tiles_are_refused_three_times_gives_the_job_up() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        let workers: Vec<String> = ["a", "b", "c"]
+            .iter()
+            .map(|n| s.register(n, 1, now))
+            .collect();
+        for w in &workers {
+            let (id, unit) = assign(&mut s, w, now);
+            let wire = convert::unit_to_wire(&unit);
+            let mut short = tile(&unit, 8, 0.5);
+            short.truncate(short.len() - 4);
+            assert!(matches!(
+                s.submit(w, id, Some(&wire), &short, 0, now),
+                Err(Refusal::Malformed { .. })
+            ));
+        }
+        let given_up = s.gave_up().expect("three refusals stop the render");
+        let message = given_up.to_string();
+        assert!(
+            matches!(given_up, GiveUp::Unit { index: 0, .. }),
+            "{message}"
+        );
+        for needle in [
+            "failed 3 times",
+            "worker a (render): tile refused: malformed tile",
+        ] {
+            assert!(message.contains(needle), "{needle}: {message}");
+        }
     }
 
     #[test]
