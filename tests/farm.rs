@@ -692,6 +692,7 @@ fn faulty_worker(
         name: name.to_string(),
         ca: None,
         exit_when_done: false,
+        lease: std::time::Duration::from_secs(10),
         fault: Some(fault),
         shares_process: true,
         tags: Vec::new(),
@@ -914,7 +915,7 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
     for needle in [
         "error: unit 0 (pixel set 0 of 8×8",
         "failed 3 times, giving up",
-        "worker alpha (render): out of memory on node 0 second line",
+        "worker alpha (render): out of memory on node 0\\nsecond line",
         "worker beta (render): out of memory on node 1",
         "worker gamma (render): out of memory on node 2",
     ] {

@@ -58,3 +58,50 @@ fn gallery_matches_golden_images() {
         failures.join("\n")
     );
 }
+
+/// The golden images hold on every instruction-set path this CPU has, not
+/// only the fastest the binary picks: each scene is rendered in-process on
+/// scalar, SSE4.1 and AVX2 (as available) and compared byte for byte.
+#[test]
+fn golden_images_hold_on_every_isa_path() {
+    if std::env::var_os("HYPERTEXTURE_BLESS").is_some_and(|v| v == "1") {
+        return;
+    }
+    let dir = scratch("golden-isa");
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let mut failures = Vec::new();
+    for name in SCENES {
+        let want = decode_png(&root().join("tests/golden").join(format!("{name}.png")));
+        let overrides = hypertexture::Overrides {
+            width: Some(64),
+            height: Some(64),
+            ..Default::default()
+        };
+        for isa in hypertexture::simd::Isa::available() {
+            let mut scene = hypertexture::Scene::load(scene(name), overrides.clone()).unwrap();
+            assert!(scene.set_isa(isa));
+            let film = pool.install(|| hypertexture::render::render(&scene, 0, &|_| {}));
+            let out = dir.join(format!("{name}-{}.png", isa.name()));
+            let metadata = coordinator::output::ImageMetadata::without_scene(64, 64, None, None);
+            coordinator::output::write_image(&film, &out, &metadata).unwrap();
+            let got = decode_png(&out);
+            if got.as_raw() != want.as_raw() {
+                let differing = got
+                    .pixels()
+                    .zip(want.pixels())
+                    .filter(|(a, b)| a != b)
+                    .count();
+                failures.push(format!(
+                    "{name} on {}: {differing} of {} pixels differ",
+                    isa.name(),
+                    64 * 64
+                ));
+            }
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

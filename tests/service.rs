@@ -321,6 +321,7 @@ fn faulty_worker(
         name: name.to_string(),
         ca: None,
         exit_when_done: false,
+        lease: std::time::Duration::from_secs(10),
         fault,
         shares_process: true,
         tags: Vec::new(),

@@ -460,7 +460,7 @@ async fn check_token(State(auth): State<Arc<Auth>>, request: Request, next: Next
         tracing::warn!(
             "api: refused {} {} from {}: missing or wrong bearer token (further refusals of this address are not logged for a minute)",
             request.method(),
-            request.uri().path(),
+            hypertexture_proto::convert::untrusted(request.uri().path(), 256),
             peer.map_or_else(|| "an unknown address".to_string(), |p| p.to_string())
         );
     }

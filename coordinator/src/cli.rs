@@ -34,8 +34,9 @@ pub struct Cli {
     #[arg(long)]
     pub in_process: bool,
     /// Threads: of the pool with --in-process (default: every core; 1 is the serial
-    /// baseline), or of each local worker on the farm (default 1).
-    #[arg(long, value_name = "N")]
+    /// baseline), or of each local worker on the farm (default 1). At most 4 ×
+    /// the cores, and 1024.
+    #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
     pub threads: Option<NonZeroUsize>,
     /// Where the farm listens for workers. Anything but loopback needs --token.
     #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
@@ -169,8 +170,8 @@ pub struct ServeArgs {
     /// Local worker processes to start (default: one per core; 0 = remote workers only).
     #[arg(long, value_name = "N")]
     pub local_workers: Option<usize>,
-    /// Threads of each local worker.
-    #[arg(long, value_name = "N", default_value = "1")]
+    /// Threads of each local worker (at most 4 × the cores, and 1024).
+    #[arg(long, value_name = "N", default_value = "1", value_parser = worker::cli::threads)]
     pub threads: NonZeroUsize,
     /// Shared secret workers and (beyond loopback) API clients must present.
     #[arg(

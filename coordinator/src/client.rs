@@ -187,8 +187,8 @@ fn read_ca(path: &Path) -> Result<Vec<ureq::tls::Certificate<'static>>, ClientEr
         path: path.to_path_buf(),
         message,
     };
-    let pem =
-        std::fs::read(path).map_err(|e| local(format!("cannot read the CA certificate: {e}")))?;
+    let pem = crate::files::read_capped(path, crate::files::MAX_PEM_BYTES, "CA certificate")
+        .map_err(|e| local(e.to_string()))?;
     let mut certs = Vec::new();
     for item in ureq::tls::parse_pem(&pem) {
         match item {

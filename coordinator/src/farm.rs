@@ -84,6 +84,12 @@ pub enum FarmError {
     /// The gRPC server failed.
     #[error("the farm's server failed: {0}")]
     Server(String),
+    /// The frame's units do not cover every pixel exactly once (a defect).
+    #[error("the frame's units are wrong: {0}")]
+    Units(String),
+    /// The coordinator panicked (a defect): the render cannot be trusted.
+    #[error("the coordinator failed: {0}")]
+    Panicked(String),
     /// This build's known-answer probe did not run (a defect of the build).
     #[error("the known-answer probe: {0}")]
     Probe(#[from] hypertexture::probe::ProbeError),
@@ -426,7 +432,14 @@ impl Service {
                     now,
                 )
                 .map_err(|r| {
-                    tracing::warn!("refused a tile from {}: {r}", p.worker_id);
+                    tracing::warn!(
+                        "refused a tile from {}: {r}",
+                        convert::name_from_wire(&p.worker_id)
+                    );
+                    if state.scheduler.gave_up_jobs().next().is_some() {
+                        // Refusals count as failures: wake the supervisor.
+                        let _ = self.0.finished.send(true);
+                    }
                     refusal(r)
                 })?;
             if let Some(a) = &accepted {
@@ -511,8 +524,8 @@ pub fn tags_from_wire(tags: &[String]) -> Result<Vec<String>, String> {
                 .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
         if !ok {
             return Err(format!(
-                "tag {:?}: a tag is 1 to 64 of A-Z a-z 0-9 . _ -",
-                t.chars().take(80).collect::<String>()
+                "tag \"{}\": a tag is 1 to 64 of A-Z a-z 0-9 . _ -",
+                convert::untrusted(t, convert::MAX_NAME_CHARS)
             ));
         }
         if !out.contains(t) {
@@ -553,12 +566,8 @@ impl FarmRpc for Service {
                 params.protocol_version, PROTOCOL_VERSION
             )));
         }
-        let name: String = params
-            .name
-            .chars()
-            .filter(|c| !c.is_control())
-            .take(64)
-            .collect();
+        // Kept escaped: every log line and message that names the worker is safe.
+        let name = convert::name_from_wire(&params.name);
         if params.arithmetic_digest != self.0.arithmetic_digest {
             self.state().stats.refused_workers += 1;
             tracing::warn!(
@@ -787,6 +796,9 @@ pub struct Tick {
     pub gave_up: Vec<(JobId, crate::scheduler::GiveUp)>,
     /// Workers with a live connection that can render the one-shot job.
     pub able: usize,
+    /// The first panic in this process ([`crate::panics`]): the render (or
+    /// the service) must stop with it.
+    pub panicked: Option<String>,
 }
 
 /// A running farm: the server (the workers' gRPC and any routes beside it,
@@ -960,6 +972,7 @@ impl Farm {
                 completed,
                 gave_up,
                 able: s.scheduler.able(),
+                panicked: crate::panics::first().map(str::to_string),
             }
         };
         if let Some(e) = self.locals.check() {
@@ -1033,6 +1046,8 @@ pub async fn render_frames(
         config.local_workers.max(64)
     };
     let units = farm_units(job.width, job.height, config.interleave, expected);
+    hypertexture::interleave::check_partition(&units, job.width, job.height)
+        .map_err(FarmError::Units)?;
     let unit_count = units.len();
     let scheduler = Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
         .with_frames(job.frames.iter().map(|f| f.frame).collect());
@@ -1084,6 +1099,9 @@ pub async fn render_frames(
             };
             (s.scheduler.finished(), preview)
         };
+        if let Some(p) = tick.panicked {
+            break Err(FarmError::Panicked(p));
+        }
         if let Some((_, why)) = tick.gave_up.into_iter().next() {
             break Err(FarmError::GaveUp(why));
         }
@@ -1175,7 +1193,8 @@ pub fn worker_binary() -> Option<PathBuf> {
     path.is_file().then_some(path)
 }
 
-/// Reads a PEM file for TLS.
+/// Reads a PEM file for TLS (at most [`crate::files::MAX_PEM_BYTES`]).
 pub fn read_pem(path: &Path) -> Result<Vec<u8>, FarmError> {
-    std::fs::read(path).map_err(|e| FarmError::Tls(format!("{}: {e}", path.display())))
+    crate::files::read_capped(path, crate::files::MAX_PEM_BYTES, "PEM file")
+        .map_err(|e| FarmError::Tls(e.to_string()))
 }

@@ -20,7 +20,12 @@ pub fn png_to_grid(path: &Path, side: usize) -> Result<String, CoordinatorError>
         path: path.to_path_buf(),
         message,
     };
-    let image = image::open(path)
+    let bytes = crate::files::read_capped(
+        path,
+        crate::files::MAX_GRID_IMAGE_BYTES,
+        "transfer-function image",
+    )?;
+    let image = image::load_from_memory(&bytes)
         .map_err(|e| bad(e.to_string()))?
         .to_luma8();
     let (w, h) = (image.width() as usize, image.height() as usize);

@@ -8,11 +8,13 @@ pub mod canvas;
 pub mod cli;
 pub mod client;
 pub mod farm;
+pub mod files;
 pub mod grid;
 pub mod jobs;
 pub mod local;
 pub mod logging;
 pub mod output;
+pub mod panics;
 pub mod progress;
 pub mod recolor;
 pub mod scheduler;
@@ -108,6 +110,9 @@ pub enum CoordinatorError {
     /// The farm failed.
     #[error(transparent)]
     Farm(#[from] farm::FarmError),
+    /// A file named on the command line cannot be used.
+    #[error(transparent)]
+    File(#[from] files::FileError),
     /// A transfer-function image could not be read.
     #[error("{path}: cannot use the image as a transfer function: {message}")]
     TransferImage {
@@ -170,6 +175,8 @@ pub fn frame_path(out: &std::path::Path, frame: u32) -> PathBuf {
 pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
     output::ImageFormat::from_path(&config.out)?;
+    // A sequence's files go beside `config.out`: one directory to check.
+    files::check_writable(&config.out)?;
     let (scene_text, scene_name, config) = scene_of(config)?;
     let frames: Vec<farm::FrameOut> = match config.frames {
         None => vec![farm::FrameOut {

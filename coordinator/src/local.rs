@@ -1,6 +1,7 @@
 //! The coordinator's own workers: `worker` processes beside this executable (one
 //! per core by default), or in-process workers when that binary is absent.
 
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use tokio::process::{Child, Command};
@@ -8,12 +9,83 @@ use tokio::sync::watch;
 
 use crate::farm::{FarmConfig, FarmError, worker_binary};
 
+/// A local worker process.
+pub struct LocalProcess {
+    /// Its name (`local-0`, …).
+    name: String,
+    /// The process.
+    child: Child,
+    /// How it exited, once it has.
+    exited: Option<std::process::ExitStatus>,
+    /// Its stderr: the first line, and whether the pipe has closed. Every
+    /// line is also logged here.
+    stderr: Arc<Mutex<(Option<String>, bool)>>,
+}
+
+impl LocalProcess {
+    /// Reads the child's stderr until it closes: logs every line (a worker
+    /// runs with --quiet, so these are its warnings and errors) and keeps
+    /// the first, which says why a failed worker failed.
+    fn watch_stderr(name: &str, child: &mut Child) -> Arc<Mutex<(Option<String>, bool)>> {
+        let state = Arc::new(Mutex::new((None, false)));
+        let Some(stderr) = child.stderr.take() else {
+            state.lock().unwrap_or_else(|p| p.into_inner()).1 = true;
+            return state;
+        };
+        let (name, kept) = (name.to_string(), Arc::clone(&state));
+        tokio::spawn(async move {
+            use tokio::io::AsyncBufReadExt as _;
+            let mut lines = tokio::io::BufReader::new(stderr).lines();
+            while let Ok(Some(line)) = lines.next_line().await {
+                let line = hypertexture_proto::convert::untrusted(
+                    &line,
+                    hypertexture_proto::convert::MAX_REASON_CHARS,
+                );
+                tracing::warn!("local worker {name}: {line}");
+                kept.lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0
+                    .get_or_insert(line);
+            }
+            kept.lock().unwrap_or_else(|p| p.into_inner()).1 = true;
+        });
+        state
+    }
+
+    /// Why it failed: its exit status and the first line it wrote.
+    fn failure(&self) -> String {
+        let status = self
+            .exited
+            .map_or_else(|| "?".to_string(), |s| s.to_string());
+        match &self.stderr.lock().unwrap_or_else(|p| p.into_inner()).0 {
+            Some(line) => format!("local worker {} exited with {status}: {line}", self.name),
+            None => format!(
+                "local worker {} exited with {status}, saying nothing",
+                self.name
+            ),
+        }
+    }
+
+    /// Whether its failure is a refusal by this coordinator (another
+    /// protocol or arithmetic): the mark of a binary from another build.
+    fn refused(&self) -> bool {
+        self.stderr
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .0
+            .as_deref()
+            .is_some_and(|l| {
+                l.contains("protocol version mismatch") || l.contains("arithmetic mismatch")
+            })
+    }
+}
+
 /// Local workers started for one render.
 pub enum LocalWorkers {
     /// Child processes, and how to start in-process workers instead should
     /// every one of them fail (a `worker` binary left from an older build
     /// speaks an older protocol: `cargo run -p coordinator` does not rebuild it).
-    Processes(Vec<(String, Child)>, Option<InProcessPlan>),
+    Processes(Vec<LocalProcess>, Option<InProcessPlan>),
     /// Tasks in this process (no `worker` binary found).
     InProcess {
         /// Tells the tasks to stop.
@@ -30,6 +102,10 @@ pub struct InProcessPlan {
     url: String,
     token: Option<String>,
     ca: Option<Vec<u8>>,
+    lease: Duration,
+    /// Whether every local worker process that failed so far was refused
+    /// for another protocol or arithmetic.
+    all_refused: bool,
 }
 
 impl InProcessPlan {
@@ -44,6 +120,7 @@ impl InProcessPlan {
                     name: format!("in-process-{i}"),
                     ca: self.ca.clone(),
                     exit_when_done: true,
+                    lease: self.lease,
                     fault: None,
                     shares_process: true,
                     tags: Vec::new(),
@@ -71,6 +148,8 @@ impl LocalWorkers {
             url: url.to_string(),
             token: token.map(str::to_string),
             ca: config.tls.as_ref().map(|(cert, _)| cert.clone()),
+            lease: config.lease,
+            all_refused: true,
         };
         let ca_path =
             std::env::temp_dir().join(format!("hypertexture-ca-{}.pem", std::process::id()));
@@ -91,12 +170,14 @@ impl LocalWorkers {
                         &config.local_threads.to_string(),
                     ])
                     .args(["--name", &name, "--exit-when-done", "--quiet"])
+                    .args(["--lease-timeout", &config.lease.as_secs_f64().to_string()])
                     // A local worker never outlives this process, whatever
                     // ends it: the worker watches its parent, and on Linux
                     // the kernel kills it when this process dies.
                     .args(["--parent-pid", &std::process::id().to_string()])
                     .env_remove("HYPERTEXTURE_TOKEN")
                     .stdin(std::process::Stdio::null())
+                    .stderr(std::process::Stdio::piped())
                     .kill_on_drop(true);
                     if let Some(t) = token {
                         cmd.env("HYPERTEXTURE_TOKEN", t);
@@ -115,11 +196,17 @@ impl LocalWorkers {
                             Ok(())
                         });
                     }
-                    let child = cmd.spawn().map_err(|source| FarmError::Spawn {
+                    let mut child = cmd.spawn().map_err(|source| FarmError::Spawn {
                         path: path.clone(),
                         source,
                     })?;
-                    children.push((name, child));
+                    let stderr = LocalProcess::watch_stderr(&name, &mut child);
+                    children.push(LocalProcess {
+                        name,
+                        child,
+                        exited: None,
+                        stderr,
+                    });
                 }
                 tracing::info!(
                     "started {} local worker processes ({})",
@@ -147,22 +234,39 @@ impl LocalWorkers {
             return None;
         };
         let mut message = None;
-        children.retain_mut(|(name, child)| match child.try_wait() {
-            Ok(Some(status)) if !status.success() => {
-                message = Some(format!("local worker {name} exited with {status}"));
-                false
+        // A failed process is reported once its stderr has closed, so that the
+        // message has the line saying why.
+        children.retain_mut(|p| {
+            if p.exited.is_none() {
+                p.exited = p.child.try_wait().ok().flatten();
             }
-            _ => true,
+            let reported = p.stderr.lock().unwrap_or_else(|e| e.into_inner()).1;
+            match p.exited {
+                Some(status) if !status.success() && reported => {
+                    message = Some(p.failure());
+                    if let Some(plan) = plan.as_mut() {
+                        plan.all_refused &= p.refused();
+                    }
+                    false
+                }
+                _ => true,
+            }
         });
-        if message.is_some()
+        if let Some(last) = &message
             && children.is_empty()
             && let Some(plan) = plan.take()
         {
             let path = worker_binary().map_or_else(String::new, |p| p.display().to_string());
+            let cause = if plan.all_refused {
+                "a worker binary from an older build speaks another protocol or arithmetic; \
+                 `cargo build --release --workspace` rebuilds it"
+                    .to_string()
+            } else {
+                last.clone()
+            };
             message = Some(format!(
                 "every local worker process ({path}) has failed: running {} in-process workers \
-                 instead (a worker binary from an older build speaks an older protocol; \
-                 `cargo build --release --workspace` rebuilds it)",
+                 instead ({cause})",
                 plan.count
             ));
             *self = plan.start();
@@ -181,8 +285,8 @@ impl LocalWorkers {
                 // goodbye), so that a worker still rendering leaves within
                 // the grace.
                 #[cfg(unix)]
-                for (_, child) in children.iter().filter(|_| terminate) {
-                    if let Some(pid) = child.id() {
+                for p in children.iter().filter(|_| terminate) {
+                    if let Some(pid) = p.child.id() {
                         // SAFETY: kill(2) on our own child's pid, which it keeps
                         // until we wait for it.
                         unsafe {
@@ -190,7 +294,10 @@ impl LocalWorkers {
                         }
                     }
                 }
-                for (name, mut child) in children {
+                for LocalProcess {
+                    name, mut child, ..
+                } in children
+                {
                     match tokio::time::timeout(grace, child.wait()).await {
                         Ok(_) => {}
                         Err(_) => {

@@ -21,14 +21,16 @@ pub fn init_with(quiet: bool, json: bool) {
         let _ = tracing_subscriber::fmt()
             .json()
             .with_env_filter(filter)
-            .with_writer(std::io::stderr)
+            .with_writer(worker::logging::Stderr::default)
+            .log_internal_errors(false)
             .with_target(false)
             .with_current_span(false)
             .try_init();
     } else {
         let _ = tracing_subscriber::fmt()
             .with_env_filter(filter)
-            .with_writer(std::io::stderr)
+            .with_writer(worker::logging::Stderr::default)
+            .log_internal_errors(false)
             .with_ansi(std::io::stderr().is_terminal())
             .with_target(false)
             .without_time()

@@ -1,5 +1,6 @@
 //! `coordinator`: parses arguments, sets up logging, runs. Everything else is in the library.
 
+use std::io::Write as _;
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -7,6 +8,7 @@ use coordinator::cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let mut cli = Cli::parse();
+    coordinator::panics::install();
     let result: Result<ExitCode, String> = match cli.command.take() {
         Some(Command::Bench(args)) => {
             coordinator::logging::init(true);
@@ -16,7 +18,7 @@ fn main() -> ExitCode {
         }
         Some(Command::Grid(args)) => coordinator::grid::png_to_grid(&args.png, args.side as usize)
             .map(|grid| {
-                println!("{grid}");
+                say(format_args!("{grid}\n"));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
@@ -28,7 +30,7 @@ fn main() -> ExitCode {
             &args.set,
         )
         .map(|value| {
-            println!("{value}");
+            say(format_args!("{value}\n"));
             ExitCode::SUCCESS
         })
         .map_err(|e| e.to_string()),
@@ -46,30 +48,30 @@ fn main() -> ExitCode {
             .map_err(|e| e.to_string()),
         Some(Command::Submit(args)) => coordinator::client::submit(&args)
             .map(|id| {
-                println!("{id}");
+                say(format_args!("{id}\n"));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
         Some(Command::Status(args)) => coordinator::client::status(&args)
             .map(|table| {
-                print!("{table}");
+                say(format_args!("{table}"));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
         Some(Command::Cancel(args)) => coordinator::client::cancel(&args)
             .map(|job| {
-                println!("{} {}", job.id, job.state.as_str());
+                say(format_args!("{} {}\n", job.id, job.state.as_str()));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
         Some(Command::Wait(args)) => coordinator::client::wait(&args)
             .map(|job| {
-                println!("{} {}", job.id, job.state.as_str());
+                say(format_args!("{} {}\n", job.id, job.state.as_str()));
                 if job.state == coordinator::jobs::JobState::Done {
                     ExitCode::SUCCESS
                 } else {
                     if let Some(e) = &job.error {
-                        eprintln!("error: job {}: {e}", job.id);
+                        complain(format_args!("error: job {}: {e}\n", job.id));
                     }
                     ExitCode::FAILURE
                 }
@@ -85,8 +87,19 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e}");
+            complain(format_args!("error: {e}\n"));
             ExitCode::FAILURE
         }
     }
+}
+
+/// Writes to stdout; a closed stdout is ignored (the work is done: a full
+/// disk or a reader gone must not turn success into a panic).
+fn say(text: std::fmt::Arguments) {
+    let _ = std::io::stdout().write_fmt(text);
+}
+
+/// Writes to stderr; a closed stderr is ignored.
+fn complain(text: std::fmt::Arguments) {
+    let _ = std::io::stderr().write_fmt(text);
 }

@@ -37,6 +37,7 @@ pub fn read_density(path: &Path) -> Result<DensityImage, CoordinatorError> {
         path: path.to_path_buf(),
         message,
     };
+    let bytes = crate::files::read_capped(path, crate::files::MAX_EXR_BYTES, "EXR")?;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -60,7 +61,7 @@ pub fn read_density(path: &Path) -> Result<DensityImage, CoordinatorError> {
         )
         .first_valid_layer()
         .all_attributes()
-        .from_file(path)
+        .from_buffered(std::io::Cursor::new(bytes))
         .map_err(|e| fail(format!("cannot read the density channel: {e}")))?;
     let size = image.layer_data.size;
     let (width, height) = (

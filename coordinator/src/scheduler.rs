@@ -365,6 +365,8 @@ struct Job {
 
 impl Job {
     fn new(plan: JobPlan, resume: Resume) -> Result<Job, WireError> {
+        hypertexture::interleave::check_partition(&plan.units, plan.width, plan.height)
+            .map_err(WireError::InvalidUnit)?;
         let n = plan.units.len();
         let interleave = plan.units.first().map_or(1, |u| u.set.interleave);
         let mut job = Job {
@@ -459,7 +461,8 @@ pub struct Scheduler {
 impl Scheduler {
     /// A one-shot render of `units` of a `width × height` frame whose tiles
     /// come in `format` (job [`ONE_SHOT_JOB`], frame 0); a worker silent for
-    /// `lease` loses its units.
+    /// `lease` loses its units. The units must cover every pixel exactly once
+    /// ([`hypertexture::interleave::check_partition`], which the caller runs).
     pub fn new(
         units: Vec<WorkUnit>,
         width: u32,
@@ -482,7 +485,7 @@ impl Scheduler {
             },
             Resume::default(),
         )
-        .expect("a new job has no stored tiles");
+        .expect("a new job has no stored tiles, and the caller checked its units");
         s
     }
 
@@ -593,7 +596,8 @@ impl Scheduler {
     }
 
     fn worker_mut(&mut self, worker_id: &str) -> Result<(u64, &mut WorkerState), Refusal> {
-        let unknown = || Refusal::UnknownWorker(worker_id.to_string());
+        let unknown =
+            || Refusal::UnknownWorker(hypertexture_proto::convert::name_from_wire(worker_id));
         let id: u64 = worker_id
             .strip_prefix('w')
             .and_then(|n| n.parse().ok())
@@ -792,7 +796,37 @@ impl Scheduler {
     /// Accepts a tile: `Ok(Some(_))` when it was stored in its frame's canvas,
     /// `Ok(None)` when it is valid but the unit was already complete (or its
     /// job has ended).
+    ///
+    /// A malformed tile, or one of another unit, for an assignment its worker
+    /// holds counts as a failure of the unit ([`Scheduler::fail`]): the unit
+    /// goes to another worker, and [`MAX_FAILURES`] of them give the job up
+    /// with the refusals as reasons, rather than waiting forever for a tile
+    /// that will never be right.
     pub fn accept(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        unit: Option<&pb::Unit>,
+        values: &[u8],
+        render_cpu_micros: u64,
+        now: Instant,
+    ) -> Result<Option<Accepted>, Refusal> {
+        let accepted = self.accept_tile(
+            worker_id,
+            assignment_id,
+            unit,
+            values,
+            render_cpu_micros,
+            now,
+        );
+        if let Err(r @ (Refusal::Malformed { .. } | Refusal::WrongUnit(_))) = &accepted {
+            let reason = format!("tile refused: {r}");
+            let _ = self.fail(worker_id, assignment_id, FailureKind::Render, &reason, now);
+        }
+        accepted
+    }
+
+    fn accept_tile(
         &mut self,
         worker_id: &str,
         assignment_id: u64,
@@ -1453,6 +1487,10 @@ mod tests {
             s.submit(&a, id, None, &good, 0, now),
             Err(Refusal::Malformed { .. })
         ));
+        // The first malformed tile counted as a failure of the unit: it went
+        // back to the queue, and comes first to the next worker asking.
+        let (again, unit_again) = assign(&mut s, &b, now);
+        assert_eq!(unit_again, unit);
         let (_, other) = assign(&mut s, &b, now);
         let other_wire = convert::unit_to_wire(&other);
         assert_eq!(
@@ -1466,7 +1504,44 @@ mod tests {
                 .all(|p| *p == Sample::default()),
             "nothing written"
         );
-        assert_eq!(s.submit(&a, id, Some(&wire), &good, 0, now), Ok(true));
+        assert_eq!(
+            s.submit(&a, id, Some(&wire), &good, 0, now),
+            Err(Refusal::NotHeld(id))
+        );
+        assert_eq!(s.submit(&b, again, Some(&wire), &good, 0, now), Ok(true));
+    }
+
+    #[test]
+    fn a_unit_whose_tiles_are_refused_three_times_gives_the_job_up() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        let workers: Vec<String> = ["a", "b", "c"]
+            .iter()
+            .map(|n| s.register(n, 1, now))
+            .collect();
+        for w in &workers {
+            let (id, unit) = assign(&mut s, w, now);
+            let wire = convert::unit_to_wire(&unit);
+            let mut short = tile(&unit, 8, 0.5);
+            short.truncate(short.len() - 4);
+            assert!(matches!(
+                s.submit(w, id, Some(&wire), &short, 0, now),
+                Err(Refusal::Malformed { .. })
+            ));
+        }
+        let given_up = s.gave_up().expect("three refusals stop the render");
+        let message = given_up.to_string();
+        assert!(
+            matches!(given_up, GiveUp::Unit { index: 0, .. }),
+            "{message}"
+        );
+        for needle in [
+            "failed 3 times",
+            "worker a (render): tile refused: malformed tile",
+        ] {
+            assert!(message.contains(needle), "{needle}: {message}");
+        }
     }
 
     #[test]

@@ -1,5 +1,7 @@
 //! Conversions between wire (prost) types and the program's own types, both ways.
 
+use std::fmt::Write as _;
+
 use hypertexture::interleave::{PixelSet, WorkUnit};
 use hypertexture::{PixelFormat, Quality, Sample};
 
@@ -215,21 +217,60 @@ pub fn failure_kind_from_wire(kind: i32) -> Result<FailureKind, WireError> {
 }
 
 /// The longest failure reason kept (in characters); the rest is cut.
-pub const MAX_REASON_CHARS: usize = 1000;
+pub const MAX_REASON_CHARS: usize = 512;
+
+/// The longest worker name or id kept (in characters); the rest is cut.
+pub const MAX_NAME_CHARS: usize = 64;
+
+/// Whether `c` reorders or hides the text around it when shown: Unicode's
+/// bidirectional embeddings, overrides, isolates and marks.
+fn is_bidi_control(c: char) -> bool {
+    matches!(
+        c,
+        '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}' | '\u{200e}' | '\u{200f}' | '\u{61c}'
+    )
+}
+
+/// A string from the network made safe to log or to echo: control characters
+/// (newlines included) and bidirectional controls become escapes (`\n`,
+/// `\u{202e}`), so that it cannot start a forged log line or turn the text
+/// around it; at most `max_chars` characters of it are kept, and a cut ends
+/// with `…`.
+pub fn untrusted(s: &str, max_chars: usize) -> String {
+    let mut out = String::with_capacity(s.len().min(max_chars * 2));
+    for (i, c) in s.chars().enumerate() {
+        if i == max_chars {
+            out.push('…');
+            break;
+        }
+        match c {
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if c.is_control() || is_bidi_control(c) => {
+                let _ = write!(out, "\\u{{{:x}}}", u32::from(c));
+            }
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// A worker name or id from the network, safe to log ([`untrusted`], at most
+/// [`MAX_NAME_CHARS`] characters).
+pub fn name_from_wire(name: &str) -> String {
+    untrusted(name, MAX_NAME_CHARS)
+}
 
 /// A failure reason from the wire as one printable line, at most
-/// [`MAX_REASON_CHARS`] characters (it goes into logs and error messages).
+/// [`MAX_REASON_CHARS`] characters ([`untrusted`]: it goes into logs and
+/// error messages).
 pub fn reason_from_wire(reason: &str) -> String {
-    let line: String = reason
-        .chars()
-        .map(|c| if c.is_control() { ' ' } else { c })
-        .take(MAX_REASON_CHARS)
-        .collect();
-    let line = line.trim();
+    let line = untrusted(reason.trim(), MAX_REASON_CHARS);
     if line.is_empty() {
         "no reason given".into()
     } else {
-        line.to_string()
+        line
     }
 }
 
@@ -382,9 +423,21 @@ mod tests {
             failure_kind_from_wire(9),
             Err(WireError::UnknownFailureKind(9))
         );
-        assert_eq!(reason_from_wire(" a\nb\u{1b} "), "a b");
+        assert_eq!(reason_from_wire(" a\nb\u{1b} "), "a\\nb\\u{1b}");
         assert_eq!(reason_from_wire(""), "no reason given");
-        assert_eq!(reason_from_wire(&"x".repeat(5000)).len(), MAX_REASON_CHARS);
+        assert_eq!(
+            reason_from_wire(&"x".repeat(5000)).chars().count(),
+            MAX_REASON_CHARS + 1
+        );
+        assert!(reason_from_wire(&"x".repeat(5000)).ends_with('…'));
+        assert_eq!(
+            name_from_wire("a\u{202e}b\u{2066}c\u{200f}\u{61c}\r\"é"),
+            "a\\u{202e}b\\u{2066}c\\u{200f}\\u{61c}\\r\"é"
+        );
+        assert_eq!(
+            name_from_wire(&"y".repeat(65)),
+            format!("{}…", "y".repeat(64))
+        );
         assert_eq!(spp_from_wire(4), Some(4));
     }
 }

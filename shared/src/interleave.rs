@@ -205,9 +205,100 @@ pub fn work_units(width: u32, height: u32, interleave: u32, max_unit_pixels: u32
         .collect()
 }
 
+/// Checks that `units` cover every pixel of a `width × height` image exactly
+/// once: one interleave B for all, and every row of every one of the B×B sets
+/// in exactly one unit (a unit takes whole set rows). The farm relies on it:
+/// a pixel in no unit would never be rendered, one in two would be rendered
+/// twice. The error names the first row at fault.
+pub fn check_partition(units: &[WorkUnit], width: u32, height: u32) -> Result<(), String> {
+    let Some(first) = units.first() else {
+        return Err("no units".into());
+    };
+    let b = first.set.interleave;
+    if !b.is_power_of_two() || b > 64 {
+        return Err(format!("interleave {b} is not a power of two up to 64"));
+    }
+    let sets = (b * b) as usize;
+    let rows_per_set = height.div_ceil(b) as usize;
+    let mut covered = vec![false; sets * rows_per_set];
+    for u in units {
+        if u.set.interleave != b || u.set.index as usize >= sets {
+            return Err(format!(
+                "a unit of pixel set {} of {}×{} among units of {b}×{b}",
+                u.set.index, u.set.interleave, u.set.interleave
+            ));
+        }
+        let rows = u.set.rows(height);
+        for i in 0..u.row_count {
+            let r = u64::from(u.first_row) + u64::from(i) * u64::from(u.row_stride);
+            if r >= u64::from(rows) {
+                return Err(format!(
+                    "a unit of pixel set {} takes row {r}, beyond the set's {rows} rows",
+                    u.set.index
+                ));
+            }
+            let slot = &mut covered[u.set.index as usize * rows_per_set + r as usize];
+            if std::mem::replace(slot, true) {
+                return Err(format!(
+                    "row {r} of pixel set {} is in two units",
+                    u.set.index
+                ));
+            }
+        }
+    }
+    for index in 0..sets as u32 {
+        let set = PixelSet {
+            interleave: b,
+            index,
+        };
+        if set.columns(width) == 0 {
+            continue;
+        }
+        if let Some(r) =
+            (0..set.rows(height) as usize).find(|&r| !covered[index as usize * rows_per_set + r])
+        {
+            return Err(format!("row {r} of pixel set {index} is in no unit"));
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_partition_must_cover_every_pixel_once() {
+        for (w, h, b, workers) in [(16, 16, 8, 4), (33, 17, 4, 3), (5, 7, 8, 1), (64, 64, 1, 2)] {
+            let units = farm_units(w, h, b, workers);
+            assert_eq!(check_partition(&units, w, h), Ok(()), "{w}×{h} B={b}");
+        }
+        let units = work_units(16, 16, 8, 4096);
+        let skipped = &units[1..];
+        assert!(
+            check_partition(skipped, 16, 16)
+                .unwrap_err()
+                .contains("is in no unit")
+        );
+        let mut twice = units.clone();
+        twice.push(units[0]);
+        assert!(
+            check_partition(&twice, 16, 16)
+                .unwrap_err()
+                .contains("in two units")
+        );
+        let mut short = units.clone();
+        short[0].row_count -= 1;
+        assert!(check_partition(&short, 16, 16).is_err());
+        let mut beyond = units;
+        beyond[0].row_count += 1;
+        assert!(
+            check_partition(&beyond, 16, 16)
+                .unwrap_err()
+                .contains("beyond")
+        );
+        assert!(check_partition(&[], 16, 16).is_err());
+    }
 
     #[test]
     fn set_of_pixel_is_the_papers_interleave() {

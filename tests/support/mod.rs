@@ -38,18 +38,38 @@ pub fn decode_png(path: &Path) -> image::RgbaImage {
         .to_rgba8()
 }
 
-/// The worker binary (built beside the coordinator by `cargo test --workspace`).
+/// The worker binary beside the coordinator, never older than it: built
+/// (once per test process, with the test's profile and target directory) when
+/// it is missing or stale. The coordinator links the worker library, so any
+/// change to the worker's code makes the coordinator binary newer than a
+/// `worker` binary left from before it.
 pub fn worker_bin() -> PathBuf {
-    let path = Path::new(env!("CARGO_BIN_EXE_coordinator"))
-        .with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
-    if !path.exists() {
+    static BUILT: std::sync::Once = std::sync::Once::new();
+    let coordinator = Path::new(env!("CARGO_BIN_EXE_coordinator"));
+    let path = coordinator.with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    BUILT.call_once(|| {
+        if modified(&path).is_some_and(|w| modified(coordinator).is_some_and(|c| w >= c)) {
+            return;
+        }
+        let profile_dir = coordinator.parent().expect("the profile directory");
+        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+            Some("debug") | None => "dev",
+            Some(other) => other,
+        };
+        let target_dir = profile_dir.parent().expect("the target directory");
         let status = Command::new(env!("CARGO"))
-            .args(["build", "-p", "worker"])
+            // Both packages, as a test run builds them: the same features.
+            .args(["build", "--quiet", "-p", "coordinator", "-p", "worker"])
+            .args(["--bin", "worker", "--profile", profile])
+            .arg("--target-dir")
+            .arg(target_dir)
             .current_dir(root())
             .status()
             .expect("cargo runs");
         assert!(status.success(), "building the worker binary");
-    }
+    });
+    assert!(path.exists(), "{} was not built", path.display());
     path
 }
 

@@ -15,8 +15,8 @@ pub struct Cli {
     /// The coordinator's address, e.g. http://10.0.0.5:50051 (https:// with --ca).
     #[arg(long, value_name = "URL")]
     pub coordinator: String,
-    /// Render threads (default: every core).
-    #[arg(long, value_name = "N")]
+    /// Render threads (default: every core; at most 4 × the cores, and 1024).
+    #[arg(long, value_name = "N", value_parser = threads)]
     pub threads: Option<NonZeroUsize>,
     /// Shared secret the coordinator requires.
     #[arg(
@@ -36,6 +36,10 @@ pub struct Cli {
     /// for the next render). Used for the coordinator's own local workers.
     #[arg(long)]
     pub exit_when_done: bool,
+    /// With --exit-when-done: seconds the coordinator may be unreachable before
+    /// the worker leaves (exit status 1), as its units' leases run out there.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
     /// A tag for jobs that require it (repeatable), e.g. --tag gpu --tag big-memory:
     /// jobs submitted with --require-tag go only to workers carrying all their tags.
     #[arg(long = "tag", value_name = "NAME", value_parser = tag)]
@@ -53,7 +57,7 @@ impl Cli {
     /// The library configuration these arguments ask for.
     pub fn into_config(self) -> Result<WorkerConfig, WorkerError> {
         let ca = match &self.ca {
-            Some(path) => Some(std::fs::read(path).map_err(|source| WorkerError::Ca {
+            Some(path) => Some(read_ca(path).map_err(|source| WorkerError::Ca {
                 path: path.clone(),
                 source,
             })?),
@@ -69,6 +73,7 @@ impl Cli {
             name: self.name.unwrap_or_else(default_name),
             ca,
             exit_when_done: self.exit_when_done,
+            lease: std::time::Duration::from_secs_f64(self.lease_timeout),
             fault: None,
             shares_process: false,
             tags: self.tag,
@@ -99,5 +104,57 @@ fn tag(s: &str) -> Result<String, String> {
         Err(format!(
             "expected 1 to 64 of A-Z a-z 0-9 . _ -, found {s:?}"
         ))
+    }
+}
+
+/// The largest CA certificate file read.
+const MAX_CA_BYTES: u64 = 1 << 20;
+
+/// A CA certificate file's bytes: at most [`MAX_CA_BYTES`] are read.
+fn read_ca(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
+    use std::io::Read as _;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?
+        .take(MAX_CA_BYTES + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_CA_BYTES {
+        return Err(std::io::Error::other(format!(
+            "larger than {MAX_CA_BYTES} bytes, the most read"
+        )));
+    }
+    Ok(bytes)
+}
+
+/// The most render threads one process starts: 4 × the cores, and at most
+/// 1024 (more only cost memory and switches).
+pub fn max_threads() -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+    (4 * cores).min(1024)
+}
+
+/// `--threads`: 1 to [`max_threads`].
+pub fn threads(s: &str) -> Result<NonZeroUsize, String> {
+    let n: NonZeroUsize = s
+        .parse()
+        .map_err(|_| format!("expected a number of threads from 1, found {s:?}"))?;
+    let max = max_threads();
+    if n.get() > max {
+        let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+        return Err(format!(
+            "{n} threads is too many: at most {max} (4 × the {cores} cores, and no more than 1024)"
+        ));
+    }
+    Ok(n)
+}
+
+/// Seconds: a finite number above 0 and at most a day.
+fn positive_seconds(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("expected a number of seconds, found {s:?}"))?;
+    if v.is_finite() && v > 0.0 && v <= 86_400.0 {
+        Ok(v)
+    } else {
+        Err(format!("expected seconds between 0 and 86400, found {s}"))
     }
 }

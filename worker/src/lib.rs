@@ -45,8 +45,13 @@ pub struct WorkerConfig {
     pub name: String,
     /// PEM CA certificate for TLS.
     pub ca: Option<Vec<u8>>,
-    /// Return when the frame is finished instead of waiting for the next one.
+    /// Return when the frame is finished instead of waiting for the next one;
+    /// and fail ([`WorkerError::CoordinatorGone`]) once a coordinator this
+    /// worker had reached has been unreachable for `lease`.
     pub exit_when_done: bool,
+    /// How long a coordinator may be unreachable before an `exit_when_done`
+    /// worker gives up on it (the coordinator's lease time-out).
+    pub lease: Duration,
     /// Fail on purpose (tests of the failure path only; `None` in every binary).
     pub fault: Option<Fault>,
     /// The worker runs inside another program (the coordinator's in-process
@@ -102,6 +107,15 @@ pub enum WorkerError {
         threads: usize,
         /// Why not.
         message: String,
+    },
+    /// An `exit_when_done` worker's coordinator has been unreachable for the
+    /// whole lease: the render it served is over, one way or another.
+    #[error("{url} has been unreachable for {secs:.0} s: leaving")]
+    CoordinatorGone {
+        /// The coordinator.
+        url: String,
+        /// How long it has been unreachable.
+        secs: f64,
     },
 }
 
@@ -366,14 +380,35 @@ pub async fn run(
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::default();
     let mut backoff = Backoff(Backoff::FIRST);
+    // Since when the coordinator this worker had reached has been unreachable.
+    let mut lost_since: Option<std::time::Instant> = None;
+    let gone = |lost_since: Option<std::time::Instant>| match lost_since {
+        Some(t) if config.exit_when_done && t.elapsed() >= config.lease => {
+            Some(WorkerError::CoordinatorGone {
+                url: config.coordinator.clone(),
+                secs: t.elapsed().as_secs_f64(),
+            })
+        }
+        _ => None,
+    };
+    // An `exit_when_done` worker waits no longer than the rest of its lease.
+    let retry = |wait: Duration, lost_since: Option<std::time::Instant>| match lost_since {
+        Some(t) if config.exit_when_done => wait
+            .min(config.lease.saturating_sub(t.elapsed()))
+            .max(Duration::from_millis(10)),
+        _ => wait,
+    };
     loop {
         if *stop.borrow() {
             return Ok(report);
         }
+        if let Some(e) = gone(lost_since) {
+            return Err(e);
+        }
         let channel = match endpoint.connect().await {
             Ok(c) => c,
             Err(e) => {
-                let wait = backoff.next();
+                let wait = retry(backoff.next(), lost_since);
                 tracing::warn!(
                     "cannot reach {}: {}; retrying in {wait:?}",
                     config.coordinator,
@@ -400,14 +435,14 @@ pub async fn run(
         let registered = match registered {
             Ok(r) => r.into_inner(),
             Err(status) if is_refusal(&status) => {
-                return Err(WorkerError::Refused(status.message().to_string()));
+                return Err(WorkerError::Refused(said(&status)));
             }
             Err(status) => {
-                let wait = backoff.next();
+                let wait = retry(backoff.next(), lost_since);
                 tracing::warn!(
                     "cannot register with {}: {}; retrying in {wait:?}",
                     config.coordinator,
-                    status.message()
+                    said(&status)
                 );
                 if sleep_or_stop(wait, &mut stop).await {
                     return Ok(report);
@@ -416,6 +451,7 @@ pub async fn run(
             }
         };
         backoff.reset();
+        lost_since = None;
         tracing::info!(
             "registered with {} as {} ({} threads)",
             config.coordinator,
@@ -454,7 +490,8 @@ pub async fn run(
                 return Ok(report);
             }
             Ok(Leave::Reconnect) => {
-                let wait = backoff.next();
+                let since = *lost_since.get_or_insert_with(std::time::Instant::now);
+                let wait = retry(backoff.next(), Some(since));
                 if sleep_or_stop(wait, &mut stop).await {
                     return Ok(report);
                 }
@@ -768,17 +805,17 @@ async fn delivered(
             if status.code() == Code::InvalidArgument
                 || status.code() == Code::FailedPrecondition =>
         {
-            tracing::warn!("tile refused: {}", status.message());
+            tracing::warn!("tile refused: {}", said(&status));
             Delivered::Nothing
         }
         Ok(Err(status)) => {
             if is_refusal(&status) {
-                return Err(WorkerError::Refused(status.message().to_string()));
+                return Err(WorkerError::Refused(said(&status)));
             }
             tracing::warn!(
                 "a tile was not delivered to {}: {}",
                 config.coordinator,
-                status.message()
+                said(&status)
             );
             Delivered::Lost(status)
         }
@@ -789,15 +826,21 @@ async fn delivered(
     })
 }
 
+/// What the coordinator said, safe to log: a message off the network is
+/// escaped and capped like every other ([`convert::untrusted`]).
+fn said(status: &Status) -> String {
+    convert::untrusted(status.message(), convert::MAX_REASON_CHARS)
+}
+
 /// What to do after a failed call: give up on refusal, otherwise reconnect.
 fn lost(config: &WorkerConfig, status: Status) -> Result<Leave, WorkerError> {
     if is_refusal(&status) {
-        return Err(WorkerError::Refused(status.message().to_string()));
+        return Err(WorkerError::Refused(said(&status)));
     }
     if status.code() == Code::NotFound {
         tracing::info!("the coordinator does not know this worker any more: registering again");
     } else {
-        tracing::warn!("lost {}: {}", config.coordinator, status.message());
+        tracing::warn!("lost {}: {}", config.coordinator, said(&status));
     }
     Ok(Leave::Reconnect)
 }

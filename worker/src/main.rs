@@ -1,5 +1,6 @@
 //! `worker`: parses arguments, sets up logging and signals, runs the work loop.
 
+use std::io::Write as _;
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -12,7 +13,7 @@ fn main() -> ExitCode {
     let config = match cli.into_config() {
         Ok(c) => c,
         Err(e) => {
-            eprintln!("error: {e}");
+            complain(format_args!("error: {e}\n"));
             return ExitCode::FAILURE;
         }
     };
@@ -24,7 +25,7 @@ fn main() -> ExitCode {
     {
         Ok(r) => r,
         Err(e) => {
-            eprintln!("error: cannot start the async runtime: {e}");
+            complain(format_args!("error: cannot start the async runtime: {e}\n"));
             return ExitCode::FAILURE;
         }
     };
@@ -43,8 +44,13 @@ fn main() -> ExitCode {
     match result {
         Ok(_) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e}");
+            complain(format_args!("error: {e}\n"));
             ExitCode::FAILURE
         }
     }
+}
+
+/// Writes to stderr; a closed stderr is ignored.
+fn complain(text: std::fmt::Arguments) {
+    let _ = std::io::stderr().write_fmt(text);
 }

@@ -209,7 +209,7 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         .clone()
         .filter(|n| !n.is_empty())
         .unwrap_or_else(|| "scene.ron".into());
-    let name: String = name.chars().filter(|c| !c.is_control()).take(256).collect();
+    let name = hypertexture_proto::convert::untrusted(&name, 256);
     let frames = frames_of(spec).map_err(bad)?;
     for (&frame, path) in frames
         .iter()
@@ -861,6 +861,7 @@ pub async fn serve(
     );
     tokio::pin!(shutdown);
     let mut drain_deadline: Option<Instant> = None;
+    let mut failed = None;
     loop {
         tokio::select! {
             () = farm.wait(Duration::from_millis(100)) => {}
@@ -877,6 +878,10 @@ pub async fn serve(
         }
         let now = Instant::now();
         let tick = farm.tick(now);
+        if let Some(p) = tick.panicked {
+            failed = Some(FarmError::Panicked(p));
+            break;
+        }
         for (id, why) in tick.gave_up {
             if studio.owns(id) {
                 studio.leave(id, Some(why.to_string()));
@@ -911,7 +916,10 @@ pub async fn serve(
         "stopped; every job and stored unit is kept in {}",
         config.data.display()
     );
-    Ok(())
+    match failed {
+        Some(e) => Err(e.into()),
+        None => Ok(()),
+    }
 }
 
 /// A job as the store keeps it (its JSON), for tools that fill a store

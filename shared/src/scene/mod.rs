@@ -38,11 +38,11 @@ pub enum SceneError {
         source: std::io::Error,
     },
     /// The file is larger than [`MAX_SCENE_BYTES`].
-    #[error("{path}: the scene is {size} bytes; a scene may be at most {MAX_SCENE_BYTES} bytes")]
+    #[error("{path}: the scene is larger than {MAX_SCENE_BYTES} bytes, the most a scene may be")]
     TooLarge {
         /// The scene file.
         path: String,
-        /// Its size.
+        /// Its size, or the bytes read before giving up.
         size: usize,
     },
     /// Syntax error, unknown field, wrong type or out-of-range value.
@@ -178,6 +178,7 @@ pub use desc::GradientDesc as Gradient;
 
 /// Parses scene text; `path` names it in error messages.
 pub fn parse(text: &str, path: &str) -> Result<SceneDesc, SceneError> {
+    let text = strip_bom(text);
     if text.len() > MAX_SCENE_BYTES {
         return Err(SceneError::TooLarge {
             path: path.to_string(),
@@ -217,6 +218,7 @@ fn parse_error(e: &ron::error::SpannedError, text: &str, path: &str) -> SceneErr
 /// Parses a colour map file (the format of a scene's `colour_map`: `(interpolation:
 /// Spline, points: [(0.0, (r, g, b)), …])`); `path` names it in error messages.
 pub fn parse_colour_map(text: &str, path: &str) -> Result<Curve<3>, SceneError> {
+    let text = strip_bom(text);
     if text.len() > MAX_SCENE_BYTES {
         return Err(SceneError::TooLarge {
             path: path.to_string(),
@@ -229,18 +231,36 @@ pub fn parse_colour_map(text: &str, path: &str) -> Result<Curve<3>, SceneError> 
         .map_err(|e| parse_error(&e, text, path))
 }
 
-/// Reads a scene file's text (at most [`MAX_SCENE_BYTES`], valid UTF-8).
+/// `text` without a UTF-8 byte order mark at its start (editors on Windows
+/// write one).
+pub fn strip_bom(text: &str) -> &str {
+    text.strip_prefix('\u{feff}').unwrap_or(text)
+}
+
+/// Reads a scene file's text (at most [`MAX_SCENE_BYTES`], valid UTF-8, a
+/// byte order mark dropped). Never reads more than one byte beyond the cap,
+/// so that a device that never ends (`/dev/zero`) fails at once.
 pub fn read_text(path: &Path) -> Result<String, SceneError> {
+    use std::io::Read as _;
     let name = path.display().to_string();
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+    let io = |source| SceneError::Io {
         path: name.clone(),
         source,
-    })?;
+    };
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .map_err(io)?
+        .take(MAX_SCENE_BYTES as u64 + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
     if bytes.len() > MAX_SCENE_BYTES {
         return Err(SceneError::TooLarge {
             path: name,
             size: bytes.len(),
         });
+    }
+    if let Some(rest) = bytes.strip_prefix(b"\xef\xbb\xbf") {
+        bytes = rest.to_vec();
     }
     let text = std::str::from_utf8(&bytes).map_err(|e| {
         let before = &bytes[..e.valid_up_to()];

@@ -1,0 +1,532 @@
+//! The coordinator and the worker facing hostile input and a hostile
+//! environment: forged log lines, files that never end, closed pipes,
+//! absurd flags, a coordinator that vanishes.
+
+mod support;
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use support::*;
+
+/// Renders `noisy_sphere` at 32² in-process to `out`.
+fn reference(out: &Path) {
+    let o = coordinator(&[
+        "--scene",
+        scene("noisy_sphere").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--in-process",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A worker name and a failure reason that carry a forged log line and a
+/// right-to-left override reach the coordinator's log escaped: no line starts
+/// with the forged text, and the escapes are there.
+#[test]
+fn network_strings_cannot_forge_log_lines() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+
+    let dir = scratch("adversarial-log");
+    let out = dir.join("farm.png");
+    let scene = scene("noisy_sphere");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let mut client = FarmClient::connect(url.clone()).await.unwrap();
+        let id = client
+            .register(pb::RegisterParams {
+                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+                name: "evil\n INFO rendered FAKE → pwned.png\u{202e}gnp.exe".into(),
+                threads: 1,
+                arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
+                tags: Vec::new(),
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id;
+        let work = client
+            .get_work(pb::GetWorkParams {
+                worker_id: id.clone(),
+                known_scene_hash: 0,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let Some(Outcome::Assignment(a)) = work.outcome else {
+            panic!("expected an assignment")
+        };
+        client
+            .report_failure(pb::ReportFailureParams {
+                worker_id: id.clone(),
+                assignment_id: a.assignment_id,
+                kind: pb::FailureKind::Render as i32,
+                reason: "oops\nERROR forged failure\r\nWARN more\u{2066}".into(),
+            })
+            .await
+            .unwrap();
+        // An unknown worker id is echoed escaped too.
+        let refused = client
+            .heartbeat(pb::HeartbeatParams {
+                worker_id: "ghost\nINFO forged heartbeat".into(),
+            })
+            .await
+            .unwrap_err();
+        assert!(
+            refused.message().contains("ghost\\nINFO forged heartbeat"),
+            "{}",
+            refused.message()
+        );
+    });
+    coord.wait_for("could not render unit", 30);
+    let _worker = Running::worker(&["--coordinator", &url, "--threads", "2"]);
+    let (status, log) = coord.finish(60);
+    let text = log.join("\n");
+    assert!(status.success(), "{text}");
+    for line in &log {
+        let l = line.trim_start();
+        for forged in ["INFO rendered FAKE", "ERROR forged", "WARN more"] {
+            assert!(!l.starts_with(forged), "a forged line: {line:?}\n{text}");
+        }
+        assert!(
+            !line.contains('\u{202e}') && !line.contains('\u{2066}'),
+            "{line:?}"
+        );
+    }
+    for escaped in [
+        "evil\\n INFO rendered FAKE → pwned.png\\u{202e}gnp.exe",
+        "oops\\nERROR forged failure\\r\\nWARN more\\u{2066}",
+    ] {
+        assert!(text.contains(escaped), "{escaped}:\n{text}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A closed stderr (its reader gone: EPIPE on every log line) or stdout
+/// costs nothing: the render completes, exits 0 and writes the same bytes.
+#[test]
+fn a_closed_stderr_or_stdout_loses_nothing() {
+    let dir = scratch("adversarial-epipe");
+    let expected = dir.join("reference.png");
+    reference(&expected);
+    for (i, extra) in [&["--in-process"][..], &["--local-workers", "1"][..]]
+        .iter()
+        .enumerate()
+    {
+        let out = dir.join(format!("closed-{i}.png"));
+        let mut child = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["--scene", scene("noisy_sphere").to_str().unwrap()])
+            .args([
+                "--out",
+                out.to_str().unwrap(),
+                "--width",
+                "32",
+                "--height",
+                "32",
+            ])
+            .args(*extra)
+            .env("RUST_LOG", "debug")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stderr.take());
+        drop(child.stdout.take());
+        let status = child.wait().unwrap();
+        assert!(status.success(), "{extra:?}: {status}");
+        assert_eq!(
+            std::fs::read(&out).unwrap(),
+            std::fs::read(&expected).unwrap(),
+            "{extra:?}"
+        );
+    }
+    // A result printed to a closed stdout, and an error to a closed stderr.
+    for (args, ok) in [
+        (&["eval", "1 + 1"][..], true),
+        (&["--scene", "/no/such.ron", "--out", "x.png"][..], false),
+    ] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stderr.take());
+        drop(child.stdout.take());
+        let status = child.wait().unwrap();
+        assert_eq!(status.success(), ok, "{args:?}: {status}");
+        assert_ne!(status.code(), Some(101), "{args:?} panicked");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Runs the coordinator with `args`, expecting a quick failure whose stderr
+/// contains every one of `needles`.
+fn fails_at_once(args: &[&str], needles: &[&str]) {
+    let started = Instant::now();
+    let o = coordinator(args);
+    let took = started.elapsed();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{args:?}: {err}");
+    assert!(took < Duration::from_secs(3), "{args:?} took {took:?}");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+    for needle in needles {
+        assert!(err.contains(needle), "{args:?}: no {needle:?} in {err}");
+    }
+}
+
+/// Endless files, an output nowhere, absurd thread counts: refused before any
+/// work, naming the file, the directory or the limit.
+#[test]
+fn bad_inputs_fail_at_once_with_the_cause() {
+    let dir = scratch("adversarial-inputs");
+    let noisy = scene("noisy_sphere");
+    let noisy = noisy.to_str().unwrap();
+    let out = dir.join("x.png");
+    let out = out.to_str().unwrap();
+    fails_at_once(
+        &["--scene", "/dev/zero", "--out", out],
+        &["/dev/zero", "larger than 65536 bytes"],
+    );
+    fails_at_once(
+        &[
+            "recolor",
+            "in.exr",
+            "--colormap",
+            "/dev/urandom",
+            "--out",
+            out,
+        ],
+        &["/dev/urandom", "larger than 65536 bytes"],
+    );
+    // An EXR larger than the cap (sparse: no disk used) is refused by its size.
+    let huge = dir.join("huge.exr");
+    std::fs::File::create(&huge)
+        .unwrap()
+        .set_len((1 << 30) + 1)
+        .unwrap();
+    fails_at_once(
+        &[
+            "recolor",
+            huge.to_str().unwrap(),
+            "--colormap",
+            &scene_file("colormaps/fire"),
+            "--out",
+            out,
+        ],
+        &["huge.exr", "larger than 1073741824 bytes"],
+    );
+    fails_at_once(
+        &["grid", "--png", "/dev/zero"],
+        &["/dev/zero", "larger than 67108864 bytes"],
+    );
+    fails_at_once(
+        &[
+            "--scene",
+            noisy,
+            "--out",
+            out,
+            "--tls-cert",
+            "/dev/zero",
+            "--tls-key",
+            "/dev/zero",
+        ],
+        &["/dev/zero", "larger than 1048576 bytes"],
+    );
+    fails_at_once(
+        &[
+            "--scene",
+            noisy,
+            "--out",
+            "/nonexistent-dir/x.png",
+            "--width",
+            "16384",
+            "--height",
+            "16384",
+        ],
+        &["/nonexistent-dir: cannot write the output there"],
+    );
+    fails_at_once(
+        &[
+            "--scene",
+            noisy,
+            "--out",
+            "/nonexistent-dir/x.png",
+            "--frames",
+            "0..3",
+        ],
+        &["/nonexistent-dir: cannot write the output there"],
+    );
+    fails_at_once(
+        &["--scene", noisy, "--out", out, "--threads", "10000"],
+        &["10000 threads is too many: at most"],
+    );
+    fails_at_once(
+        &[
+            "serve",
+            "--data",
+            dir.to_str().unwrap(),
+            "--threads",
+            "10000",
+        ],
+        &["10000 threads is too many: at most"],
+    );
+    let o = Command::new(worker_bin())
+        .args(["--coordinator", "http://127.0.0.1:1", "--threads", "10000"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("10000 threads is too many: at most"));
+    let o = Command::new(worker_bin())
+        .args(["--coordinator", "https://localhost:1", "--ca", "/dev/zero"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("/dev/zero") && err.contains("larger than"),
+        "{err}"
+    );
+    assert!(!dir.join("x.png").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A file of the repository's scenes/ folder, as a string.
+fn scene_file(name: &str) -> String {
+    scene(name).to_str().unwrap().to_string()
+}
+
+/// A scene saved with a UTF-8 byte order mark renders like the one without.
+#[test]
+fn a_scene_with_a_byte_order_mark_renders() {
+    let dir = scratch("adversarial-bom");
+    let bom = dir.join("bom.ron");
+    let mut text = b"\xef\xbb\xbf".to_vec();
+    text.extend(std::fs::read(scene("noisy_sphere")).unwrap());
+    std::fs::write(&bom, text).unwrap();
+    let (a, b) = (dir.join("bom.png"), dir.join("plain.png"));
+    for (s, out) in [(bom.clone(), &a), (scene("noisy_sphere"), &b)] {
+        let o = coordinator(&[
+            "--scene",
+            s.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "16",
+            "--height",
+            "16",
+            "--in-process",
+            "--quiet",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An `--exit-when-done` worker whose coordinator dies leaves once the lease
+/// has run out, with exit status 1 (its render did not end as it should).
+#[test]
+fn an_exit_when_done_worker_leaves_once_its_coordinator_is_gone() {
+    worker_bin();
+    let dir = scratch("adversarial-orphan");
+    let out = dir.join("x.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        &scene_file("fur"),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "256",
+        "--height",
+        "256",
+        "--local-workers",
+        "0",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let worker = Running::worker(&[
+        "--coordinator",
+        &url,
+        "--threads",
+        "1",
+        "--name",
+        "orphan",
+        "--exit-when-done",
+        "--lease-timeout",
+        "2",
+    ]);
+    coord.wait_for("worker orphan joined", 30);
+    coord.signal(9);
+    let _ = coord.finish(10);
+    let killed = Instant::now();
+    let (status, log) = worker.finish(15);
+    assert!(!status.success(), "{}", log.join("\n"));
+    assert!(
+        killed.elapsed() < Duration::from_secs(10),
+        "left after {:?}",
+        killed.elapsed()
+    );
+    assert!(
+        log.iter().any(|l| l.contains("unreachable for")),
+        "{}",
+        log.join("\n")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Local worker processes that fail for another reason than a refusal are
+/// replaced by in-process workers with that reason in the message, not a
+/// guess about an older build.
+#[cfg(unix)]
+#[test]
+fn failing_local_workers_are_reported_with_their_real_cause() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = scratch("adversarial-local");
+    let exe = dir.join("coordinator");
+    std::fs::copy(env!("CARGO_BIN_EXE_coordinator"), &exe).unwrap();
+    let fake = dir.join("worker");
+    std::fs::write(
+        &fake,
+        "#!/bin/sh\necho 'error: cannot start 1 render threads: Resource temporarily unavailable (os error 11)' >&2\nexit 3\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let expected = dir.join("reference.png");
+    reference(&expected);
+    let out = dir.join("farm.png");
+    let o = Command::new(&exe)
+        .args(["--scene", &scene_file("noisy_sphere")])
+        .args([
+            "--out",
+            out.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "32",
+        ])
+        .args(["--local-workers", "2"])
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("every local worker process"), "{log}");
+    assert!(
+        log.contains("exit status: 3: error: cannot start 1 render threads: Resource temporarily unavailable (os error 11)"),
+        "{log}"
+    );
+    assert!(!log.contains("older build"), "{log}");
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(&expected).unwrap()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A TLS farm admits no worker that cannot verify it or that it cannot
+/// trust: one speaking plaintext, one trusting another CA, one dialling a
+/// name the certificate does not carry. None of them joins, and the farm
+/// gives up for want of workers.
+#[test]
+fn tls_refuses_plaintext_a_wrong_ca_and_a_wrong_name() {
+    let dir = scratch("adversarial-tls");
+    let self_signed = |names: Vec<String>| {
+        let key = rcgen::KeyPair::generate().unwrap();
+        let cert = rcgen::CertificateParams::new(names)
+            .unwrap()
+            .self_signed(&key)
+            .unwrap();
+        (cert.pem(), key.serialize_pem())
+    };
+    let (cert, key) = self_signed(vec!["localhost".into()]);
+    let (other_ca, _) = self_signed(vec!["localhost".into()]);
+    let (cert_path, key_path, other_path) = (
+        dir.join("cert.pem"),
+        dir.join("key.pem"),
+        dir.join("other.pem"),
+    );
+    std::fs::write(&cert_path, cert).unwrap();
+    std::fs::write(&key_path, key).unwrap();
+    std::fs::write(&other_path, other_ca).unwrap();
+    let out = dir.join("x.png");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        &scene_file("noisy_sphere"),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--local-workers",
+        "0",
+        "--worker-timeout",
+        "6",
+        "--tls-cert",
+        cert_path.to_str().unwrap(),
+        "--tls-key",
+        key_path.to_str().unwrap(),
+    ]);
+    let port = coord.port();
+    let (cert_path, other_path) = (cert_path.to_str().unwrap(), other_path.to_str().unwrap());
+    let plaintext = format!("http://localhost:{port}");
+    let localhost = format!("https://localhost:{port}");
+    let by_address = format!("https://127.0.0.1:{port}");
+    let mut workers = [
+        ("plaintext", vec!["--coordinator", &plaintext]),
+        (
+            "wrong-ca",
+            vec!["--coordinator", &localhost, "--ca", other_path],
+        ),
+        (
+            "wrong-name",
+            vec!["--coordinator", &by_address, "--ca", cert_path],
+        ),
+    ]
+    .map(|(name, args)| {
+        let w = Running::worker(&[&args[..], &["--name", name, "--threads", "1"]].concat());
+        (name, w)
+    });
+    for (name, w) in &mut workers {
+        let line = w.wait_for("retrying in", 30);
+        assert!(!line.contains("registered"), "{name}: {line}");
+    }
+    let (status, log) = coord.finish(30);
+    let text = log.join("\n");
+    assert!(!status.success(), "{text}");
+    assert!(!text.contains("joined"), "{text}");
+    assert!(text.contains("no worker has been connected"), "{text}");
+    for (name, w) in &mut workers {
+        while let Ok(line) = w.lines.try_recv() {
+            assert!(!line.contains("registered with"), "{name}: {line}");
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
