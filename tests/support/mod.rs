@@ -59,9 +59,10 @@ pub fn worker_bin() -> PathBuf {
         };
         let target_dir = profile_dir.parent().expect("the target directory");
         let status = Command::new(env!("CARGO"))
-            // Both packages, as a test run builds them: the same features.
-            .args(["build", "--quiet", "-p", "coordinator", "-p", "worker"])
-            .args(["--bin", "worker", "--profile", profile])
+            // The worker package alone: its dependencies' builds are kept
+            // apart from the coordinator's, so neither rebuilds the other.
+            .args(["build", "--quiet", "-p", "worker", "--bin", "worker"])
+            .args(["--profile", profile])
             .arg("--target-dir")
             .arg(target_dir)
             .current_dir(root())
@@ -81,8 +82,11 @@ pub struct Running {
 }
 
 impl Running {
-    /// Starts the coordinator with `args` (its log at info level).
+    /// Starts the coordinator with `args` (its log at info level). The
+    /// worker binary is built first, so that its build never counts against
+    /// the coordinator's time-outs.
     pub fn coordinator(args: &[&str]) -> Running {
+        worker_bin();
         Running::spawn(Command::new(env!("CARGO_BIN_EXE_coordinator")).args(args))
     }
 
