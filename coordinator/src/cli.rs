@@ -173,7 +173,7 @@ pub struct ServeArgs {
     /// Threads of each local worker (at most 4 × the cores, and 1024).
     #[arg(long, value_name = "N", default_value = "1", value_parser = worker::cli::threads)]
     pub threads: NonZeroUsize,
-    /// Shared secret workers and (beyond loopback) API clients must present.
+    /// Shared secret that workers and API clients must present (required beyond loopback).
     #[arg(
         long,
         env = "HYPERTEXTURE_TOKEN",
