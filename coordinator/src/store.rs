@@ -649,7 +649,6 @@ fn lock_dir(dir: &Path) -> Result<File, StoreError> {
 mod tests {
     use super::*;
     use std::sync::atomic::{AtomicU64, Ordering};
-    use std::time::Instant;
 
     /// A fresh directory under the system's temporary directory, removed on drop.
     struct TempDir(PathBuf);
@@ -946,71 +945,5 @@ mod tests {
         fn send<T: Send>() {}
         send::<Store>();
         send::<std::sync::Mutex<Store>>();
-    }
-
-    /// `cargo test --release -p coordinator --lib store -- --ignored --nocapture`
-    #[test]
-    #[ignore = "a benchmark"]
-    fn bench_put_tile_and_reopen() -> Result<(), StoreError> {
-        const PUTS: u32 = 2_000;
-        const STORED: u32 = 10_000;
-        const UNITS: u32 = 64;
-        let dir = TempDir::new("bench");
-        let tile: Vec<u8> = (0..16384u32).map(|i| (i * 31 + 7) as u8).collect();
-        {
-            let store = open(&dir);
-            let job = store.insert_job("{}", 0, 0)?;
-            let mut times = Vec::with_capacity(PUTS as usize);
-            for i in 0..PUTS {
-                let start = Instant::now();
-                store.put_tile(job, i / UNITS, i % UNITS, &tile)?;
-                times.push(start.elapsed());
-            }
-            times.sort();
-            let total: Duration = times.iter().sum();
-            let pct = |p: usize| times[(times.len() * p / 100).min(times.len() - 1)];
-            println!(
-                "put_tile 16 KiB × {PUTS}: mean {:.1} µs, median {:.1} µs, p99 {:.1} µs, max {:.1} µs",
-                total.as_secs_f64() * 1e6 / f64::from(PUTS),
-                pct(50).as_secs_f64() * 1e6,
-                pct(99).as_secs_f64() * 1e6,
-                times[times.len() - 1].as_secs_f64() * 1e6,
-            );
-            // Fill up to STORED tiles over a few jobs, plus some finished jobs.
-            for i in PUTS..STORED {
-                store.put_tile(job, i / UNITS, i % UNITS, &tile)?;
-            }
-            for _ in 0..100 {
-                let j = store.insert_job(r#"{"scene":"x","out":"x_####.png"}"#, 0, 0)?;
-                store.finish_frame(j, 0, "x_0000.png")?;
-                store.set_state(j, JobState::Done, None)?;
-            }
-            assert_eq!(store.tile_count()?, u64::from(STORED));
-        }
-        let size = std::fs::metadata(dir.0.join("farm.sqlite")).map_or(0, |m| m.len());
-        let start = Instant::now();
-        let store = open(&dir);
-        let opened = start.elapsed();
-        let jobs = store.jobs()?;
-        let listed = start.elapsed();
-        let count = store.tile_count()?;
-        let counted = start.elapsed();
-        println!(
-            "reopen with {count} tiles of 16 KiB ({:.1} MB file): open {:.2} ms, + jobs() of {} jobs {:.2} ms, + tile_count {:.2} ms",
-            size as f64 / 1e6,
-            opened.as_secs_f64() * 1e3,
-            jobs.len(),
-            listed.as_secs_f64() * 1e3,
-            counted.as_secs_f64() * 1e3,
-        );
-        // Reading a frame's tiles back, as a resume does.
-        let start = Instant::now();
-        let tiles = store.tiles(jobs[0].id, 3)?;
-        println!(
-            "tiles() of one frame ({} tiles): {:.2} ms",
-            tiles.len(),
-            start.elapsed().as_secs_f64() * 1e3
-        );
-        Ok(())
     }
 }
