@@ -13,12 +13,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     const PUTS: u32 = 2_000;
     const STORED: u32 = 10_000;
     const UNITS: u32 = 64;
-    let dir = match std::env::args().nth(1) {
-        Some(d) => std::path::PathBuf::from(d),
-        None => {
-            std::env::temp_dir().join(format!("hypertexture-store-bench-{}", std::process::id()))
-        }
-    };
+    let given = std::env::args().nth(1).map(std::path::PathBuf::from);
+    let dir = given.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("hypertexture-store-bench-{}", std::process::id()))
+    });
     if dir.join("farm.sqlite").exists() {
         return Err(format!(
             "{} already holds a store: give an empty directory",
