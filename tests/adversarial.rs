@@ -58,18 +58,11 @@ fn network_strings_cannot_forge_log_lines() {
         .unwrap();
     runtime.block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
-        let id = client
-            .register(pb::RegisterParams {
-                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
-                name: "evil\n INFO rendered FAKE → pwned.png\u{202e}gnp.exe".into(),
-                threads: 1,
-                arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
-                tags: Vec::new(),
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .worker_id;
+        let id = register_raw(
+            &mut client,
+            "evil\n INFO rendered FAKE → pwned.png\u{202e}gnp.exe",
+        )
+        .await;
         let work = client
             .get_work(pb::GetWorkParams {
                 worker_id: id.clone(),

@@ -255,18 +255,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
             "{}",
             refused.message()
         );
-        let id = client
-            .register(pb::RegisterParams {
-                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
-                name: "evil".into(),
-                threads: 1,
-                arithmetic_digest: digest,
-                tags: Vec::new(),
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .worker_id;
+        let id = register_raw(&mut client, "evil").await;
         let work = client
             .get_work(pb::GetWorkParams {
                 worker_id: id.clone(),
@@ -397,18 +386,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
         .unwrap();
     runtime.block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
-        let id = client
-            .register(pb::RegisterParams {
-                protocol_version: hypertexture_proto::PROTOCOL_VERSION,
-                name: "short-lived".into(),
-                threads: 1,
-                arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
-                tags: Vec::new(),
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .worker_id;
+        let id = register_raw(&mut client, "short-lived").await;
         let work = client
             .get_work(pb::GetWorkParams {
                 worker_id: id.clone(),
@@ -668,39 +646,6 @@ fn supersampled_farm_renders_equal_in_process_ones() {
     );
 }
 
-/// Runs `worker::run` in this process (the library the binary calls) with a
-/// fault injected, on a runtime of its own; returns the stop switch and the task.
-fn faulty_worker(
-    url: &str,
-    name: &str,
-    fault: worker::Fault,
-) -> (
-    tokio::runtime::Runtime,
-    tokio::sync::watch::Sender<bool>,
-    tokio::task::JoinHandle<Result<worker::WorkerReport, worker::WorkerError>>,
-) {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let config = worker::WorkerConfig {
-        coordinator: url.to_string(),
-        threads: 1,
-        token: None,
-        name: name.to_string(),
-        ca: None,
-        exit_when_done: false,
-        lease: std::time::Duration::from_secs(10),
-        fault: Some(fault),
-        shares_process: true,
-        tags: Vec::new(),
-    };
-    let task = runtime.spawn(worker::run(config, stopped));
-    (runtime, stop, task)
-}
-
 /// A worker on which the scene does not build says so instead of holding its
 /// unit; alone, it makes the coordinator stop at once with the reason, instead
 /// of hanging (the worker heartbeats, so its lease never runs out).
@@ -715,7 +660,7 @@ fn a_worker_whose_scene_does_not_build_stops_the_render_at_once() {
         &["--worker-timeout", "60", "--lease-timeout", "60"],
     );
     let started = std::time::Instant::now();
-    let (runtime, stop, task) = faulty_worker(&url, "broken", worker::Fault::Scene);
+    let (runtime, stop, task) = in_process_worker(&url, "broken", Some(worker::Fault::Scene));
     let (status, log) = coord.finish(30);
     let log = log.join("\n");
     assert!(!status.success(), "{log}");
@@ -756,7 +701,7 @@ fn a_worker_with_other_arithmetic_is_refused_and_the_image_stays_exact() {
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--worker-timeout", "60"]);
-    let (runtime, _stop, task) = faulty_worker(&url, "skewed", worker::Fault::Arithmetic);
+    let (runtime, _stop, task) = in_process_worker(&url, "skewed", Some(worker::Fault::Arithmetic));
     let refused = runtime.block_on(async {
         tokio::time::timeout(std::time::Duration::from_secs(30), task)
             .await
@@ -814,7 +759,7 @@ fn units_a_worker_fails_to_render_go_to_another_and_nothing_is_lost() {
     // The good worker first: a failed unit always has somewhere else to go.
     let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
     coord.wait_for("worker good joined", 30);
-    let (runtime, stop, task) = faulty_worker(&url, "flaky", worker::Fault::Panic);
+    let (runtime, stop, task) = in_process_worker(&url, "flaky", Some(worker::Fault::Panic));
     let (status, log) = coord.finish(120);
     let log = log.join("\n");
     assert!(status.success(), "{log}");
@@ -854,20 +799,7 @@ fn a_unit_that_fails_three_times_stops_the_render_with_the_reasons() {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
         let mut ids = Vec::new();
         for name in ["alpha", "beta", "gamma"] {
-            ids.push(
-                client
-                    .register(pb::RegisterParams {
-                        protocol_version: hypertexture_proto::PROTOCOL_VERSION,
-                        name: name.into(),
-                        threads: 1,
-                        arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
-                        tags: Vec::new(),
-                    })
-                    .await
-                    .unwrap()
-                    .into_inner()
-                    .worker_id,
-            );
+            ids.push(register_raw(&mut client, name).await);
         }
         // A report must name a kind.
         let refused = client

@@ -10,7 +10,7 @@ mod support;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use support::{Running, coordinator, scene, scratch};
+use support::{Running, coordinator, in_process_worker, scene, scratch};
 
 /// A service on a free loopback port; returns it and its URL.
 fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
@@ -311,34 +311,6 @@ fn priorities_cancel_and_two_jobs_interleaved_on_shared_workers() {
     assert_eq!(workers.as_array().unwrap().len(), 2, "{workers}");
 }
 
-/// Runs an in-process worker with a fault (the library the binary calls).
-fn faulty_worker(
-    url: &str,
-    name: &str,
-    fault: Option<worker::Fault>,
-) -> (tokio::runtime::Runtime, tokio::sync::watch::Sender<bool>) {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let config = worker::WorkerConfig {
-        coordinator: url.to_string(),
-        threads: 1,
-        token: None,
-        name: name.to_string(),
-        ca: None,
-        exit_when_done: false,
-        lease: std::time::Duration::from_secs(10),
-        fault,
-        shares_process: true,
-        tags: Vec::new(),
-    };
-    runtime.spawn(worker::run(config, stopped));
-    (runtime, stop)
-}
-
 /// A worker that fails 3 units of a job is blocklisted for it (and `status`
 /// shows it) while a good worker finishes the job; a job whose unit fails on
 /// 3 workers fails with their reasons, and other jobs go on.
@@ -359,19 +331,19 @@ fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its
         &dir.join("ok.png"),
         &["--width", "32", "--height", "32"],
     );
-    let bad = faulty_worker(&url, "flaky", Some(worker::Fault::Panic));
+    let bad = in_process_worker(&url, "flaky", Some(worker::Fault::Panic));
     poll_job(&url, id, 60, |j| {
         !j["blocklisted"].as_array().unwrap().is_empty()
     });
     let (ok, table, _) = client(&["status", "--server", &url]);
     assert!(ok && table.contains("flaky"), "{table}");
-    let good = faulty_worker(&url, "good", None);
+    let good = in_process_worker(&url, "good", None);
     assert!(wait(&url, id).0);
     same_bytes(&dir.join("ok.png"), &expected);
     let j = job(&url, id);
     assert_eq!(j["blocklisted"][0], "flaky", "{j}");
     assert!(metric(&url, "hypertexture_workers_blocklisted_total") >= 1.0);
-    for (_, stop) in [&good, &bad] {
+    for (_, stop, _) in [&good, &bad] {
         let _ = stop.send(true);
     }
     drop((good, bad));
@@ -387,7 +359,7 @@ fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its
     );
     let mut flaky = Vec::new();
     for k in 2..=4 {
-        flaky.push(faulty_worker(
+        flaky.push(in_process_worker(
             &url,
             &format!("flaky{k}"),
             Some(worker::Fault::Panic),
@@ -412,10 +384,10 @@ fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its
         &dir.join("after.png"),
         &["--width", "32", "--height", "32"],
     );
-    for (_, stop) in &flaky {
+    for (_, stop, _) in &flaky {
         let _ = stop.send(true);
     }
-    let _good = faulty_worker(&url, "good2", None);
+    let _good = in_process_worker(&url, "good2", None);
     assert!(wait(&url, after).0);
     same_bytes(&dir.join("after.png"), &expected);
 }

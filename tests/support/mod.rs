@@ -204,3 +204,57 @@ impl Drop for Running {
         let _ = self.child.wait();
     }
 }
+
+/// Runs `worker::run` in this process (the library the binary calls), with a
+/// fault injected, on a runtime of its own; returns the stop switch and the task.
+pub fn in_process_worker(
+    url: &str,
+    name: &str,
+    fault: Option<worker::Fault>,
+) -> (
+    tokio::runtime::Runtime,
+    tokio::sync::watch::Sender<bool>,
+    tokio::task::JoinHandle<Result<worker::WorkerReport, worker::WorkerError>>,
+) {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let config = worker::WorkerConfig {
+        coordinator: url.to_string(),
+        threads: 1,
+        token: None,
+        name: name.to_string(),
+        ca: None,
+        exit_when_done: false,
+        lease: std::time::Duration::from_secs(10),
+        fault,
+        shares_process: true,
+        tags: Vec::new(),
+    };
+    let task = runtime.spawn(worker::run(config, stopped));
+    (runtime, stop, task)
+}
+
+/// Registers a hand-driven worker (a raw gRPC client, for tests that play a
+/// worker's part themselves) with this build's protocol and probe digest;
+/// returns its id.
+pub async fn register_raw(
+    client: &mut hypertexture_proto::pb::farm_client::FarmClient<tonic::transport::Channel>,
+    name: &str,
+) -> String {
+    client
+        .register(hypertexture_proto::pb::RegisterParams {
+            protocol_version: hypertexture_proto::PROTOCOL_VERSION,
+            name: name.into(),
+            threads: 1,
+            arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
+            tags: Vec::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .worker_id
+}
