@@ -382,6 +382,67 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
         text
     );
 
+    // A numeric parameter of the object: its slider writes the number into
+    // the text, and the frame follows.
+    let generation = browser.eval("studio.generation");
+    let before = browser.canvas();
+    browser.eval(
+        "(() => { const k = document.getElementById('param-object.Torus.minor_radius'); \
+         k.value = 0.4; k.dispatchEvent(new Event('input')); })()",
+    );
+    browser.wait_until(
+        &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+        120,
+    );
+    let thinner = browser.canvas();
+    assert_ne!(thinner, before, "the image changed with the parameter");
+    let shown = browser.eval("document.getElementById('text').value");
+    assert!(
+        shown.as_str().unwrap().contains("minor_radius: 0.4,"),
+        "the text holds the parameter's value: {shown}"
+    );
+
+    // A control point of the colour map, dragged with the mouse.
+    let generation = browser.eval("studio.generation");
+    let at = browser.eval(
+        "(() => { const h = document.getElementById('curve-colour_map.points') \
+         .querySelector('[data-point=\"1\"]'); h.scrollIntoView(); \
+         const r = h.getBoundingClientRect(); \
+         return JSON.stringify([r.x + r.width / 2, r.y + r.height / 2]); })()",
+    );
+    let at: Vec<f64> = serde_json::from_str(at.as_str().unwrap()).unwrap();
+    let (x, y) = (at[0], at[1]);
+    let mouse = |browser: &mut Browser, kind: &str, x: f64, buttons: u32| {
+        browser.call(
+            "Input.dispatchMouseEvent",
+            json!({ "type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        );
+    };
+    mouse(&mut browser, "mouseMoved", x, 0);
+    mouse(&mut browser, "mousePressed", x, 1);
+    for dx in [10.0, 20.0, 40.0, 60.0] {
+        mouse(&mut browser, "mouseMoved", x + dx, 1);
+    }
+    mouse(&mut browser, "mouseReleased", x + 60.0, 0);
+    browser.wait_until(
+        &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+        120,
+    );
+    let shown = browser.eval("document.getElementById('text').value");
+    let moved_x = shown
+        .as_str()
+        .unwrap()
+        .split("points: [(0.0, (0.55, 0.38, 0.22)), (")
+        .nth(1)
+        .and_then(|rest| rest.split(',').next())
+        .and_then(|x| x.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("the colour map's second point in {shown}"));
+    assert!(
+        moved_x > 0.6 && moved_x < 1.0,
+        "the dragged point moved right: {moved_x}"
+    );
+    assert_ne!(browser.canvas(), thinner, "the image changed with the curve");
+
     drop(browser);
     let _ = studio.child.kill();
     let _ = studio.child.wait();

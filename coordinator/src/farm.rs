@@ -18,7 +18,7 @@ use hypertexture::interleave::farm_units;
 use hypertexture_proto::pb::farm_server::{Farm as FarmRpc, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
 use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
-use tokio::sync::watch;
+use tokio::sync::{broadcast, watch};
 use tonic::{Request, Response, Status};
 
 use crate::canvas::FrameImage;
@@ -291,6 +291,11 @@ pub struct Shared {
     sink: Option<Arc<dyn TileSink>>,
     /// The interleave and the farm size new jobs' units are made for.
     unit_layout: Mutex<(u32, usize)>,
+    /// Assignments taken back from workers (worker id, assignment id), to
+    /// each worker's Withdrawals stream.
+    withdrawals: broadcast::Sender<Arc<Vec<(String, u64)>>>,
+    /// Set when the server stops: Withdrawals streams end.
+    closing: watch::Sender<bool>,
 }
 
 impl Shared {
@@ -333,7 +338,14 @@ impl Shared {
     pub fn remove_job(&self, job: JobId) -> bool {
         let mut s = self.lock();
         s.wire.remove(&job);
-        s.scheduler.remove_job(job).is_some()
+        let removed = s.scheduler.remove_job(job).is_some();
+        let withdrawn = s.scheduler.take_withdrawn();
+        drop(s);
+        if !withdrawn.is_empty() {
+            // No receiver (no worker listening) is not an error.
+            let _ = self.withdrawals.send(Arc::new(withdrawn));
+        }
+        removed
     }
 }
 
@@ -650,6 +662,9 @@ impl FarmRpc for Service {
     }
 
     type SubmitTilesStream = Replies;
+    type WithdrawalsStream = std::pin::Pin<
+        Box<dyn futures_util::Stream<Item = Result<pb::Withdrawal, Status>> + Send + 'static>,
+    >;
 
     async fn submit_tiles(
         &self,
@@ -740,7 +755,59 @@ impl FarmRpc for Service {
             counted: counted.is_some(),
         }))
     }
+
+    async fn withdrawals(
+        &self,
+        request: Request<pb::WithdrawalsParams>,
+    ) -> Result<Response<Self::WithdrawalsStream>, Status> {
+        self.authorize(&request)?;
+        let worker_id = request.into_inner().worker_id;
+        // Only a registered worker listens (and it counts as a sign of life).
+        self.state()
+            .scheduler
+            .heartbeat(&worker_id, Instant::now())
+            .map_err(refusal)?;
+        let listening = Withdrawals {
+            worker_id,
+            rx: self.0.withdrawals.subscribe(),
+            closing: self.0.closing.subscribe(),
+        };
+        let stream = futures_util::stream::unfold(listening, |mut l| async move {
+            loop {
+                tokio::select! {
+                    received = l.rx.recv() => match received {
+                        Ok(taken) => {
+                            let assignment_ids: Vec<u64> = taken
+                                .iter()
+                                .filter(|(w, _)| *w == l.worker_id)
+                                .map(|&(_, id)| id)
+                                .collect();
+                            if !assignment_ids.is_empty() {
+                                return Some((Ok(pb::Withdrawal { assignment_ids }), l));
+                            }
+                        }
+                        // Missed some: those units render to the end, and
+                        // their tiles are ignored, as before this stream.
+                        Err(broadcast::error::RecvError::Lagged(_)) => {}
+                        Err(broadcast::error::RecvError::Closed) => return None,
+                    },
+                    _ = l.closing.wait_for(|c| *c) => return None,
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(stream)))
+    }
 }
+
+/// A worker's Withdrawals stream.
+struct Withdrawals {
+    worker_id: String,
+    rx: broadcast::Receiver<Arc<Vec<(String, u64)>>>,
+    closing: watch::Receiver<bool>,
+}
+
+/// Withdrawal batches a listening worker may fall behind by.
+const WITHDRAWALS_CAPACITY: usize = 256;
 
 /// Renders one frame on the farm (the first of `job.frames`) and returns its image.
 pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
@@ -865,6 +932,8 @@ impl Farm {
             first_assignment: Mutex::new(None),
             sink,
             unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
+            withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
+            closing: watch::channel(false).0,
         });
 
         // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
@@ -1007,6 +1076,7 @@ impl Farm {
             ..
         } = self;
         locals.stop(grace, terminate).await;
+        let _ = shared.closing.send(true);
         let _ = stop_server.send(());
         // Graceful shutdown waits for open connections: daemon workers keep theirs
         // (they wait for the next frame), so give them a moment, then stop serving.

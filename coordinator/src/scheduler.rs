@@ -456,6 +456,9 @@ pub struct Scheduler {
     one_shot: bool,
     /// Draining: nothing more is handed out.
     draining: bool,
+    /// Assignments taken back from their workers by [`Scheduler::remove_job`]
+    /// and not yet told them: (worker id, assignment id).
+    withdrawn: Vec<(String, u64)>,
 }
 
 impl Scheduler {
@@ -502,6 +505,7 @@ impl Scheduler {
             lease,
             one_shot: false,
             draining: false,
+            withdrawn: Vec::new(),
         }
     }
 
@@ -538,9 +542,22 @@ impl Scheduler {
     /// written).
     pub fn remove_job(&mut self, job: JobId) -> Option<JobPlan> {
         let removed = self.jobs.remove(&job)?;
+        let workers = &self.workers;
+        self.withdrawn.extend(
+            self.leases
+                .iter()
+                .filter(|(_, l)| l.job == job)
+                .filter_map(|(&id, l)| Some((workers.get(&l.worker)?.id.clone(), id))),
+        );
         self.leases.retain(|_, l| l.job != job);
         self.issued.retain(|_, (j, _, _)| *j != job);
         Some(removed.plan)
+    }
+
+    /// The assignments [`Scheduler::remove_job`] took back since the last
+    /// call, to tell their workers: (worker id, assignment id).
+    pub fn take_withdrawn(&mut self) -> Vec<(String, u64)> {
+        std::mem::take(&mut self.withdrawn)
     }
 
     /// Stops handing out units (a draining service).

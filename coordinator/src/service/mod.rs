@@ -13,6 +13,7 @@
 //! Lock order: a job table lock, then the farm's state, then the store.
 
 pub mod metrics;
+pub mod params;
 pub mod studio;
 
 use std::collections::BTreeMap;
