@@ -774,24 +774,25 @@ impl FarmRpc for Service {
         };
         let stream = futures_util::stream::unfold(listening, |mut l| async move {
             loop {
-                tokio::select! {
-                    received = l.rx.recv() => match received {
-                        Ok(taken) => {
-                            let assignment_ids: Vec<u64> = taken
-                                .iter()
-                                .filter(|(w, _)| *w == l.worker_id)
-                                .map(|&(_, id)| id)
-                                .collect();
-                            if !assignment_ids.is_empty() {
-                                return Some((Ok(pb::Withdrawal { assignment_ids }), l));
-                            }
-                        }
-                        // Missed some: those units render to the end, and
-                        // their tiles are ignored, as before this stream.
-                        Err(broadcast::error::RecvError::Lagged(_)) => {}
-                        Err(broadcast::error::RecvError::Closed) => return None,
-                    },
+                let taken = tokio::select! {
+                    received = l.rx.recv() => received,
                     _ = l.closing.wait_for(|c| *c) => return None,
+                };
+                match taken {
+                    Ok(taken) => {
+                        let assignment_ids: Vec<u64> = taken
+                            .iter()
+                            .filter(|(w, _)| *w == l.worker_id)
+                            .map(|&(_, id)| id)
+                            .collect();
+                        if !assignment_ids.is_empty() {
+                            return Some((Ok(pb::Withdrawal { assignment_ids }), l));
+                        }
+                    }
+                    // Missed some: those units render to the end, and their
+                    // tiles are ignored, as without this stream.
+                    Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(broadcast::error::RecvError::Closed) => return None,
                 }
             }
         });

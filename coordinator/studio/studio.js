@@ -437,12 +437,7 @@ function drawCurve(c) {
     // The colour map as a strip, its stops at the control points.
     const gradient = document.createElementNS(SVG, 'linearGradient');
     gradient.id = 'gradient-' + c.id.replace(/[^A-Za-z0-9_-]/g, '_');
-    for (const p of c.points) {
-      const stop = document.createElementNS(SVG, 'stop');
-      stop.setAttribute('offset', (p.x.value - d.x0) / (d.x1 - d.x0));
-      stop.setAttribute('stop-color', rgbCss(p.rgb));
-      gradient.appendChild(stop);
-    }
+    c.stops = c.points.map(() => gradient.appendChild(document.createElementNS(SVG, 'stop')));
     const defs = document.createElementNS(SVG, 'defs');
     defs.appendChild(gradient);
     const strip = document.createElementNS(SVG, 'rect');
@@ -451,21 +446,17 @@ function drawCurve(c) {
     strip.setAttribute('fill', `url(#${gradient.id})`);
     svg.append(defs, strip);
   } else {
-    const line = document.createElementNS(SVG, 'polyline');
-    line.setAttribute('points', c.points.map((p) => toScreen(c, d, p).join(',')).join(' '));
-    line.setAttribute('class', 'curve-line');
-    svg.appendChild(line);
+    c.line = document.createElementNS(SVG, 'polyline');
+    c.line.setAttribute('class', 'curve-line');
+    svg.appendChild(c.line);
   }
-  c.points.forEach((p, i) => {
-    const [x, y] = toScreen(c, d, p);
+  c.handles = c.points.map((p, i) => {
     const handle = document.createElementNS(SVG, 'circle');
-    handle.setAttribute('cx', x); handle.setAttribute('cy', y); handle.setAttribute('r', 6);
+    handle.setAttribute('r', 6);
     handle.setAttribute('class', 'handle');
     handle.setAttribute('tabindex', '0');
     handle.setAttribute('role', 'slider');
     handle.setAttribute('aria-label', `${curveLabel(c.id)}, point ${i + 1}`);
-    handle.setAttribute('aria-valuenow', p.x.value);
-    handle.setAttribute('aria-valuetext', p.y ? `x ${format(p.x.value)}, y ${format(p.y.value)}` : `x ${format(p.x.value)}`);
     handle.dataset.point = i;
     if (p.rgb) handle.setAttribute('fill', rgbCss(p.rgb));
     handle.addEventListener('pointerdown', (e) => {
@@ -491,9 +482,30 @@ function drawCurve(c) {
       if (!m) return;
       e.preventDefault();
       movePoint(c, i, p.x.value + m[0], p.y ? p.y.value + m[1] : 0);
-      svg.querySelector(`[data-point="${i}"]`)?.focus();
     });
     svg.appendChild(handle);
+    return handle;
+  });
+  placeCurve(c);
+}
+
+/** Puts the curve's line, colour stops and handles where its points are
+ * (the elements stay: a dragged handle keeps its pointer capture). */
+function placeCurve(c) {
+  const d = c.domain;
+  if (c.line) c.line.setAttribute('points', c.points.map((p) => toScreen(c, d, p).join(',')).join(' '));
+  c.stops?.forEach((stop, i) => {
+    const p = c.points[i];
+    stop.setAttribute('offset', (p.x.value - d.x0) / (d.x1 - d.x0));
+    stop.setAttribute('stop-color', rgbCss(p.rgb));
+  });
+  c.handles.forEach((handle, i) => {
+    const p = c.points[i];
+    const [x, y] = toScreen(c, d, p);
+    handle.setAttribute('cx', x);
+    handle.setAttribute('cy', y);
+    handle.setAttribute('aria-valuenow', p.x.value);
+    handle.setAttribute('aria-valuetext', p.y ? `x ${format(p.x.value)}, y ${format(p.y.value)}` : `x ${format(p.x.value)}`);
   });
 }
 
@@ -512,7 +524,7 @@ function movePoint(c, i, x, y) {
     p.y.value = round(Math.min(d.y1, Math.max(d.y0, y)));
     change[p.y.id] = p.y.value;
   }
-  drawCurve(c);
+  placeCurve(c);
   paramMoved(change, null);
 }
 

@@ -316,7 +316,10 @@ pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<P
                 "[0]" => point.x = coordinate,
                 "[1]" => point.y = Some(coordinate),
                 _ => {
-                    if let Some(k) = ["[1][0]", "[1][1]", "[1][2]"].iter().position(|r| *r == rest) {
+                    if let Some(k) = ["[1][0]", "[1][1]", "[1][2]"]
+                        .iter()
+                        .position(|r| *r == rest)
+                    {
                         point.rgb.get_or_insert([0.0; 3])[k] = n.value;
                     }
                 }
@@ -424,7 +427,10 @@ mod tests {
         let found = numbers(FUR);
         assert_eq!(at(&found, "object.Torus.minor_radius").value, 0.475);
         assert_eq!(at(&found, "camera.eye[1]").value, 2.3);
-        assert_eq!(at(&found, "camera.projection.Perspective.fov_y").value, 50.0);
+        assert_eq!(
+            at(&found, "camera.projection.Perspective.fov_y").value,
+            50.0
+        );
         assert_eq!(at(&found, "modulation[0].Fur.frequency").value, 40.0);
         assert_eq!(at(&found, "march.step.Diagonal[0]").value, 200.0);
         assert!(at(&found, "march.step.Diagonal[0]").integer);
@@ -483,7 +489,10 @@ mod tests {
         ] {
             assert!(ids.contains(&id), "{id} in {ids:?}");
         }
-        assert!(!ids.iter().any(|i| i.starts_with("image") || i.starts_with("march")));
+        assert!(
+            !ids.iter()
+                .any(|i| i.starts_with("image") || i.starts_with("march"))
+        );
         for p in &params {
             assert!(p.min <= p.value && p.value <= p.max, "{p:?}");
             assert!(p.step > 0.0);
@@ -497,7 +506,8 @@ mod tests {
         assert_eq!(curves[0].points[1].rgb, Some([0.80, 0.62, 0.42]));
 
         // A moved slider keeps its range.
-        let moved = with_values(FUR, &[("object.Torus.softness".to_string(), 0.49)].into()).unwrap();
+        let moved =
+            with_values(FUR, &[("object.Torus.softness".to_string(), 0.49)].into()).unwrap();
         let (again, _) = controls(&moved, &mut ranges);
         let s = |ps: &[Param]| {
             ps.iter()
@@ -526,7 +536,11 @@ mod tests {
         assert_eq!(transfer.points.len(), 6);
         assert_eq!(transfer.points[2].x.value, 0.74);
         assert_eq!(transfer.points[2].y.as_ref().unwrap().value, 1.0);
-        assert!(params.iter().any(|p| p.id == "distortion.terms[0].amplitude"));
+        assert!(
+            params
+                .iter()
+                .any(|p| p.id == "distortion.terms[0].amplitude")
+        );
         assert!(params.iter().any(|p| p.id == "shading.specular"));
         assert!(!params.iter().any(|p| p.id.contains("points")));
     }
@@ -538,7 +552,16 @@ mod tests {
         let paths: Vec<(&str, f64)> = found.iter().map(|n| (n.path.as_str(), n.value)).collect();
         assert_eq!(paths, [("d[0]", 1e-3), ("d[1]", -2.0), ("d[2]", 0.5)]);
         // Unbalanced or empty text: no panic.
-        for t in ["", ")))", "(((", "Scene(x: 1.0", "[1, 2", "\"", "/*", "r#\""] {
+        for t in [
+            "",
+            ")))",
+            "(((",
+            "Scene(x: 1.0",
+            "[1, 2",
+            "\"",
+            "/*",
+            "r#\"",
+        ] {
             let _ = numbers(t);
             let _ = controls(t, &mut BTreeMap::new());
         }
