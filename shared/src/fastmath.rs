@@ -83,7 +83,7 @@ pub fn exp2(y: f32) -> f32 {
     let y = y.max(-126.0).min(127.0);
     let k = floor(y + 0.5);
     let f = y - k; // [−0.5, 0.5]
-    const C1: f32 = 0.693_147_2;
+    const C1: f32 = std::f32::consts::LN_2; // the fitted value rounds to it
     const C2: f32 = 0.240_222_35;
     const C3: f32 = 0.055_503_08;
     const C4: f32 = 0.009_671_88;
