@@ -76,6 +76,9 @@ impl Hypertexture {
             p = p.through(h, |q| d.apply(q, &self.object, field));
         }
         let mut v = self.object.eval_dual(&p, field, h);
+        if self.keeps(v.v) {
+            return v;
+        }
         for m in &self.modulation {
             if v.v == 0.0 {
                 break; // every value DMF maps 0 to 0

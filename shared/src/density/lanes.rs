@@ -247,7 +247,13 @@ impl Hypertexture {
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
         }
-        let mut v = self.object.eval_child(&p, field, isa);
+        let d = self.object.eval_child(&p, field, isa);
+        // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
+        let kept = d.map(|d| self.keeps(d));
+        if kept.iter().all(|&k| k) {
+            return d;
+        }
+        let mut v = d;
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
                 break;
@@ -255,6 +261,11 @@ impl Hypertexture {
             let next = m.apply_lanes(&v, &p, &self.object, field, isa);
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
+        }
+        for l in 0..v.len() {
+            if kept[l] {
+                v[l] = d[l];
+            }
         }
         v
     }

@@ -20,7 +20,7 @@ use glam::Vec3;
 use crate::distortion::Distortion;
 use crate::motion::Pose;
 use crate::noise::Noise;
-use crate::scene::desc::{DmfDesc, ObjectDesc};
+use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
 use crate::soft::{Falloff, SoftBox, SoftSphere, SoftTorus, boolean};
 
 pub mod bounds;
@@ -145,6 +145,7 @@ impl Density {
             ObjectDesc::Complement(a) => Density::Complement(Box::new(Density::build(a, step))),
             ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(
                 Hypertexture::build(Density::build(&h.object, step), &h.modulation, step)
+                    .with_hard_core(h.hard_core)
                     .with_distortion(h.distortion.as_ref().map(Distortion::build)),
             )),
         }
@@ -187,6 +188,31 @@ impl Density {
         }
     }
 
+    /// The density with every hypertexture's value DMFs left out (warps and
+    /// distortions kept): the objects' own D, in [0, 1]. Its gradient is the
+    /// normal where a ray reaches a hard region, where f = 1 and ∇f = 0.
+    pub fn eval_object(&self, x: Vec3, field: &Field) -> f32 {
+        match self {
+            Density::Union(v) => v
+                .iter()
+                .fold(0.0, |a, d| boolean::union(a, d.eval_object(x, field))),
+            Density::Intersection(v) => v.iter().fold(1.0, |a, d| {
+                boolean::intersection(a, d.eval_object(x, field))
+            }),
+            Density::Difference(a, b) => {
+                boolean::difference(a.eval_object(x, field), b.eval_object(x, field))
+            }
+            Density::Complement(a) => boolean::complement(a.eval_object(x, field)),
+            Density::Max(v) => v.iter().fold(0.0, |a, d| a.max(d.eval_object(x, field))),
+            Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval_object(x, field))),
+            Density::Hypertexture(h) => h.eval_object(x, field),
+            Density::Moving(d) => d.eval_object(field.object_point(x), field),
+            Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Expression(_) => {
+                self.eval(x, field)
+            }
+        }
+    }
+
     /// x projected perpendicularly onto the inner (D = 1) surface; only primitives
     /// can project (checked at load for every DMF that needs it).
     #[inline]
@@ -221,6 +247,9 @@ pub struct Hypertexture {
     modulation: Vec<Modulation>,
     /// Gilet & Dischler's distortion (formula 3), applied after the warps.
     distortion: Option<Distortion>,
+    /// Whether the hard region (D = 1) stays solid, f = 1 ([`HardCore::Solid`]):
+    /// the value DMFs then shape only the soft region.
+    solid_core: bool,
 }
 
 impl Hypertexture {
@@ -239,7 +268,23 @@ impl Hypertexture {
             warps,
             modulation,
             distortion: None,
+            solid_core: true,
         }
+    }
+
+    /// The same chain with the hard region solid or shaped by the DMFs.
+    pub fn with_hard_core(self, hard_core: HardCore) -> Hypertexture {
+        Hypertexture {
+            solid_core: hard_core == HardCore::Solid,
+            ..self
+        }
+    }
+
+    /// Whether the value DMFs leave this `d` = D(w(x)) as it is: 0 always
+    /// (every value DMF maps 0 to 0), 1 when the hard region is solid.
+    #[inline(always)]
+    pub(crate) fn keeps(&self, d: f32) -> bool {
+        d == 0.0 || (self.solid_core && d == 1.0)
     }
 
     /// The same chain with Gilet & Dischler's distortion after the warps.
@@ -268,6 +313,9 @@ impl Hypertexture {
             p = d.apply(p, &self.object, field);
         }
         let d = self.object.eval(p, field);
+        if self.keeps(d) {
+            return d;
+        }
         let mut v = d;
         for m in &self.modulation {
             if v == 0.0 {
@@ -276,5 +324,20 @@ impl Hypertexture {
             v = m.apply(v, p, &self.object, field);
         }
         v
+    }
+
+    /// D(w(x)): the object under the warps and the distortion, without the
+    /// value DMFs (the object's own density, whose gradient is the normal of
+    /// its hard region).
+    #[inline]
+    pub fn eval_object(&self, x: Vec3, field: &Field) -> f32 {
+        let mut p = x;
+        for w in &self.warps {
+            p = w.apply(p, field);
+        }
+        if let Some(d) = &self.distortion {
+            p = d.apply(p, &self.object, field);
+        }
+        self.object.eval_object(p, field)
     }
 }

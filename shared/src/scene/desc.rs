@@ -38,6 +38,9 @@ pub struct SceneDesc {
     /// Density modulation functions applied to the whole object, in order.
     #[serde(default)]
     pub modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape the object's hard region (D = 1) too.
+    #[serde(default)]
+    pub hard_core: HardCore,
     /// Colour over density (or over `colour_index`).
     #[serde(default = "CurveDesc::white")]
     pub colour_map: CurveDesc<Rgb>,
@@ -110,6 +113,7 @@ impl SceneDesc {
             ObjectDesc::Hypertexture(HypertextureDesc {
                 object: Box::new(self.object.clone()),
                 modulation: self.modulation.clone(),
+                hard_core: self.hard_core,
                 distortion: self.distortion.clone(),
             })
         }
@@ -136,6 +140,9 @@ struct SceneFields {
     /// Density modulation functions applied to the whole object, in order.
     #[serde(default)]
     modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape the object's hard region (D = 1) too.
+    #[serde(default)]
+    hard_core: HardCore,
     /// Colour over density (or over `colour_index`).
     #[serde(default = "CurveDesc::white")]
     colour_map: CurveDesc<Rgb>,
@@ -218,6 +225,7 @@ impl TryFrom<SceneFields> for SceneDesc {
             march: f.march,
             object: f.object,
             modulation: f.modulation,
+            hard_core: f.hard_core,
             colour_map: f.colour_map,
             colour_index: f.colour_index,
             alpha_map: f.alpha_map,
@@ -710,6 +718,8 @@ pub struct HypertextureDesc {
     pub object: Box<ObjectDesc>,
     /// Its DMFs, applied in order.
     pub modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape its hard region (D = 1) too.
+    pub hard_core: HardCore,
     /// Gilet & Dischler's distortion, applied after the position DMFs.
     pub distortion: Option<DistortionDesc>,
 }
@@ -720,6 +730,8 @@ struct HypertextureFields {
     object: Box<ObjectDesc>,
     #[serde(default)]
     modulation: Vec<DmfDesc>,
+    #[serde(default)]
+    hard_core: HardCore,
     #[serde(default)]
     distortion: Option<DistortionDesc>,
 }
@@ -734,9 +746,27 @@ impl TryFrom<HypertextureFields> for HypertextureDesc {
         Ok(HypertextureDesc {
             object: f.object,
             modulation: f.modulation,
+            hard_core: f.hard_core,
             distortion: f.distortion,
         })
     }
+}
+
+/// What the value DMFs do where the object is solid (D = 1).
+///
+/// The paper's base shapes "have a hard region where they are completely
+/// solid, and a soft region where they are indeterminate"; the shaping
+/// functions apply in the soft region. `Solid` (the default) keeps f = 1
+/// where D = 1, so a ray reaching the hard region turns opaque there (unless
+/// an alpha map says otherwise). `Shaped` applies the DMFs literally
+/// everywhere, the hard region included.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+pub enum HardCore {
+    /// f = 1 where D = 1: the DMFs shape only the soft region.
+    #[default]
+    Solid,
+    /// f = f_n(… f_1(D)) everywhere, the hard region included.
+    Shaped,
 }
 
 /// The most DMFs one object may have.

@@ -332,6 +332,10 @@ pub struct Scene {
     pub(crate) opacity_exponent: f32,
     pub(crate) threshold: f32,
     pub(crate) density: Density,
+    /// The objects' own density D, without the value DMFs (what an expression
+    /// calls `D`, under the same motion): its gradient shades the samples
+    /// where a ray reaches a hard region (f = 1, where ∇f = 0).
+    pub(crate) object: Density,
     pub(crate) noise: Noise,
     pub(crate) colour_map: Curve<3>,
     pub(crate) colour_index: ColourIndex,
@@ -452,9 +456,16 @@ impl Scene {
         let (density, expressions) =
             SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
         let motion = desc.transform.as_ref().map(Motion::build);
-        let density = match motion {
-            Some(_) => Density::Moving(Box::new(density)),
-            None => density,
+        let own = match desc.density {
+            Some(_) => Density::build(&object, step),
+            None => density.clone(),
+        };
+        let (density, own) = match motion {
+            Some(_) => (
+                Density::Moving(Box::new(density)),
+                Density::Moving(Box::new(own)),
+            ),
+            None => (density, own),
         };
         // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
@@ -467,6 +478,7 @@ impl Scene {
             opacity_exponent: desc.march.opacity.0 * step,
             threshold: desc.march.threshold.0,
             density,
+            object: own,
             noise: Noise::new(desc.seed),
             colour_map,
             colour_index,
