@@ -720,3 +720,139 @@ fn unauthenticated_floods_are_refused_before_their_bodies() {
     let _ = worker.finish(30);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// One raw HTTP/1.1 request to `port`; returns the status and the body, or
+/// why there was none within 10 s.
+fn raw_http(port: u16, request: &[u8]) -> Result<(u16, String), String> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).map_err(|e| e.to_string())?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))
+        .map_err(|e| e.to_string())?;
+    s.write_all(request).map_err(|e| e.to_string())?;
+    let mut answer = Vec::new();
+    s.read_to_end(&mut answer)
+        .map_err(|e| format!("no complete answer within 10 s: {e}"))?;
+    let text = String::from_utf8_lossy(&answer).into_owned();
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .ok_or_else(|| format!("no status line: {text:?}"))?;
+    let body = text
+        .split_once("\r\n\r\n")
+        .map_or(String::new(), |(_, b)| b.to_string());
+    Ok((status, body))
+}
+
+/// Random requests against the running HTTP API of `coordinator serve`
+/// (random paths under its routes, methods, headers, JSON bodies, with and
+/// without the token): each is answered within 10 s, never with a 5xx, and
+/// every 4xx carries a JSON `{"error": …}`.
+#[test]
+fn random_requests_to_the_api_get_json_4xx_never_5xx() {
+    use proptest::prelude::*;
+    use proptest::test_runner::{Config, TestCaseError, TestRunner};
+
+    let data = scratch("adversarial-api-proptest");
+    let mut serve = Running::coordinator(&[
+        "serve",
+        "--data",
+        data.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+        "--token",
+        "s3cret",
+    ]);
+    let port = serve.port();
+    serve.wait_for("serving on", 30);
+
+    let json = prop_oneof![
+        Just(String::new()),
+        "[ -~]{0,60}",
+        any::<i64>().prop_map(|n| n.to_string()),
+        ("[a-z_]{1,10}", "[ -~]{0,20}").prop_map(|(k, v)| serde_json::json!({ k: v }).to_string()),
+        ("[ -~]{0,40}", any::<u32>(), any::<i32>()).prop_map(|(scene, w, p)| {
+            serde_json::json!({"scene": scene, "width": w, "priority": p, "out": "/x.png"})
+                .to_string()
+        }),
+    ];
+    let path = (
+        prop_oneof![
+            Just("/api/v1/jobs"),
+            Just("/api/v1/jobs/"),
+            Just("/api/v1/workers"),
+            Just("/api/v1/openapi.json"),
+            Just("/metrics"),
+            Just("/api/v2/"),
+            Just("/"),
+        ],
+        "[a-zA-Z0-9._~/-]{0,24}",
+    )
+        .prop_map(|(a, b)| format!("{a}{b}"));
+    let request = (
+        prop_oneof![
+            Just("GET"),
+            Just("POST"),
+            Just("PUT"),
+            Just("DELETE"),
+            Just("PATCH")
+        ],
+        path,
+        any::<bool>(),
+        prop_oneof![
+            Just("application/json".to_string()),
+            Just("text/plain".to_string()),
+            Just("application/x-www-form-urlencoded".to_string()),
+            "[a-z]{1,8}/[a-z]{1,8}",
+        ],
+        proptest::collection::vec(("x-[a-z]{1,10}", "[!-~]{0,30}"), 0..4),
+        json,
+    );
+    let mut runner = TestRunner::new(Config {
+        cases: 96,
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let started = Instant::now();
+    let result = runner.run(
+        &request,
+        |(method, path, authorized, content_type, headers, body)| {
+            let mut r = format!(
+                "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\
+                 Content-Type: {content_type}\r\nContent-Length: {}\r\n",
+                body.len()
+            );
+            if authorized {
+                r.push_str("Authorization: Bearer s3cret\r\n");
+            }
+            for (name, value) in &headers {
+                r.push_str(&format!("{name}: {value}\r\n"));
+            }
+            r.push_str("\r\n");
+            r.push_str(&body);
+            let (status, answer) = raw_http(port, r.as_bytes()).map_err(TestCaseError::fail)?;
+            prop_assert!(status < 500, "{method} {path}: {status} {answer}");
+            if status >= 400 {
+                let v: serde_json::Value = serde_json::from_str(&answer).map_err(|e| {
+                    TestCaseError::fail(format!(
+                        "{method} {path}: {status} not JSON ({e}): {answer:?}"
+                    ))
+                })?;
+                prop_assert!(v["error"].is_string(), "{method} {path}: {status} {answer}");
+            }
+            Ok(())
+        },
+    );
+    eprintln!(
+        "96 random requests in {:.2} s",
+        started.elapsed().as_secs_f64()
+    );
+    serve.signal(15);
+    let (_, log) = serve.finish(30);
+    if let Err(e) = result {
+        panic!("{e}\nlog:\n{}", log.join("\n"));
+    }
+    std::fs::remove_dir_all(&data).unwrap();
+}

@@ -236,8 +236,11 @@ pub struct CompletedFrame {
 /// What the coordinator knows of a worker.
 #[derive(Clone, Debug)]
 pub struct WorkerState {
-    /// Its id on the wire (`w7`).
+    /// Its id as views and logs show it (`w7`).
     pub id: String,
+    /// The secret half of the id handed to it at registration (`w7-<secret>`):
+    /// calls that do not carry it are not this worker's.
+    secret: u64,
     /// Its name.
     pub name: String,
     /// Its tags: it renders only jobs whose required tags it carries.
@@ -288,6 +291,13 @@ struct Lease {
     unit: usize,
     worker: u64,
     issued: Instant,
+}
+
+/// The number of a worker's id as views show it (`w7`), or as it was handed
+/// to the worker (`w7-…`).
+fn number(worker_id: &str) -> Option<u64> {
+    let rest = worker_id.strip_prefix('w')?;
+    rest.split_once('-').map_or(rest, |(n, _)| n).parse().ok()
 }
 
 /// What the scheduler needs of a job.
@@ -456,6 +466,8 @@ pub struct Scheduler {
     one_shot: bool,
     /// Draining: nothing more is handed out.
     draining: bool,
+    /// Keys the secret half of the ids handed to workers at registration.
+    id_keys: std::collections::hash_map::RandomState,
 }
 
 impl Scheduler {
@@ -502,6 +514,7 @@ impl Scheduler {
             lease,
             one_shot: false,
             draining: false,
+            id_keys: std::collections::hash_map::RandomState::new(),
         }
     }
 
@@ -571,13 +584,19 @@ impl Scheduler {
         tags: Vec<String>,
         now: Instant,
     ) -> String {
+        use std::hash::BuildHasher;
         let id = self.next_worker;
         self.next_worker += 1;
-        let wire_id = format!("w{id}");
+        // The id a worker presents is bound to its registration: its number
+        // (`w7`, what views and logs show) and a secret drawn for it here,
+        // which no other caller can guess.
+        let secret = self.id_keys.hash_one((id, now));
+        let wire_id = format!("w{id}-{secret:016x}");
         self.workers.insert(
             id,
             WorkerState {
-                id: wire_id.clone(),
+                id: format!("w{id}"),
+                secret,
                 name: name.to_string(),
                 tags,
                 threads,
@@ -598,12 +617,14 @@ impl Scheduler {
     fn worker_mut(&mut self, worker_id: &str) -> Result<(u64, &mut WorkerState), Refusal> {
         let unknown =
             || Refusal::UnknownWorker(hypertexture_proto::convert::name_from_wire(worker_id));
-        let id: u64 = worker_id
+        let (id, secret) = worker_id
             .strip_prefix('w')
-            .and_then(|n| n.parse().ok())
+            .and_then(|rest| rest.split_once('-'))
+            .and_then(|(n, s)| Some((n.parse::<u64>().ok()?, u64::from_str_radix(s, 16).ok()?)))
             .ok_or_else(unknown)?;
         match self.workers.get_mut(&id) {
-            Some(w) if w.alive => Ok((id, w)),
+            // A made-up or altered id names no worker.
+            Some(w) if w.alive && w.secret == secret => Ok((id, w)),
             _ => Err(unknown()),
         }
     }
@@ -1175,10 +1196,7 @@ impl Scheduler {
 
     /// The jobs a worker is blocklisted for.
     pub fn blocklisted_for(&self, worker_id: &str) -> Vec<JobId> {
-        let Some(id) = worker_id
-            .strip_prefix('w')
-            .and_then(|n| n.parse::<u64>().ok())
-        else {
+        let Some(id) = number(worker_id) else {
             return Vec::new();
         };
         self.jobs
@@ -1190,7 +1208,7 @@ impl Scheduler {
 
     /// The job a worker is rendering (its oldest lease's), if any.
     pub fn current_job(&self, worker_id: &str) -> Option<JobId> {
-        let id = worker_id.strip_prefix('w')?.parse::<u64>().ok()?;
+        let id = number(worker_id)?;
         self.leases
             .iter()
             .filter(|(_, l)| l.worker == id)
@@ -1483,6 +1501,14 @@ mod tests {
             s.submit("w77", id, Some(&wire), &good, 0, now),
             Err(Refusal::UnknownWorker(_))
         ));
+        // The right number with a made-up secret names no worker.
+        let honest = s.register("honest", 1, now);
+        let forged = format!("{}-0123456789abcdef", honest.split_once('-').unwrap().0);
+        assert!(matches!(
+            s.heartbeat(&forged, now),
+            Err(Refusal::UnknownWorker(_))
+        ));
+        assert!(s.heartbeat(&honest, now).is_ok());
         assert!(matches!(
             s.submit(&a, id, None, &good, 0, now),
             Err(Refusal::Malformed { .. })
