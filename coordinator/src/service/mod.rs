@@ -828,7 +828,10 @@ pub async fn serve(
         .map_err(ServiceError::Studio)?,
     );
     let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
-        .merge(crate::api::router(control, config.farm.token.clone()));
+        .merge(crate::api::router(control, config.farm.token.clone()))
+        // Every refusal of these routes is a JSON error, the studio's and
+        // axum's own (405 on `/`) included; the gRPC routes come after.
+        .layer(axum::middleware::from_fn(crate::api::json_errors));
     // Units sized as for a LAN farm of the paper's 64 processors (at least one
     // unit each), or for the local workers when there are more.
     let expected = config.farm.local_workers.max(64);
