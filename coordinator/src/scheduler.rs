@@ -1710,8 +1710,8 @@ mod tests {
             "unit 0",
             "pixel set 0 of 8×8",
             "failed 3 times",
-            "worker a (render): w1 broke",
-            "worker b (assignment): w2 broke",
+            "worker a (render): w1-",
+            "worker b (assignment): w2-",
             "worker c",
         ] {
             assert!(message.contains(needle), "{needle}: {message}");
@@ -1800,8 +1800,7 @@ mod tests {
         fail(&mut s, &a, id, FailureKind::Scene, now).unwrap();
         let message = s.gave_up().expect("nobody can render").to_string();
         assert!(
-            message.contains("can build the scene")
-                && message.contains("worker a (scene): w1 broke"),
+            message.contains("can build the scene") && message.contains("worker a (scene): w1-"),
             "{message}"
         );
     }
