@@ -279,6 +279,7 @@ fn farm_render(
         tls: None,
         interleave: DEFAULT_INTERLEAVE,
         progress: false,
+        gate: Default::default(),
     };
     Ok(runtime.block_on(farm::render(job, farm_config))?)
 }

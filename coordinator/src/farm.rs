@@ -27,6 +27,12 @@ use crate::scheduler::{Accepted, JobId, Next, Refusal, Scheduler};
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
 /// 16 KiB, less than a tile of whole-set units at 512²).
 const MAX_FRAME_BYTES: u32 = 1 << 20;
+/// Concurrent HTTP/2 streams a connection may open (a worker uses three:
+/// its tile stream, GetWork and a heartbeat).
+const MAX_STREAMS: u32 = 32;
+/// HTTP/2 pings and TCP keepalive probes this often; a peer that does not
+/// answer a ping within as long is dropped.
+const KEEPALIVE: Duration = Duration::from_secs(20);
 
 /// How the farm runs.
 #[derive(Clone, Debug)]
@@ -51,6 +57,8 @@ pub struct FarmConfig {
     pub interleave: u32,
     /// Show a progress bar.
     pub progress: bool,
+    /// Unauthenticated connections: how many, for how long.
+    pub gate: crate::gate::GateLimits,
 }
 
 /// Why the farm could not render.
@@ -296,6 +304,8 @@ pub struct Shared {
     withdrawals: broadcast::Sender<Arc<Vec<(String, u64)>>>,
     /// Set when the server stops: Withdrawals streams end.
     closing: watch::Sender<bool>,
+    /// The front door: token checks before any body, connection limits.
+    gate: Arc<crate::gate::Gate>,
 }
 
 impl Shared {
@@ -311,6 +321,17 @@ impl Shared {
 
     /// The farm's state, locked.
     pub fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
+        let mut state = self.lock_state();
+        state.stats.unauthenticated = self.gate.refused();
+        state
+    }
+
+    /// The gate's counters: calls refused, unauthenticated connections closed.
+    pub fn gate(&self) -> (u64, u64) {
+        (self.gate.refused(), self.gate.closed())
+    }
+
+    fn lock_state(&self) -> std::sync::MutexGuard<'_, FarmState> {
         // A panic while holding the lock would be a bug; the state is still usable.
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -409,11 +430,8 @@ impl Service {
         if ok {
             Ok(())
         } else {
-            let peer = request
-                .remote_addr()
-                .map_or_else(|| "unknown".into(), |a| a.to_string());
-            self.state().stats.unauthenticated += 1;
-            tracing::warn!("refused a call from {peer}: missing or wrong token");
+            // The gate refuses such calls from their headers (and logs them);
+            // this check stands behind it.
             Err(Status::unauthenticated("missing or wrong token"))
         }
     }
@@ -935,17 +953,28 @@ impl Farm {
             unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
             withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
             closing: watch::channel(false).0,
+            gate: crate::gate::Gate::new(token.as_deref(), config.gate),
         });
 
         // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
         // write for the worker and one wake-up here instead of two or three.
+        // Each connection gets a bounded share of streams; HTTP/2 and TCP
+        // keepalive drop peers that went away without closing.
         let mut server = tonic::transport::Server::builder()
             .max_frame_size(MAX_FRAME_BYTES)
+            .max_concurrent_streams(MAX_STREAMS)
+            .http2_keepalive_interval(Some(KEEPALIVE))
+            .http2_keepalive_timeout(Some(KEEPALIVE))
+            .tcp_keepalive(Some(KEEPALIVE))
             .accept_http1(routes.is_some());
         let scheme = if let Some((cert, key)) = &config.tls {
             let identity = tonic::transport::Identity::from_pem(cert, key);
             server = server
-                .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+                .tls_config(
+                    tonic::transport::ServerTlsConfig::new()
+                        .identity(identity)
+                        .timeout(config.gate.handshake),
+                )
                 .map_err(|e| FarmError::Tls(e.to_string()))?;
             "https"
         } else {
@@ -959,13 +988,15 @@ impl Farm {
             None => tonic::service::Routes::new(service),
         };
         let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
-        let server_task = tokio::spawn(server.add_routes(router).serve_with_incoming_shutdown(
-            // No Nagle: a tile's reply must not wait for a delayed ACK.
-            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-            async {
-                let _ = server_stopped.await;
-            },
-        ));
+        let gate = Arc::clone(&shared.gate);
+        let server_task = tokio::spawn(
+            server
+                .layer(crate::gate::GateLayer(Arc::clone(&gate)))
+                .add_routes(router)
+                .serve_with_incoming_shutdown(gate.incoming(listener), async {
+                    let _ = server_stopped.await;
+                }),
+        );
 
         let public = if addr.ip().is_unspecified() {
             "THIS-HOST".to_string()

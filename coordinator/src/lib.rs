@@ -9,6 +9,7 @@ pub mod cli;
 pub mod client;
 pub mod farm;
 pub mod files;
+pub mod gate;
 pub mod grid;
 pub mod jobs;
 pub mod local;
@@ -324,6 +325,7 @@ pub fn render_on_farm(
         tls,
         interleave: options.interleave,
         progress: config.progress,
+        gate: Default::default(),
     };
     // One thread serves the farm: per unit it only checks and stores a tile, and
     // any thread more competes with the render threads of local workers.

@@ -755,6 +755,7 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
             tls,
             interleave: args.interleave,
             progress: false,
+            gate: Default::default(),
         },
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
         studio_scene: None,
@@ -791,6 +792,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
             tls: None,
             interleave: hypertexture::interleave::DEFAULT_INTERLEAVE,
             progress: false,
+            gate: Default::default(),
         },
         drain_timeout: Duration::from_secs(5),
         studio_scene: Some(args.scene),
@@ -827,7 +829,10 @@ pub async fn serve(
         .map_err(ServiceError::Studio)?,
     );
     let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
-        .merge(crate::api::router(control, config.farm.token.clone()));
+        .merge(crate::api::router(control, config.farm.token.clone()))
+        // Every refusal of these routes is a JSON error, the studio's and
+        // axum's own (405 on `/`) included; the gRPC routes come after.
+        .layer(axum::middleware::from_fn(crate::api::json_errors));
     // Units sized as for a LAN farm of the paper's 64 processors (at least one
     // unit each), or for the local workers when there are more.
     let expected = config.farm.local_workers.max(64);
