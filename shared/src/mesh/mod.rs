@@ -434,4 +434,4 @@ fn triangles_of(positions: &[Vec3], faces: &[[u32; 3]]) -> Result<Vec<Triangle>,
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

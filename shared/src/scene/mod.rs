@@ -462,6 +462,8 @@ pub struct Scene {
     pub(crate) expressions: SceneExpressions,
     /// The object's rigid motion (`density` is then [`Density::Moving`]).
     pub(crate) motion: Option<Motion>,
+    /// The files the scene names (path as written, content hash), in path order.
+    pub(crate) assets: Vec<(String, u64)>,
 }
 
 impl Scene {
@@ -526,7 +528,19 @@ impl Scene {
         desc::check_resolution(desc.image.width, desc.image.height)
             .map_err(SceneError::Override)?;
         let knobs = knob_values(&desc, &overrides.knobs)?;
-        Scene::build(&desc, &knobs).map_err(|f| f.locate(text, path))
+        let mut scene = Scene::build(&desc, &knobs).map_err(|f| f.locate(text, path))?;
+        scene.assets = desc
+            .mesh_paths()
+            .into_iter()
+            .filter_map(|p| assets.mesh(&p).map(|m| (p, m.hash())))
+            .collect();
+        Ok(scene)
+    }
+
+    /// The files the scene names, as (path as written, content hash of the
+    /// bytes), in path order: what the farm's scene hash covers beyond the text.
+    pub fn asset_hashes(&self) -> &[(String, u64)] {
+        &self.assets
     }
 
     /// Builds the runtime scene from a checked description and its knob values,
@@ -614,6 +628,7 @@ impl Scene {
             frame_rate: desc.frame_rate.0,
             expressions,
             motion,
+            assets: Vec::new(),
         })
     }
 
