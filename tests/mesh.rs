@@ -61,10 +61,10 @@ fn a_killed_worker_loses_nothing_and_a_late_one_fetches_the_mesh() {
     let scene = scene("mesh/furry_spot");
     let reference = dir.join("reference.png");
     // Big enough that the doomed worker is still rendering when it is killed.
-    let o = render(&scene, &reference, 64, &["--in-process"]);
+    let o = render(&scene, &reference, 48, &["--in-process"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = dir.join("farm.png");
-    let size = "64";
+    let size = "48";
     let mut coord = Running::coordinator(&[
         "--scene",
         scene.to_str().unwrap(),
@@ -106,10 +106,10 @@ fn a_killed_worker_loses_nothing_and_a_late_one_fetches_the_mesh() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The scene hash an image records (its `hypertexture/sceneHash` text).
+/// The scene hash a PNG records (its `hypertexture:sceneHash` text).
 fn scene_hash(png: &Path) -> String {
     let bytes = std::fs::read(png).unwrap();
-    let key = b"hypertexture/sceneHash";
+    let key = b"hypertexture:sceneHash";
     let at = bytes
         .windows(key.len())
         .position(|w| w == key)
