@@ -40,7 +40,10 @@ fn mesh_scenes_from_any_number_of_workers_give_the_in_process_bytes() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         // The cow is there: not every pixel is the background.
         let img = decode_png(&reference);
-        assert!(img.pixels().any(|p| p.0[0] > 60), "{name}: no cow in the image");
+        assert!(
+            img.pixels().any(|p| p.0[0] > 60),
+            "{name}: no cow in the image"
+        );
         for workers in ["1", "2", "4"] {
             let out = dir.join(format!("{name}-{workers}.png"));
             let o = render(&scene, &out, 24, &["--local-workers", workers]);
@@ -161,7 +164,10 @@ fn a_changed_mesh_is_a_new_scene_and_bad_meshes_are_named() {
     std::fs::remove_file(dir.join("meshes/cube.obj")).unwrap();
     let o = render(&scene, &dir.join("missing.png"), 8, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("meshes/cube.obj: cannot read the mesh"), "{err}");
+    assert!(
+        err.contains("meshes/cube.obj: cannot read the mesh"),
+        "{err}"
+    );
     std::fs::write(dir.join("meshes/cube.obj"), "v 0 0 0\nf 1 2 3\n").unwrap();
     let o = render(&scene, &dir.join("malformed.png"), 8, &[]);
     let err = String::from_utf8_lossy(&o.stderr);

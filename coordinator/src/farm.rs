@@ -230,8 +230,11 @@ pub struct WireJob {
 impl WireJob {
     /// The wire form of `job` (its frame is set per assignment).
     pub fn of(job: &FrameJob) -> WireJob {
-        let hashes: Vec<(String, u64)> =
-            job.assets.iter().map(|a| (a.path.clone(), a.hash)).collect();
+        let hashes: Vec<(String, u64)> = job
+            .assets
+            .iter()
+            .map(|a| (a.path.clone(), a.hash))
+            .collect();
         let with_text = pb::Job {
             scene_hash: convert::scene_hash_with_assets(
                 convert::scene_hash(
@@ -732,7 +735,8 @@ impl FarmRpc for Service {
         }))
     }
 
-    type GetAssetStream = tonic::codegen::tokio_stream::Iter<std::vec::IntoIter<Result<pb::GetAssetResult, Status>>>;
+    type GetAssetStream =
+        tonic::codegen::tokio_stream::Iter<std::vec::IntoIter<Result<pb::GetAssetResult, Status>>>;
 
     async fn get_asset(
         &self,
@@ -747,7 +751,9 @@ impl FarmRpc for Service {
             .unwrap_or_else(|p| p.into_inner())
             .get(&hash)
             .cloned()
-            .ok_or_else(|| Status::not_found(format!("no job names a file with hash {hash:016x}")))?;
+            .ok_or_else(|| {
+                Status::not_found(format!("no job names a file with hash {hash:016x}"))
+            })?;
         let chunks: Vec<_> = bytes
             .chunks(convert::ASSET_CHUNK_BYTES)
             .map(|c| Ok(pb::GetAssetResult { chunk: c.to_vec() }))

@@ -264,7 +264,12 @@ pub struct SoftMesh {
 
 impl SoftMesh {
     /// The mesh with softness `softness`, moved to `centre` and scaled by `scale`.
-    pub fn new(mesh: std::sync::Arc<crate::mesh::Mesh>, centre: Vec3, scale: f32, softness: f32) -> Self {
+    pub fn new(
+        mesh: std::sync::Arc<crate::mesh::Mesh>,
+        centre: Vec3,
+        scale: f32,
+        softness: f32,
+    ) -> Self {
         SoftMesh {
             mesh,
             centre,
@@ -290,7 +295,10 @@ impl SoftMesh {
     pub fn support(&self) -> (Vec3, Vec3) {
         let (lo, hi) = self.mesh.bounds();
         let s = Vec3::splat(self.falloff.outer());
-        (self.centre + lo * self.scale - s, self.centre + hi * self.scale + s)
+        (
+            self.centre + lo * self.scale - s,
+            self.centre + hi * self.scale + s,
+        )
     }
 
     /// D(x).
@@ -301,7 +309,11 @@ impl SoftMesh {
             return 0.0;
         }
         let d = self.closest(x).distance;
-        if d <= 0.0 { 1.0 } else { self.falloff.density(d * d) }
+        if d <= 0.0 {
+            1.0
+        } else {
+            self.falloff.density(d * d)
+        }
     }
 
     /// x projected onto the inner (D = 1) surface: the mesh's nearest point.
@@ -314,7 +326,11 @@ impl SoftMesh {
     #[inline]
     pub fn boundary_point(&self, x: Vec3) -> Vec3 {
         let c = self.closest(x);
-        let away = if c.distance > 0.0 { x - c.point } else { c.point - x };
+        let away = if c.distance > 0.0 {
+            x - c.point
+        } else {
+            c.point - x
+        };
         c.point + direction_or(away, c.outward) * self.falloff.outer()
     }
 

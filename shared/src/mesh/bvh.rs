@@ -49,13 +49,16 @@ impl Bvh {
         let mut pending = vec![(0usize, 0usize, order.len())];
         while let Some((node, lo, hi)) = pending.pop() {
             let items = &mut order[lo..hi];
-            let (min, max) = items.iter().fold(
-                (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(lo, hi), &i| {
-                    let t = &triangles[i as usize];
-                    (lo.min(t[0]).min(t[1]).min(t[2]), hi.max(t[0]).max(t[1]).max(t[2]))
-                },
-            );
+            let (min, max) =
+                items
+                    .iter()
+                    .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &i| {
+                        let t = &triangles[i as usize];
+                        (
+                            lo.min(t[0]).min(t[1]).min(t[2]),
+                            hi.max(t[0]).max(t[1]).max(t[2]),
+                        )
+                    });
             if items.len() <= LEAF {
                 nodes[node] = Node {
                     min,
@@ -65,10 +68,11 @@ impl Bvh {
                 };
                 continue;
             }
-            let (cmin, cmax) = items.iter().fold(
-                (Vec3::INFINITY, Vec3::NEG_INFINITY),
-                |(lo, hi), &i| (lo.min(centroids[i as usize]), hi.max(centroids[i as usize])),
-            );
+            let (cmin, cmax) = items
+                .iter()
+                .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &i| {
+                    (lo.min(centroids[i as usize]), hi.max(centroids[i as usize]))
+                });
             let extent = cmax - cmin;
             let axis = if extent.x >= extent.y && extent.x >= extent.z {
                 0

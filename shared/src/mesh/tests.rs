@@ -24,7 +24,10 @@ pub(crate) fn cube_obj(h: f32) -> String {
         [1, 5, 7, 3], // x = -h
         [2, 4, 8, 6], // x = +h
     ] {
-        s += &format!("f {} {} {}\nf {} {} {}\n", f[0], f[1], f[2], f[0], f[2], f[3]);
+        s += &format!(
+            "f {} {} {}\nf {} {} {}\n",
+            f[0], f[1], f[2], f[0], f[2], f[3]
+        );
     }
     s
 }
@@ -160,7 +163,11 @@ fn a_mesh_cube_is_solid_where_the_box_primitive_is() {
     let falloff = crate::soft::Falloff::new(s / 2.0, s);
     for p in points(4000, 0.8, 3) {
         let d = box_distance(p, h - s / 2.0);
-        let want = if d <= 0.0 { 1.0 } else { falloff.density(d * d) };
+        let want = if d <= 0.0 {
+            1.0
+        } else {
+            falloff.density(d * d)
+        };
         let got = soft.density(p);
         assert!((got - want).abs() < 1e-4, "{p}: {got} vs {want}");
         assert_eq!(got == 1.0, boxed.density(p) == 1.0, "{p}");
@@ -230,12 +237,19 @@ fn bad_meshes_are_refused_with_the_path_and_the_reason() {
     let cube = cube_obj(0.5);
     let message = |text: &str| load(text).unwrap_err().to_string();
     // Open: the last face left out.
-    let open: String = cube.lines().take(cube.lines().count() - 1).map(|l| format!("{l}\n")).collect();
+    let open: String = cube
+        .lines()
+        .take(cube.lines().count() - 1)
+        .map(|l| format!("{l}\n"))
+        .collect();
     let m = message(&open);
     assert!(m.starts_with("test.obj: the mesh is open"), "{m}");
     // Non-manifold: one face twice.
     let m = message(&format!("{cube}f 1 3 4\n"));
-    assert!(m.contains("not manifold") || m.contains("run along it the same way"), "{m}");
+    assert!(
+        m.contains("not manifold") || m.contains("run along it the same way"),
+        "{m}"
+    );
     // Two faces wound against the rest.
     let m = message(&cube.replacen("f 1 3 4\nf 1 4 2", "f 1 4 3\nf 1 2 4", 1));
     assert!(m.contains("not consistently oriented"), "{m}");

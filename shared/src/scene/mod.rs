@@ -17,8 +17,8 @@ use glam::Vec3;
 
 use crate::camera::Camera;
 use crate::curve::Curve;
-use crate::mesh::{Mesh, MeshError, MeshLimits};
 use crate::density::{Density, Support};
+use crate::mesh::{Mesh, MeshError, MeshLimits};
 use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
 use crate::pse::{ExpressionFailure, SceneExpressions};
@@ -124,7 +124,11 @@ impl Assets {
 
     /// Reads and builds every mesh `desc` names, each path relative to the
     /// directory of the scene file `scene_path`.
-    pub fn load(desc: &SceneDesc, scene_path: &str, limits: MeshLimits) -> Result<Assets, SceneError> {
+    pub fn load(
+        desc: &SceneDesc,
+        scene_path: &str,
+        limits: MeshLimits,
+    ) -> Result<Assets, SceneError> {
         let mut assets = Assets::default();
         for path in desc.mesh_paths() {
             let file = asset_path(scene_path, &path);

@@ -88,7 +88,9 @@ fn case(object: &str, dmfs: &str) -> (Density, Vec<DmfDesc>) {
     object.for_each_mesh_mut(&mut |m| {
         let obj = crate::mesh::tests::icosphere_obj(0.6, 2);
         let mesh = crate::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
-        m.mesh = Some(std::sync::Arc::new(mesh.expect("the icosphere is a closed mesh")));
+        m.mesh = Some(std::sync::Arc::new(
+            mesh.expect("the icosphere is a closed mesh"),
+        ));
     });
     let dmfs: Vec<DmfDesc> = ron.from_str(&format!("[{dmfs}]")).expect("valid DMFs");
     let h = Hypertexture::build(Density::build(&object, step), &dmfs, step);
