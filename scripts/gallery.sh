@@ -16,6 +16,12 @@ for scene in scenes/gilet/*.ron; do
     "$bin" --scene "$scene" --out "$out/gilet_$name.png" --width 256 --height 256
 done
 
+# Meshes (scenes/mesh/), as mesh_<name>.png.
+for scene in scenes/mesh/*.ron; do
+    name=$(basename "$scene" .ron)
+    ./target/release/coordinator --scene "$scene" --out "$out/mesh_$name.png" --width 256 --height 256
+done
+
 # The Pixel Stream Editor's solid textures (scenes/pse/), as pse_<name>.png; the
 # expression fur and tribble render exactly like fur.png and tribble.png.
 for scene in scenes/pse/*.ron; do

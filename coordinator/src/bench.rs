@@ -267,6 +267,8 @@ fn farm_render(
             text,
             &Default::default(),
         )),
+        assets: farm::Asset::of_scene(scene, &path.display().to_string())
+            .map_err(CoordinatorError::Asset)?,
     };
     let farm_config = farm::FarmConfig {
         listen: "127.0.0.1:0".parse().expect("a valid address"),

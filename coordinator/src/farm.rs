@@ -144,6 +144,46 @@ pub struct FrameJob {
     pub pixel_format: PixelFormat,
     /// What the images record (previews too).
     pub metadata: std::sync::Arc<crate::output::ImageMetadata>,
+    /// The files the scene names (meshes), which workers fetch by hash.
+    pub assets: Vec<Asset>,
+}
+
+/// A file a scene names, as the farm serves it (`GetAsset`).
+#[derive(Clone, Debug)]
+pub struct Asset {
+    /// The path as the scene writes it.
+    pub path: String,
+    /// FNV-1a of the bytes ([`hypertexture::mesh::content_hash`]).
+    pub hash: u64,
+    /// The file.
+    pub bytes: Arc<Vec<u8>>,
+}
+
+impl Asset {
+    /// Every file `scene` names, read beside the scene file `scene_name`:
+    /// the bytes the scene was built from (their hashes must agree).
+    pub fn of_scene(scene: &hypertexture::Scene, scene_name: &str) -> Result<Vec<Asset>, String> {
+        scene
+            .asset_hashes()
+            .iter()
+            .map(|(path, hash)| {
+                let file = hypertexture::scene::asset_path(scene_name, path);
+                let bytes = hypertexture::scene::read_asset(&file)
+                    .map_err(|e| format!("{}: {e}", file.display()))?;
+                if hypertexture::mesh::content_hash(&bytes) != *hash {
+                    return Err(format!(
+                        "{}: the file changed after the scene was loaded",
+                        file.display()
+                    ));
+                }
+                Ok(Asset {
+                    path: path.clone(),
+                    hash: *hash,
+                    bytes: Arc::new(bytes),
+                })
+            })
+            .collect()
+    }
 }
 
 /// A frame the farm has finished.
@@ -191,19 +231,29 @@ pub struct WireJob {
     pub with_text: pb::Job,
     /// Without it, for workers that have built the scene.
     pub without_text: pb::Job,
+    /// The files the scene names, served by hash (`GetAsset`).
+    pub assets: Vec<Asset>,
 }
 
 impl WireJob {
     /// The wire form of `job` (its frame is set per assignment).
     pub fn of(job: &FrameJob) -> WireJob {
+        let hashes: Vec<(String, u64)> = job
+            .assets
+            .iter()
+            .map(|a| (a.path.clone(), a.hash))
+            .collect();
         let with_text = pb::Job {
-            scene_hash: convert::scene_hash(
-                &job.scene_text,
-                job.width,
-                job.height,
-                job.spp.unwrap_or(0),
-                convert::quality_to_wire(job.quality) as i32,
-                &job.knobs,
+            scene_hash: convert::scene_hash_with_assets(
+                convert::scene_hash(
+                    &job.scene_text,
+                    job.width,
+                    job.height,
+                    job.spp.unwrap_or(0),
+                    convert::quality_to_wire(job.quality) as i32,
+                    &job.knobs,
+                ),
+                &hashes,
             ),
             scene_text: job.scene_text.clone(),
             scene_name: job.scene_name.clone(),
@@ -214,8 +264,18 @@ impl WireJob {
             quality: convert::quality_to_wire(job.quality) as i32,
             knobs: convert::knobs_to_wire(&job.knobs),
             pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
+            assets: job
+                .assets
+                .iter()
+                .map(|a| pb::AssetRef {
+                    path: a.path.clone(),
+                    hash: a.hash,
+                    size: a.bytes.len() as u64,
+                })
+                .collect(),
         };
         WireJob {
+            assets: job.assets.clone(),
             without_text: pb::Job {
                 scene_text: String::new(),
                 ..with_text.clone()
@@ -306,6 +366,8 @@ pub struct Shared {
     closing: watch::Sender<bool>,
     /// The front door: token checks before any body, connection limits.
     gate: Arc<crate::gate::Gate>,
+    /// The files the jobs name, by content hash (`GetAsset`).
+    assets: Mutex<HashMap<u64, Arc<Vec<u8>>>>,
 }
 
 impl Shared {
@@ -336,6 +398,14 @@ impl Shared {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Serves `assets` to workers (`GetAsset`) from now on.
+    pub fn add_assets(&self, assets: &[Asset]) {
+        let mut served = self.assets.lock().unwrap_or_else(|p| p.into_inner());
+        for a in assets {
+            served.insert(a.hash, Arc::clone(&a.bytes));
+        }
+    }
+
     /// Adds a job: its wire form and its plan; idle workers hear of it at once.
     pub fn add_job(
         &self,
@@ -344,6 +414,7 @@ impl Shared {
         wire: WireJob,
     ) -> Result<(), hypertexture_proto::convert::WireError> {
         let id = plan.id;
+        self.add_assets(&wire.assets);
         {
             let mut s = self.lock();
             s.scheduler.add_job(plan, resume)?;
@@ -697,6 +768,32 @@ impl FarmRpc for Service {
         }))
     }
 
+    type GetAssetStream =
+        tonic::codegen::tokio_stream::Iter<std::vec::IntoIter<Result<pb::GetAssetResult, Status>>>;
+
+    async fn get_asset(
+        &self,
+        request: Request<pb::GetAssetParams>,
+    ) -> Result<Response<Self::GetAssetStream>, Status> {
+        self.authorize(&request)?;
+        let hash = request.get_ref().hash;
+        let bytes = self
+            .0
+            .assets
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(&hash)
+            .cloned()
+            .ok_or_else(|| {
+                Status::not_found(format!("no job names a file with hash {hash:016x}"))
+            })?;
+        let chunks: Vec<_> = bytes
+            .chunks(convert::ASSET_CHUNK_BYTES)
+            .map(|c| Ok(pb::GetAssetResult { chunk: c.to_vec() }))
+            .collect();
+        Ok(Response::new(tonic::codegen::tokio_stream::iter(chunks)))
+    }
+
     async fn heartbeat(
         &self,
         request: Request<pb::HeartbeatParams>,
@@ -954,6 +1051,7 @@ impl Farm {
             withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
             closing: watch::channel(false).0,
             gate: crate::gate::Gate::new(token.as_deref(), config.gate),
+            assets: Mutex::new(HashMap::new()),
         });
 
         // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
@@ -1155,6 +1253,7 @@ pub async fn render_frames(
         .with_frames(job.frames.iter().map(|f| f.frame).collect());
     let wire = WireJob::of(&job);
     let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;
+    farm.shared.add_assets(&wire.assets);
     farm.shared
         .lock()
         .wire

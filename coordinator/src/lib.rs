@@ -128,6 +128,9 @@ pub enum CoordinatorError {
     /// An expression given on the command line is wrong.
     #[error("{0}")]
     Expression(String),
+    /// A file the scene names (a mesh) cannot be served to the farm.
+    #[error("{0}")]
+    Asset(String),
     /// An image could not be recoloured.
     #[error("{path}: {message}")]
     Recolor {
@@ -313,6 +316,8 @@ pub fn render_on_farm(
         pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
         frames,
         metadata: metadata.clone(),
+        assets: farm::Asset::of_scene(scene, &metadata.scene_name)
+            .map_err(CoordinatorError::Asset)?,
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,

@@ -1365,13 +1365,7 @@ mod tests {
     fn a_removed_jobs_units_in_flight_are_withdrawn_from_their_workers() {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
-        let mut s = Scheduler::new(
-            units,
-            16,
-            16,
-            PixelFormat::Samples,
-            Duration::from_secs(5),
-        );
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
         let a = s.register("a", 1, now);
         let b = s.register("b", 1, now);
         let (first, _) = assign(&mut s, &a, now);

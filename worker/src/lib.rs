@@ -671,7 +671,11 @@ async fn serve(
                         }
                     }
                 };
-                match start_render(&assignment, (pool, withdrawn), scenes, config.fault) {
+                let started = match fetch_assets(client, worker_id, scenes, &assignment).await {
+                    Ok(()) => start_render(&assignment, (pool, withdrawn), scenes, config.fault),
+                    Err(e) => Err(e),
+                };
+                match started {
                     Ok(rendering) => (assignment, rendering),
                     Err((kind, reason)) => {
                         // Give the unit back at once, with the reason: holding it would
@@ -711,6 +715,9 @@ async fn serve(
             && !*stop.borrow()
             && let Some(a) = ahead.take()
         {
+            // A new scene's files are fetched while the current unit renders
+            // (one that fails to arrive is tried again when its turn comes).
+            let _ = fetch_assets(client, worker_id, scenes, &a).await;
             match start_render(&a, (pool, withdrawn), scenes, config.fault) {
                 Ok(rendering) => queued = Some((a, rendering)),
                 Err(_) => ahead = Some(a),
@@ -1045,6 +1052,9 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
 #[derive(Default)]
 struct SceneCache {
     scenes: HashMap<u64, Arc<Scene>>,
+    /// The files scenes name (meshes), fetched once, verified and built, by
+    /// content hash.
+    assets: HashMap<u64, Arc<hypertexture::mesh::Mesh>>,
     /// The hash of the scene used last (0: none): the coordinator leaves its
     /// text out of the assignments that follow.
     last: u64,
@@ -1078,13 +1088,28 @@ impl SceneCache {
         }
         let scene_failure = |e: String| (FailureKind::Scene, e);
         let knobs = convert::knobs_from_wire(&job.knobs);
-        let hash = convert::scene_hash(
-            &job.scene_text,
-            job.width,
-            job.height,
-            job.spp,
-            job.quality,
-            &knobs,
+        let mut assets = hypertexture::scene::Assets::none();
+        let mut hashes = Vec::with_capacity(job.assets.len());
+        for a in &job.assets {
+            let mesh = self.assets.get(&a.hash).ok_or_else(|| {
+                (
+                    FailureKind::Assignment,
+                    format!("{}: the file {} has not arrived", job.scene_name, a.path),
+                )
+            })?;
+            assets.insert(&a.path, Arc::clone(mesh));
+            hashes.push((a.path.clone(), a.hash));
+        }
+        let hash = convert::scene_hash_with_assets(
+            convert::scene_hash(
+                &job.scene_text,
+                job.width,
+                job.height,
+                job.spp,
+                job.quality,
+                &knobs,
+            ),
+            &hashes,
         );
         if hash != job.scene_hash {
             return Err(scene_failure(format!(
@@ -1096,7 +1121,8 @@ impl SceneCache {
             self.last = hash;
             return Ok(Arc::clone(scene));
         }
-        let scene = Scene::from_text(
+        // Only the files that came with the job: a worker reads none from disk.
+        let scene = Scene::from_text_with(
             &job.scene_text,
             &job.scene_name,
             Overrides {
@@ -1107,6 +1133,7 @@ impl SceneCache {
                     .map_err(|e| scene_failure(e.to_string()))?,
                 knobs,
             },
+            Some(&assets),
         )
         .map_err(|e| scene_failure(e.to_string()))?;
         if self.scenes.len() >= Self::CAPACITY {
@@ -1117,6 +1144,87 @@ impl SceneCache {
         self.last = hash;
         Ok(scene)
     }
+}
+
+/// Fetches the files an assignment's scene names that this worker has not
+/// built yet (`GetAsset`), checks each against its size and hash, and builds
+/// its mesh off the async thread. A file that does not arrive whole and
+/// intact fails the assignment; one that arrives but is not a usable mesh
+/// fails the scene.
+async fn fetch_assets(
+    client: &mut Client,
+    worker_id: &str,
+    scenes: &mut SceneCache,
+    assignment: &pb::Assignment,
+) -> Result<(), (FailureKind, String)> {
+    let Some(job) = &assignment.job else {
+        return Ok(());
+    };
+    for a in &job.assets {
+        if scenes.assets.contains_key(&a.hash) {
+            continue;
+        }
+        let failed = |e: String| {
+            (
+                FailureKind::Assignment,
+                format!("{}: fetching {}: {e}", job.scene_name, a.path),
+            )
+        };
+        if a.size > hypertexture::mesh::MAX_OBJ_BYTES {
+            return Err(failed(format!(
+                "{} bytes is more than a mesh file may be",
+                a.size
+            )));
+        }
+        let started = std::time::Instant::now();
+        let mut stream = client
+            .get_asset(pb::GetAssetParams {
+                worker_id: worker_id.to_string(),
+                hash: a.hash,
+            })
+            .await
+            .map_err(|s| failed(s.message().to_string()))?
+            .into_inner();
+        let mut bytes = Vec::with_capacity(a.size as usize);
+        while let Some(chunk) = stream
+            .message()
+            .await
+            .map_err(|s| failed(s.message().to_string()))?
+        {
+            if bytes.len() as u64 + chunk.chunk.len() as u64 > a.size {
+                return Err(failed(format!("more than the {} bytes announced", a.size)));
+            }
+            bytes.extend_from_slice(&chunk.chunk);
+        }
+        let got = hypertexture::mesh::content_hash(&bytes);
+        if bytes.len() as u64 != a.size || got != a.hash {
+            return Err(failed(format!(
+                "{} bytes with hash {got:016x} arrived, not {} with hash {:016x}",
+                bytes.len(),
+                a.size,
+                a.hash
+            )));
+        }
+        let fetched = started.elapsed();
+        let path = a.path.clone();
+        let mesh = tokio::task::spawn_blocking(move || {
+            hypertexture::mesh::Mesh::from_obj(&path, &bytes, Default::default())
+        })
+        .await
+        .map_err(|e| failed(format!("the mesh build stopped: {e}")))?
+        .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+        tracing::info!(
+            "{}: {} ({} bytes, {} triangles) fetched in {:.1} ms, its distance tree built in {:.1} ms",
+            job.scene_name,
+            a.path,
+            a.size,
+            mesh.triangle_count(),
+            fetched.as_secs_f64() * 1e3,
+            (started.elapsed() - fetched).as_secs_f64() * 1e3
+        );
+        scenes.assets.insert(a.hash, Arc::new(mesh));
+    }
+    Ok(())
 }
 
 /// Beats every `every` until aborted. Failures are left to the work loop to notice.

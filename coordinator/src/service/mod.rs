@@ -239,8 +239,15 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         quality: spec.quality.map(Into::into),
         knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
     };
-    let scene =
-        Scene::from_text(&spec.scene, &name, overrides.clone()).map_err(|e| bad(e.to_string()))?;
+    // A scene sent over HTTP brings no files (the service reads none on a
+    // client's word): one that names a mesh is refused.
+    let scene = Scene::from_text_with(
+        &spec.scene,
+        &name,
+        overrides.clone(),
+        Some(&hypertexture::scene::Assets::none()),
+    )
+    .map_err(|e| bad(e.to_string()))?;
     let metadata = Arc::new(crate::output::ImageMetadata::new(
         &scene,
         &name,
@@ -307,6 +314,7 @@ impl Service {
             knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             pixel_format: format,
             metadata: checked.metadata.clone(),
+            assets: Vec::new(),
         };
         let plan = JobPlan {
             id,

@@ -274,7 +274,8 @@ fn check(
             (k.clone(), v)
         })
         .collect();
-    let scene = Scene::from_text(
+    // A scene sent over HTTP brings no files: one that names a mesh is refused.
+    let scene = Scene::from_text_with(
         text,
         name,
         Overrides {
@@ -282,6 +283,7 @@ fn check(
             knobs: overrides(&values, &desc.knobs),
             ..Overrides::default()
         },
+        Some(&hypertexture::scene::Assets::none()),
     )
     .map_err(|e| e.to_string())?;
     let shown = with_knob_values(text, &values).unwrap_or_else(|| text.to_string());
@@ -526,6 +528,7 @@ impl Studio {
                     None,
                     None,
                 )),
+                assets: Vec::new(),
             };
             let plan = JobPlan {
                 id: job,

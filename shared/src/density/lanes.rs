@@ -108,6 +108,7 @@ impl Density {
                 t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
                 p
             }
+            Density::Mesh(m) => x.map(|p| m.project(p)),
             _ => *x,
         }
     }
@@ -120,6 +121,7 @@ impl Density {
             Density::Sphere(s) => *x = x.map(|p| s.project(p)),
             Density::Box(b) => *x = x.map(|p| b.project(p)),
             Density::Torus(t) => t.project_lanes(&mut x.x, &mut x.y, &mut x.z),
+            Density::Mesh(m) => *x = x.map(|p| m.project(p)),
             _ => {}
         }
     }
@@ -151,6 +153,8 @@ impl Density {
             Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            // The scalar query lane by lane: a tree search per point.
+            Density::Mesh(m) => each(x, |p| m.density(p)),
             Density::Expression(program) => {
                 program.eval_lanes(x, &[0.0; LANES], field, isa)[0].map(crate::shaping::clamp01)
             }

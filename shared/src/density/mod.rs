@@ -21,7 +21,7 @@ use crate::distortion::Distortion;
 use crate::motion::Pose;
 use crate::noise::Noise;
 use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
-use crate::soft::{Falloff, SoftBox, SoftSphere, SoftTorus, boolean};
+use crate::soft::{Falloff, SoftBox, SoftMesh, SoftSphere, SoftTorus, boolean};
 
 pub mod bounds;
 pub mod dmf;
@@ -90,6 +90,8 @@ pub enum Density {
     Box(SoftBox),
     /// A soft torus.
     Torus(SoftTorus),
+    /// A closed triangle mesh, soft outside its surface.
+    Mesh(SoftMesh),
     /// Generalized union, folded.
     Union(Vec<Density>),
     /// Generalized intersection, folded.
@@ -134,6 +136,17 @@ impl Density {
                 major_radius: t.major_radius,
                 falloff: Falloff::new(t.minor_radius, t.softness),
             }),
+            ObjectDesc::Mesh(m) => match &m.mesh {
+                Some(mesh) => Density::Mesh(SoftMesh::new(
+                    std::sync::Arc::clone(mesh),
+                    m.centre.0,
+                    m.scale,
+                    m.softness,
+                )),
+                // Not attached (`SceneDesc::attach_meshes`): nothing, as a
+                // union of no objects. `Scene::from_text` always attaches.
+                None => Density::Union(Vec::new()),
+            },
             ObjectDesc::Union(v) => Density::Union(all(v)),
             ObjectDesc::Intersection(v) => Density::Intersection(all(v)),
             ObjectDesc::Max(v) => Density::Max(all(v)),
@@ -158,6 +171,7 @@ impl Density {
             Density::Sphere(s) => s.density(x),
             Density::Box(b) => b.density(x),
             Density::Torus(t) => t.density(x),
+            Density::Mesh(m) => m.density(x),
             Density::Union(v) => v
                 .iter()
                 .fold(0.0, |a, d| boolean::union(a, d.eval(x, field))),
@@ -207,9 +221,11 @@ impl Density {
             Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval_object(x, field))),
             Density::Hypertexture(h) => h.eval_object(x, field),
             Density::Moving(d) => d.eval_object(field.object_point(x), field),
-            Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Expression(_) => {
-                self.eval(x, field)
-            }
+            Density::Sphere(_)
+            | Density::Box(_)
+            | Density::Torus(_)
+            | Density::Mesh(_)
+            | Density::Expression(_) => self.eval(x, field),
         }
     }
 
@@ -221,6 +237,7 @@ impl Density {
             Density::Sphere(s) => s.project(x),
             Density::Box(b) => b.project(x),
             Density::Torus(t) => t.project(x),
+            Density::Mesh(m) => m.project(x),
             _ => x,
         }
     }
@@ -228,10 +245,7 @@ impl Density {
     /// Whether `Density::project` (the fur's projection onto the inner surface) is
     /// defined for this node.
     pub fn can_project(desc: &ObjectDesc) -> bool {
-        matches!(
-            desc,
-            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_)
-        )
+        desc.is_primitive()
     }
 }
 

@@ -64,6 +64,15 @@ const CASES: &[(&str, &str)] = &[
         "Torus(major_radius: 0.8, minor_radius: 0.3, softness: 0.3)",
         "Fur(frequency: 25.0, curliness: 0.7)",
     ),
+    // An icosphere of radius 0.6 (the mesh tests' generator).
+    (
+        "Mesh(path: \"icosphere.obj\", softness: 0.4)",
+        "Fur(frequency: 25.0, curliness: 0.7)",
+    ),
+    (
+        "Mesh(path: \"icosphere.obj\", softness: 0.4, centre: (0.1, 0.0, 0.0), scale: 1.2)",
+        "NoisyRadius(frequency: 2.0, amplitude: 0.2), Bias(0.6), Fur(frequency: 12.0)",
+    ),
     (
         "Sphere(radius: 0.9, softness: 0.6)",
         "NoisyRadius(frequency: 2.0, amplitude: 0.2), TurbulentRadius(frequency: 3.0, amplitude: 0.3, octaves: 3), Bias(0.6), Gain(0.3), Fur(frequency: 12.0, curliness: 0.4)",
@@ -75,7 +84,14 @@ fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>
     // The scene parser's extensions: `Sphere(radius: …)` for `Sphere(Sphere(…))`.
     let ron = ron::Options::default()
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
-    let object: ObjectDesc = ron.from_str(object).expect("a valid object");
+    let mut object: ObjectDesc = ron.from_str(object).expect("a valid object");
+    object.for_each_mesh_mut(&mut |m| {
+        let obj = crate::mesh::tests::icosphere_obj(0.6, 2);
+        let mesh = crate::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
+        m.mesh = Some(std::sync::Arc::new(
+            mesh.expect("the icosphere is a closed mesh"),
+        ));
+    });
     let dmfs: Vec<DmfDesc> = ron.from_str(&format!("[{dmfs}]")).expect("valid DMFs");
     let h =
         Hypertexture::build(Density::build(&object, step), &dmfs, step).with_hard_core(hard_core);
