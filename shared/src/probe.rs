@@ -128,15 +128,20 @@ pub fn digest(isa: Isa) -> Result<u64, ProbeError> {
     Ok(h.finish())
 }
 
-/// The files the probe scenes name, built into the program as the scenes are.
-fn probe_assets() -> crate::scene::Assets {
-    const SPOT: &[u8] = include_bytes!("../../scenes/mesh/meshes/spot.obj");
-    let mut assets = crate::scene::Assets::none();
-    // The repository's own file: a test loads every probe scene.
-    if let Ok(mesh) = crate::mesh::Mesh::from_obj("meshes/spot.obj", SPOT, Default::default()) {
-        assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
-    }
-    assets
+/// The files the probe scenes name, built into the program as the scenes are
+/// (and built once: a mesh's tree costs more than the probe's pixels).
+fn probe_assets() -> &'static crate::scene::Assets {
+    static ASSETS: std::sync::OnceLock<crate::scene::Assets> = std::sync::OnceLock::new();
+    ASSETS.get_or_init(|| {
+        const SPOT: &[u8] = include_bytes!("../../scenes/mesh/meshes/spot.obj");
+        let mut assets = crate::scene::Assets::none();
+        // The repository's own file: a test loads every probe scene.
+        if let Ok(mesh) = crate::mesh::Mesh::from_obj("meshes/spot.obj", SPOT, Default::default())
+        {
+            assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
+        }
+        assets
+    })
 }
 
 /// The bytes the digest hashes for one probe scene: each probe pixel's channels
@@ -152,7 +157,7 @@ fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, Pro
             quality: Some(Quality::Interactive),
             ..Overrides::default()
         };
-        Scene::from_text_with(text, path, overrides, Some(&probe_assets()))
+        Scene::from_text_with(text, path, overrides, Some(probe_assets()))
             .map_err(|error| ProbeError { path, error })
     };
     let mut scene = build(None)?;

@@ -298,7 +298,7 @@ fn unknown_kinds_are_named_in_the_scene_s_words() {
     );
     assert_eq!(
         full_error(&GOOD.replace("Sphere(", "Sphear(")),
-        "bad.ron:5:13: unknown object `Sphear`, expected one of `Sphere`, `Box`, `Torus`, `Union`, `Intersection`, `Difference`, `Complement`, `Max`, `Min`, `Hypertexture`"
+        "bad.ron:5:13: unknown object `Sphear`, expected one of `Sphere`, `Box`, `Torus`, `Mesh`, `Union`, `Intersection`, `Difference`, `Complement`, `Max`, `Min`, `Hypertexture`"
     );
     // No type name of the program reaches the user, whatever is misspelt.
     for (from, to) in [
