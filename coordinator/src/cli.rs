@@ -124,6 +124,10 @@ pub enum Command {
     /// Print the value of an expression at a point: a probe for designing
     /// hypertextures, e.g. `coordinator eval "improved(3.14, 42, 7)"`.
     Eval(EvalArgs),
+    /// Sample the scene's hypertexture on a voxel lattice and write it as an
+    /// OpenVDB file: a `density` grid and a `color` grid, for Blender or
+    /// Houdini.
+    Bake(BakeArgs),
     /// Map the density channel of a rendered EXR to colour again, without
     /// re-rendering (the 1985 paper's two-pass compositing).
     Recolor(RecolorArgs),
@@ -348,6 +352,51 @@ pub struct EvalArgs {
     /// Set a knob of the scene (repeatable).
     #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
     pub set: Vec<(String, f64)>,
+}
+
+/// Arguments of `coordinator bake`.
+#[derive(Debug, clap::Args)]
+pub struct BakeArgs {
+    /// Scene file (RON), e.g. scenes/fur.ron.
+    #[arg(value_name = "SCENE")]
+    pub scene: PathBuf,
+    /// The OpenVDB file; a run of # is the frame number padded to its length
+    /// (fur.####.vdb), needed with --frames.
+    #[arg(long, value_name = "FILE")]
+    pub out: String,
+    /// Voxels along the longest edge of the box where the density can be non-zero.
+    #[arg(long, value_name = "N", default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=i64::from(crate::bake::MAX_RESOLUTION)))]
+    pub resolution: u32,
+    /// Frame number (animated scenes).
+    #[arg(long, value_name = "F", default_value_t = 0)]
+    pub frame: u32,
+    /// Bake frames A to B (A..B excludes B, A..=B includes it), one file each.
+    #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
+    pub frames: Option<(u32, u32)>,
+    /// Threads (default: every core).
+    #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
+    pub threads: Option<NonZeroUsize>,
+    /// Set a knob of the scene (repeatable): --set curliness=0.8.
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
+    pub set: Vec<(String, f64)>,
+    /// No log lines; errors are still printed.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+impl BakeArgs {
+    /// The library configuration of the bake.
+    pub fn into_config(self) -> crate::bake::BakeConfig {
+        crate::bake::BakeConfig {
+            scene: self.scene,
+            out: self.out,
+            resolution: self.resolution,
+            frame: self.frame,
+            frames: self.frames,
+            threads: self.threads,
+            knobs: self.set,
+        }
+    }
 }
 
 /// Arguments of `coordinator recolor`.

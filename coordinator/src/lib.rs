@@ -3,6 +3,7 @@
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
 pub mod api;
+pub mod bake;
 pub mod bench;
 pub mod canvas;
 pub mod cli;
@@ -20,6 +21,7 @@ pub mod recolor;
 pub mod scheduler;
 pub mod service;
 pub mod store;
+pub mod vdb;
 
 use std::io::IsTerminal;
 use std::num::NonZeroUsize;
@@ -135,6 +137,9 @@ pub enum CoordinatorError {
         /// What went wrong.
         message: String,
     },
+    /// A bake cannot be done as asked.
+    #[error("{0}")]
+    Bake(String),
     /// The service failed.
     #[error(transparent)]
     Service(Box<service::ServiceError>),
