@@ -131,6 +131,24 @@ fn bake(args: &[&str]) -> Output {
     )
 }
 
+/// Bakes the gallery scene `name` to `out` with `args`, which must succeed.
+fn bake_ok(name: &str, out: &Path, args: &[&str]) {
+    let scene = scene(name);
+    let mut all = vec![
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ];
+    all.extend_from_slice(args);
+    let baked = bake(&all);
+    assert!(
+        baked.status.success(),
+        "{}",
+        String::from_utf8_lossy(&baked.stderr)
+    );
+}
+
 fn dump(files: &[PathBuf]) -> Vec<serde_json::Value> {
     let dir = files[0].parent().expect("a directory");
     let script = dir.join("dump.py");
@@ -239,39 +257,13 @@ fn openvdb_reads_the_fur_back_with_the_librarys_densities() {
     }
     let dir = scratch("vdb-fur");
     let out = dir.join("fur.vdb");
-    let baked = bake(&[
-        scene("fur").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--resolution",
-        "24",
-        "--quiet",
-    ]);
-    assert!(
-        baked.status.success(),
-        "{}",
-        String::from_utf8_lossy(&baked.stderr)
-    );
+    bake_ok("fur", &out, &["--resolution", "24"]);
     let fur = Scene::load(scene("fur"), Overrides::default()).expect("the fur scene loads");
     let files = dump(&[out.clone()]);
     check_frame(&files[0], &fur, 0, 24);
     // One thread or several: the same file.
     let serial = dir.join("fur-serial.vdb");
-    let baked = bake(&[
-        scene("fur").to_str().unwrap(),
-        "--out",
-        serial.to_str().unwrap(),
-        "--resolution",
-        "24",
-        "--threads",
-        "1",
-        "--quiet",
-    ]);
-    assert!(
-        baked.status.success(),
-        "{}",
-        String::from_utf8_lossy(&baked.stderr)
-    );
+    bake_ok("fur", &serial, &["--resolution", "24", "--threads", "1"]);
     assert_eq!(
         std::fs::read(&out).unwrap(),
         std::fs::read(&serial).unwrap()
@@ -285,20 +277,10 @@ fn an_animated_scene_bakes_one_file_per_frame_named_by_the_pattern() {
     }
     let dir = scratch("vdb-frames");
     let pattern = dir.join("fire_###.vdb");
-    let baked = bake(&[
-        scene("fire_ball").to_str().unwrap(),
-        "--out",
-        pattern.to_str().unwrap(),
-        "--resolution",
-        "16",
-        "--frames",
-        "9..=10",
-        "--quiet",
-    ]);
-    assert!(
-        baked.status.success(),
-        "{}",
-        String::from_utf8_lossy(&baked.stderr)
+    bake_ok(
+        "fire_ball",
+        &pattern,
+        &["--resolution", "16", "--frames", "9..=10"],
     );
     let files = [dir.join("fire_009.vdb"), dir.join("fire_010.vdb")];
     let fire = Scene::load(scene("fire_ball"), Overrides::default()).expect("the scene loads");

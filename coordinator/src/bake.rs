@@ -226,14 +226,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
         NonZeroUsize::get,
     );
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("bake-{i}"))
-        .build()
-        .map_err(|e| CoordinatorError::Threads {
-            threads,
-            message: e.to_string(),
-        })?;
+    let pool = crate::thread_pool(threads, "bake")?;
     frames
         .into_iter()
         .map(|frame| {

@@ -433,6 +433,21 @@ pub fn eval(
         })
 }
 
+/// A pool of `threads` threads named `name-0`, `name-1`, ….
+pub(crate) fn thread_pool(
+    threads: usize,
+    name: &'static str,
+) -> Result<rayon::ThreadPool, CoordinatorError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(move |i| format!("{name}-{i}"))
+        .build()
+        .map_err(|e| CoordinatorError::Threads {
+            threads,
+            message: e.to_string(),
+        })
+}
+
 /// Renders the whole frame on a pool of `threads` threads in this process.
 pub fn render_in_process(
     scene: &Scene,
@@ -440,14 +455,7 @@ pub fn render_in_process(
     threads: usize,
     progress: bool,
 ) -> Result<(Film, Duration), CoordinatorError> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("render-{i}"))
-        .build()
-        .map_err(|e| CoordinatorError::Threads {
-            threads,
-            message: e.to_string(),
-        })?;
+    let pool = thread_pool(threads, "render")?;
     let bar = if progress && std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(u64::from(scene.height()));
         bar.set_style(
