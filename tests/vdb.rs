@@ -259,7 +259,7 @@ fn openvdb_reads_the_fur_back_with_the_librarys_densities() {
     let out = dir.join("fur.vdb");
     bake_ok("fur", &out, &["--resolution", "24"]);
     let fur = Scene::load(scene("fur"), Overrides::default()).expect("the fur scene loads");
-    let files = dump(&[out.clone()]);
+    let files = dump(std::slice::from_ref(&out));
     check_frame(&files[0], &fur, 0, 24);
     // One thread or several: the same file.
     let serial = dir.join("fur-serial.vdb");
