@@ -12,8 +12,8 @@ use std::num::NonZeroUsize;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use glam::Vec3;
-use hypertexture::{Overrides, Scene};
+pub use hypertexture::bake::Lattice;
+use hypertexture::{Film, Overrides, Scene};
 use rayon::prelude::*;
 
 use crate::CoordinatorError;
@@ -40,59 +40,20 @@ pub struct BakeConfig {
     pub threads: Option<NonZeroUsize>,
     /// Knob overrides (`--set name=value`).
     pub knobs: Vec<(String, f64)>,
+    /// Bake on the farm with these options; `None`: in-process.
+    pub farm: Option<crate::FarmOptions>,
 }
 
-/// The voxel lattice of a bake: voxel (i, j, k) is centred at
-/// `origin + voxel · (i, j, k)`, for `0 ≤ (i, j, k) < dims`.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Lattice {
-    /// The centre of voxel (0, 0, 0).
-    pub origin: Vec3,
-    /// The edge of a voxel.
-    pub voxel: f32,
-    /// Voxels along each axis.
-    pub dims: [u32; 3],
+/// The number of slabs of a lattice: layers of leaves along x.
+pub fn slabs(lattice: &Lattice) -> u32 {
+    lattice.dims[0].div_ceil(LEAF_DIM as u32)
 }
 
-impl Lattice {
-    /// The lattice of `resolution` voxels along the longest edge of the box
-    /// where the scene's density can be non-zero at `frame`.
-    pub fn of(scene: &Scene, frame: u32, resolution: u32) -> Lattice {
-        let (lo, hi) = scene.density_box(frame);
-        let extent = (hi - lo).max(Vec3::ZERO);
-        let longest = extent.max_element().max(f32::MIN_POSITIVE);
-        let voxel = longest / resolution.max(1) as f32;
-        let along = |e: f32| ((e / voxel).ceil() as u32).clamp(1, resolution.max(1));
-        Lattice {
-            origin: lo + Vec3::splat(0.5 * voxel),
-            voxel,
-            dims: [along(extent.x), along(extent.y), along(extent.z)],
-        }
-    }
-
-    /// The world position of voxel (i, j, k): `origin + voxel · ijk` in
-    /// double precision rounded once to f32, which is what a reader that
-    /// applies the file's transform (in double) and rounds gets.
-    pub fn point(&self, ijk: [u32; 3]) -> Vec3 {
-        let axis = |o: f32, i: u32| (f64::from(o) + f64::from(i) * f64::from(self.voxel)) as f32;
-        Vec3::new(
-            axis(self.origin.x, ijk[0]),
-            axis(self.origin.y, ijk[1]),
-            axis(self.origin.z, ijk[2]),
-        )
-    }
-
-    /// The number of slabs: layers of leaves along x.
-    pub fn slabs(&self) -> u32 {
-        self.dims[0].div_ceil(LEAF_DIM as u32)
-    }
-
-    /// The file's index-to-world map.
-    pub fn transform(&self) -> Transform {
-        Transform {
-            voxel_size: f64::from(self.voxel),
-            translation: self.origin.to_array().map(f64::from),
-        }
+/// The file's index-to-world map of a lattice.
+pub fn transform(lattice: &Lattice) -> Transform {
+    Transform {
+        voxel_size: f64::from(lattice.voxel),
+        translation: lattice.origin.to_array().map(f64::from),
     }
 }
 
@@ -109,6 +70,19 @@ pub struct Leaves {
 /// Bakes slab `slab` (leaves with x origin `8 · slab`) of `lattice` at
 /// `frame`: every leaf holding a voxel of non-zero density, in (y, z) order.
 pub fn bake_slab(scene: &Scene, lattice: &Lattice, frame: u32, slab: u32) -> Leaves {
+    slab_leaves(lattice, slab, |ijk| {
+        hypertexture::bake::voxel(scene, lattice, frame, ijk)
+    })
+}
+
+/// The leaves of slab `slab` of `lattice` with each voxel's (density,
+/// colour) from `value`: every leaf holding a voxel of non-zero density, in
+/// (y, z) order.
+fn slab_leaves(
+    lattice: &Lattice,
+    slab: u32,
+    value: impl Fn([u32; 3]) -> (f32, [f32; 3]),
+) -> Leaves {
     let d = LEAF_DIM as u32;
     let [nx, ny, nz] = lattice.dims;
     let mut out = Leaves::default();
@@ -121,12 +95,11 @@ pub fn bake_slab(scene: &Scene, lattice: &Lattice, frame: u32, slab: u32) -> Lea
             for x in x0..(x0 + d).min(nx) {
                 for y in y0..(y0 + d).min(ny) {
                     for z in z0..(z0 + d).min(nz) {
-                        let p = lattice.point([x, y, z]);
-                        let f = scene.density_at(p, frame);
+                        let (f, c) = value([x, y, z]);
                         if f != 0.0 {
                             let n = (((x - x0) * d + (y - y0)) * d + (z - z0)) as usize;
                             density.set(n, f);
-                            colour.set(n, scene.colour_at(p, f, frame).to_array());
+                            colour.set(n, c);
                         }
                     }
                 }
@@ -140,18 +113,33 @@ pub fn bake_slab(scene: &Scene, lattice: &Lattice, frame: u32, slab: u32) -> Lea
     out
 }
 
-/// Bakes every slab of `lattice` on the current rayon pool, in slab order.
-pub fn bake(scene: &Scene, lattice: &Lattice, frame: u32) -> Leaves {
-    let slabs: Vec<Leaves> = (0..lattice.slabs())
-        .into_par_iter()
-        .map(|s| bake_slab(scene, lattice, frame, s))
-        .collect();
+/// Every slab of `lattice` on the current rayon pool, in slab order.
+fn all_slabs(lattice: &Lattice, slab: impl Fn(u32) -> Leaves + Send + Sync) -> Leaves {
+    let slabs: Vec<Leaves> = (0..slabs(lattice)).into_par_iter().map(slab).collect();
     let mut all = Leaves::default();
     for s in slabs {
         all.density.extend(s.density);
         all.colour.extend(s.colour);
     }
     all
+}
+
+/// Bakes every slab of `lattice` on the current rayon pool, in slab order.
+pub fn bake(scene: &Scene, lattice: &Lattice, frame: u32) -> Leaves {
+    all_slabs(lattice, |s| bake_slab(scene, lattice, frame, s))
+}
+
+/// The leaves of a bake the farm sampled: `film` is the lattice laid out as
+/// an image ([`hypertexture::bake::Lattice::image_size`]), each pixel's
+/// sample its voxel's value ([`hypertexture::bake::to_sample`]). The same
+/// leaves as [`bake`] gives when the workers' arithmetic is the same.
+pub fn leaves_of_film(lattice: &Lattice, film: &Film) -> Leaves {
+    let pixels = film.pixels();
+    all_slabs(lattice, |s| {
+        slab_leaves(lattice, s, |ijk| {
+            hypertexture::bake::from_sample(&pixels[lattice.index(ijk) as usize])
+        })
+    })
 }
 
 /// The OpenVDB file of a bake.
@@ -176,7 +164,7 @@ pub fn encode(scene_name: &str, frame: u32, lattice: &Lattice, leaves: Leaves) -
             leaves: leaves.colour,
         }),
     ];
-    vdb::encode(&meta, &lattice.transform(), &grids)
+    vdb::encode(&meta, &transform(lattice), &grids)
 }
 
 /// What one baked frame reports.
@@ -194,7 +182,9 @@ pub struct BakeSummary {
     pub bytes: usize,
 }
 
-/// `coordinator bake`: bakes each frame and writes its file.
+/// `coordinator bake`: bakes each frame and writes its file, on the farm
+/// (one session a frame: each frame's lattice is its own image) or on a
+/// thread pool in this process. Both write the same bytes.
 pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
     let frames: Vec<u32> = match config.frames {
         Some((a, b)) => (a..=b).collect(),
@@ -221,29 +211,51 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         knobs: config.knobs.clone(),
         ..Overrides::default()
     };
-    let scene = Scene::from_text(&text, &name, overrides)?;
-    let threads = config.threads.map_or_else(
-        || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
-        NonZeroUsize::get,
-    );
-    let pool = crate::thread_pool(threads, "bake")?;
+    let scene = Scene::from_text(&text, &name, overrides.clone())?;
+    let pool = match &config.farm {
+        Some(_) => None,
+        None => {
+            let threads = config.threads.map_or_else(
+                || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+                NonZeroUsize::get,
+            );
+            Some((crate::thread_pool(threads, "bake")?, threads))
+        }
+    };
+    // The farm's leaves are put together from the frame on the pool of this
+    // process (the render threads of its local workers have finished).
+    let assemble = crate::thread_pool(
+        std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+        "leaves",
+    )?;
     frames
         .into_iter()
         .map(|frame| {
             let out = PathBuf::from(crate::service::expand_pattern(&config.out, frame));
             let lattice = Lattice::of(&scene, frame, config.resolution);
-            let start = Instant::now();
-            let leaves = pool.install(|| bake(&scene, &lattice, frame));
-            let bake_time = start.elapsed();
+            let (leaves, bake_time, how) = match (&pool, &config.farm) {
+                (Some((pool, threads)), _) => {
+                    let start = Instant::now();
+                    let leaves = pool.install(|| bake(&scene, &lattice, frame));
+                    let how = format!("{threads} thread{}", if *threads == 1 { "" } else { "s" });
+                    (leaves, start.elapsed(), how)
+                }
+                (None, Some(options)) => {
+                    let (film, time) =
+                        bake_on_farm(config, options, &scene, &text, &name, &overrides, &lattice, frame)?;
+                    let leaves = assemble.install(|| leaves_of_film(&lattice, &film));
+                    (leaves, time, "the farm".to_string())
+                }
+                (None, None) => unreachable!("a pool is made when there is no farm"),
+            };
             let active_voxels = leaves.density.iter().map(Leaf::active).sum();
             let count = leaves.density.len();
             let bytes = encode(&name, frame, &lattice, leaves);
             crate::output::write_atomically(&out, &bytes)?;
             let [nx, ny, nz] = lattice.dims;
             tracing::info!(
-                "baked {name} (frame {frame}, {nx}×{ny}×{nz} voxels of {}) with {threads} thread{} in {:.3} s: {count} leaves, {active_voxels} active voxels, {} bytes → {}",
+                "baked {name} (frame {frame}, {nx}×{ny}×{nz} voxels of {}) with {how} in {:.3} s: {count} leaves, {active_voxels} active voxels, {} bytes → {}",
                 lattice.voxel,
-                if threads == 1 { "" } else { "s" },
                 bake_time.as_secs_f64(),
                 bytes.len(),
                 out.display()
@@ -259,9 +271,101 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         .collect()
 }
 
+/// Samples `lattice` at `frame` on the farm (one session, starting local
+/// workers as configured): the lattice laid out as an image
+/// ([`hypertexture::bake`]), each pixel its voxel's value. Returns the image
+/// and the time from the first unit handed out to the last tile.
+#[allow(clippy::too_many_arguments)]
+fn bake_on_farm(
+    config: &BakeConfig,
+    options: &crate::FarmOptions,
+    scene: &Scene,
+    text: &str,
+    name: &str,
+    overrides: &Overrides,
+    lattice: &Lattice,
+    frame: u32,
+) -> Result<(Film, Duration), CoordinatorError> {
+    let [nx, ny, nz] = lattice.dims;
+    let (width, height) = lattice.image_size().ok_or_else(|| {
+        CoordinatorError::Bake(format!(
+            "--resolution {}: the farm bakes at most {} voxels and this lattice has {nx}×{ny}×{nz}; lower --resolution or bake with --in-process",
+            config.resolution,
+            hypertexture::scene::desc::MAX_PIXELS
+        ))
+    })?;
+    let tls = match &options.tls {
+        Some((cert, key)) => Some((crate::farm::read_pem(cert)?, crate::farm::read_pem(key)?)),
+        None => None,
+    };
+    let job = crate::farm::FrameJob {
+        scene_text: text.to_string(),
+        scene_name: name.to_string(),
+        width,
+        height,
+        frames: vec![crate::farm::FrameOut {
+            frame,
+            out: PathBuf::new(),
+        }],
+        spp: None,
+        quality: None,
+        knobs: config.knobs.clone(),
+        pixel_format: hypertexture::PixelFormat::Samples,
+        metadata: std::sync::Arc::new(crate::output::ImageMetadata::new(
+            scene, name, text, overrides,
+        )),
+        bake: Some(*lattice),
+    };
+    let farm_config = crate::farm::FarmConfig {
+        listen: options.listen,
+        token: options.token.clone(),
+        lease: options.lease,
+        worker_timeout: options.worker_timeout,
+        local_workers: options.local_workers,
+        local_threads: config.threads.map_or(1, NonZeroUsize::get),
+        preview_every: None,
+        tls,
+        interleave: options.interleave,
+        progress: false,
+    };
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(CoordinatorError::Runtime)?;
+    let mut done = None;
+    let session = runtime.block_on(crate::farm::render_frames(
+        job,
+        farm_config,
+        &mut |f| {
+            done = Some(f.frame);
+            Ok(())
+        },
+        worker::shutdown_signal(),
+    ))?;
+    for w in &session.workers {
+        tracing::info!(
+            "worker {}: {} units, {} voxels, render cpu {:.3} s",
+            w.name,
+            w.units,
+            w.pixels,
+            w.render_cpu_micros as f64 / 1e6
+        );
+    }
+    let frame = done.ok_or_else(|| {
+        CoordinatorError::Bake("the farm finished without the bake's frame".into())
+    })?;
+    match frame.image {
+        crate::canvas::FrameImage::Film(film) => Ok((film, frame.render_time)),
+        crate::canvas::FrameImage::Srgb8 { .. } => Err(CoordinatorError::Bake(
+            "the farm returned 8-bit colour for a bake".into(),
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::Vec3;
 
     const SCENE: &str = include_str!("../../scenes/noisy_sphere.ron");
 

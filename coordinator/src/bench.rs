@@ -267,6 +267,7 @@ fn farm_render(
             text,
             &Default::default(),
         )),
+        bake: None,
     };
     let farm_config = farm::FarmConfig {
         listen: "127.0.0.1:0".parse().expect("a valid address"),

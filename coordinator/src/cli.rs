@@ -373,12 +373,36 @@ pub struct BakeArgs {
     /// Bake frames A to B (A..B excludes B, A..=B includes it), one file each.
     #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
     pub frames: Option<(u32, u32)>,
-    /// Threads (default: every core).
+    /// Threads: of the pool with --in-process (default: every core), or of
+    /// each local worker on the farm (default 1).
     #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
     pub threads: Option<NonZeroUsize>,
     /// Set a knob of the scene (repeatable): --set curliness=0.8.
     #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
     pub set: Vec<(String, f64)>,
+    /// Bake in this process with a thread pool, without the farm (no gRPC).
+    #[arg(long)]
+    pub in_process: bool,
+    /// Where the farm listens for workers. Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// Shared secret workers must present (required beyond loopback).
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+    /// Give up (exit non-zero) when no worker is connected for this many seconds.
+    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
+    pub worker_timeout: f64,
     /// No log lines; errors are still printed.
     #[arg(long, short)]
     pub quiet: bool,
@@ -395,6 +419,18 @@ impl BakeArgs {
             frames: self.frames,
             threads: self.threads,
             knobs: self.set,
+            farm: (!self.in_process).then(|| FarmOptions {
+                listen: self.listen,
+                token: self.token.filter(|t| !t.is_empty()),
+                lease: Duration::from_secs_f64(self.lease_timeout),
+                worker_timeout: Duration::from_secs_f64(self.worker_timeout),
+                local_workers: self.local_workers.unwrap_or_else(|| {
+                    std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
+                }),
+                preview_every: None,
+                tls: None,
+                interleave: 8,
+            }),
         }
     }
 }

@@ -136,6 +136,10 @@ pub struct FrameJob {
     pub pixel_format: PixelFormat,
     /// What the images record (previews too).
     pub metadata: std::sync::Arc<crate::output::ImageMetadata>,
+    /// For a bake: the lattice whose voxels the pixels are
+    /// ([`hypertexture::bake`]); the image is `width` × `height` as
+    /// [`hypertexture::bake::Lattice::image_size`] lays it out.
+    pub bake: Option<hypertexture::bake::Lattice>,
 }
 
 /// A frame the farm has finished.
@@ -206,6 +210,7 @@ impl WireJob {
             quality: convert::quality_to_wire(job.quality) as i32,
             knobs: convert::knobs_to_wire(&job.knobs),
             pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
+            bake: job.bake.as_ref().map(convert::lattice_to_wire),
         };
         WireJob {
             without_text: pb::Job {

@@ -317,6 +317,7 @@ pub fn render_on_farm(
         pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
         frames,
         metadata: metadata.clone(),
+        bake: None,
     };
     let farm_config = farm::FarmConfig {
         listen: options.listen,

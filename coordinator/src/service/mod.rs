@@ -306,6 +306,7 @@ impl Service {
             knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             pixel_format: format,
             metadata: checked.metadata.clone(),
+            bake: None,
         };
         let plan = JobPlan {
             id,

@@ -502,6 +502,7 @@ impl Studio {
                     None,
                     None,
                 )),
+                bake: None,
             };
             let plan = JobPlan {
                 id: job,
