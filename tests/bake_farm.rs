@@ -105,7 +105,7 @@ fn a_worker_killed_mid_bake_loses_nothing() {
     doomed.signal(9);
     let _ = doomed.finish(10);
     // A worker that joins after the kill gets the rest, the lost units too.
-    let mut late = Running::worker(&["--coordinator", &url, "--threads", "2", "--name", "late"]);
+    let late = Running::worker(&["--coordinator", &url, "--threads", "2", "--name", "late"]);
     let (status, log) = coord.finish(120);
     assert!(status.success(), "the bake failed:\n{}", log.join("\n"));
     // Killed mid-bake: it had delivered units, and units were left for the late worker.
