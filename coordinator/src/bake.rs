@@ -294,10 +294,6 @@ fn bake_on_farm(
             hypertexture::scene::desc::MAX_PIXELS
         ))
     })?;
-    let tls = match &options.tls {
-        Some((cert, key)) => Some((crate::farm::read_pem(cert)?, crate::farm::read_pem(key)?)),
-        None => None,
-    };
     let job = crate::farm::FrameJob {
         scene_text: text.to_string(),
         scene_name: name.to_string(),
@@ -316,18 +312,7 @@ fn bake_on_farm(
         )),
         bake: Some(*lattice),
     };
-    let farm_config = crate::farm::FarmConfig {
-        listen: options.listen,
-        token: options.token.clone(),
-        lease: options.lease,
-        worker_timeout: options.worker_timeout,
-        local_workers: options.local_workers,
-        local_threads: config.threads.map_or(1, NonZeroUsize::get),
-        preview_every: None,
-        tls,
-        interleave: options.interleave,
-        progress: false,
-    };
+    let farm_config = options.farm_config(config.threads, false)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

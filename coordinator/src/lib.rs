@@ -80,6 +80,33 @@ pub struct FarmOptions {
     pub interleave: u32,
 }
 
+impl FarmOptions {
+    /// The farm's configuration: these options, with `threads` per local
+    /// worker (default 1) and the TLS files read.
+    pub fn farm_config(
+        &self,
+        threads: Option<NonZeroUsize>,
+        progress: bool,
+    ) -> Result<farm::FarmConfig, CoordinatorError> {
+        let tls = match &self.tls {
+            Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+            None => None,
+        };
+        Ok(farm::FarmConfig {
+            listen: self.listen,
+            token: self.token.clone(),
+            lease: self.lease,
+            worker_timeout: self.worker_timeout,
+            local_workers: self.local_workers,
+            local_threads: threads.map_or(1, NonZeroUsize::get),
+            preview_every: self.preview_every,
+            tls,
+            interleave: self.interleave,
+            progress,
+        })
+    }
+}
+
 impl Config {
     /// A configuration rendering `scene` to `out` with every default.
     pub fn new(scene: impl Into<PathBuf>, out: impl Into<PathBuf>) -> Config {
@@ -301,10 +328,6 @@ pub fn render_on_farm(
     metadata: output::ImageMetadata,
     frames: Vec<farm::FrameOut>,
 ) -> Result<Vec<Summary>, CoordinatorError> {
-    let tls = match &options.tls {
-        Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
-        None => None,
-    };
     let metadata = std::sync::Arc::new(metadata);
     let job = farm::FrameJob {
         scene_text: metadata.scene_text.clone(),
@@ -319,18 +342,7 @@ pub fn render_on_farm(
         metadata: metadata.clone(),
         bake: None,
     };
-    let farm_config = farm::FarmConfig {
-        listen: options.listen,
-        token: options.token.clone(),
-        lease: options.lease,
-        worker_timeout: options.worker_timeout,
-        local_workers: options.local_workers,
-        local_threads: config.threads.map_or(1, NonZeroUsize::get),
-        preview_every: options.preview_every,
-        tls,
-        interleave: options.interleave,
-        progress: config.progress,
-    };
+    let farm_config = options.farm_config(config.threads, config.progress)?;
     // One thread serves the farm: per unit it only checks and stores a tile, and
     // any thread more competes with the render threads of local workers.
     let runtime = tokio::runtime::Builder::new_current_thread()

@@ -164,7 +164,7 @@ mod tests {
         };
         let (w, h) = lattice.image_size().expect("a small lattice fits");
         assert_eq!((w, h), (105, 1));
-        let mut seen = vec![false; 105];
+        let mut seen = [false; 105];
         for y in 0..h {
             for x in 0..w {
                 let ijk = lattice.voxel_of_pixel(w, x, y).expect("a voxel");
