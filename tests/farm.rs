@@ -137,8 +137,9 @@ fn a_wrong_token_is_refused_and_no_worker_means_a_clean_failure() {
         "0",
         "--token",
         "right-secret",
+        // Long enough for both refused workers to start on a loaded machine.
         "--worker-timeout",
-        "2",
+        "15",
     ]);
     let url = format!("http://127.0.0.1:{}", coord.port());
     let intruder = Running::worker(&["--coordinator", &url, "--token", "wrong-secret"]);
@@ -727,7 +728,7 @@ fn a_worker_with_other_arithmetic_is_refused_and_the_image_stays_exact() {
 #[test]
 fn units_a_worker_fails_to_render_go_to_another_and_nothing_is_lost() {
     let dir = scratch("farm-panics");
-    // Long enough (8 samples a pixel) for the second worker to join mid-frame.
+    // Long enough (32 samples a pixel) for the second worker to join mid-frame.
     let args = |out: &Path, extra: &[&'static str]| {
         let mut args = vec![
             "--scene".to_string(),
@@ -735,7 +736,7 @@ fn units_a_worker_fails_to_render_go_to_another_and_nothing_is_lost() {
             "--out".into(),
             out.to_str().unwrap().to_string(),
         ];
-        for a in ["--width", "128", "--height", "128", "--spp", "8"]
+        for a in ["--width", "128", "--height", "128", "--spp", "32"]
             .iter()
             .chain(extra)
         {

@@ -311,6 +311,39 @@ fn priorities_cancel_and_two_jobs_interleaved_on_shared_workers() {
     assert_eq!(workers.as_array().unwrap().len(), 2, "{workers}");
 }
 
+/// A cancelled job's units in flight are dropped by the worker rendering
+/// them (the coordinator's Withdrawals stream), not rendered to the end.
+#[test]
+fn a_cancelled_jobs_units_in_flight_are_dropped_by_their_worker() {
+    let dir = scratch("service-withdraw");
+    let (_s, url) = serve(&dir.join("data"), &["--local-workers", "0"]);
+    // Slow units: 64 samples per pixel, one render thread.
+    let id = submit(
+        &url,
+        "noisy_sphere",
+        &dir.join("slow.png"),
+        &["--width", "128", "--height", "128", "--spp", "64"],
+    );
+    let (runtime, stop, task) = in_process_worker(&url, "slow", None);
+    poll_job(&url, id, 120, |j| j["units_done"].as_u64() >= Some(1));
+    let (ok, stdout, _) = client(&["cancel", "--server", &url, &id.to_string()]);
+    assert!(ok, "{stdout}");
+    let _ = stop.send(true);
+    let report = runtime
+        .block_on(async { tokio::time::timeout(Duration::from_secs(120), task).await })
+        .expect("the worker stops")
+        .expect("its task ends")
+        .expect("without error");
+    assert!(
+        report.withdrawn >= 1,
+        "the unit rendering when the job was cancelled was dropped: {report:?}"
+    );
+    assert!(
+        report.units < job(&url, id)["units_total"].as_u64().unwrap(),
+        "{report:?}"
+    );
+}
+
 /// A worker that fails 3 units of a job is blocklisted for it (and `status`
 /// shows it) while a good worker finishes the job; a job whose unit fails on
 /// 3 workers fails with their reasons, and other jobs go on.

@@ -484,7 +484,7 @@ fn is_json(headers: &HeaderMap) -> bool {
 
 /// Rewrites every answer of 400 or above that is not JSON yet (axum's own:
 /// 405, a body over the limit, …) as [`ErrorBody`], keeping its headers.
-async fn json_errors(request: Request, next: Next) -> Response {
+pub(crate) async fn json_errors(request: Request, next: Next) -> Response {
     let method = request.method().clone();
     let path = request.uri().path().to_string();
     let response = next.run(request).await;

@@ -311,6 +311,7 @@ fn bake_on_farm(
             scene, name, text, overrides,
         )),
         bake: Some(*lattice),
+        assets: crate::farm::Asset::of_scene(scene, name).map_err(CoordinatorError::Asset)?,
     };
     let farm_config = options.farm_config(config.threads, false)?;
     let runtime = tokio::runtime::Builder::new_current_thread()

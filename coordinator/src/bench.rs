@@ -268,6 +268,8 @@ fn farm_render(
             &Default::default(),
         )),
         bake: None,
+        assets: farm::Asset::of_scene(scene, &path.display().to_string())
+            .map_err(CoordinatorError::Asset)?,
     };
     let farm_config = farm::FarmConfig {
         listen: "127.0.0.1:0".parse().expect("a valid address"),
@@ -280,6 +282,7 @@ fn farm_render(
         tls: None,
         interleave: DEFAULT_INTERLEAVE,
         progress: false,
+        gate: Default::default(),
     };
     Ok(runtime.block_on(farm::render(job, farm_config))?)
 }

@@ -18,7 +18,7 @@ use hypertexture::interleave::farm_units;
 use hypertexture_proto::pb::farm_server::{Farm as FarmRpc, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
 use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
-use tokio::sync::watch;
+use tokio::sync::{broadcast, watch};
 use tonic::{Request, Response, Status};
 
 use crate::canvas::FrameImage;
@@ -27,6 +27,12 @@ use crate::scheduler::{Accepted, JobId, Next, Refusal, Scheduler};
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
 /// 16 KiB, less than a tile of whole-set units at 512²).
 const MAX_FRAME_BYTES: u32 = 1 << 20;
+/// Concurrent HTTP/2 streams a connection may open (a worker uses three:
+/// its tile stream, GetWork and a heartbeat).
+const MAX_STREAMS: u32 = 32;
+/// HTTP/2 pings and TCP keepalive probes this often; a peer that does not
+/// answer a ping within as long is dropped.
+const KEEPALIVE: Duration = Duration::from_secs(20);
 
 /// How the farm runs.
 #[derive(Clone, Debug)]
@@ -51,6 +57,8 @@ pub struct FarmConfig {
     pub interleave: u32,
     /// Show a progress bar.
     pub progress: bool,
+    /// Unauthenticated connections: how many, for how long.
+    pub gate: crate::gate::GateLimits,
 }
 
 /// Why the farm could not render.
@@ -140,6 +148,46 @@ pub struct FrameJob {
     /// ([`hypertexture::bake`]); the image is `width` × `height` as
     /// [`hypertexture::bake::Lattice::image_size`] lays it out.
     pub bake: Option<hypertexture::bake::Lattice>,
+    /// The files the scene names (meshes), which workers fetch by hash.
+    pub assets: Vec<Asset>,
+}
+
+/// A file a scene names, as the farm serves it (`GetAsset`).
+#[derive(Clone, Debug)]
+pub struct Asset {
+    /// The path as the scene writes it.
+    pub path: String,
+    /// FNV-1a of the bytes ([`hypertexture::mesh::content_hash`]).
+    pub hash: u64,
+    /// The file.
+    pub bytes: Arc<Vec<u8>>,
+}
+
+impl Asset {
+    /// Every file `scene` names, read beside the scene file `scene_name`:
+    /// the bytes the scene was built from (their hashes must agree).
+    pub fn of_scene(scene: &hypertexture::Scene, scene_name: &str) -> Result<Vec<Asset>, String> {
+        scene
+            .asset_hashes()
+            .iter()
+            .map(|(path, hash)| {
+                let file = hypertexture::scene::asset_path(scene_name, path);
+                let bytes = hypertexture::scene::read_asset(&file)
+                    .map_err(|e| format!("{}: {e}", file.display()))?;
+                if hypertexture::mesh::content_hash(&bytes) != *hash {
+                    return Err(format!(
+                        "{}: the file changed after the scene was loaded",
+                        file.display()
+                    ));
+                }
+                Ok(Asset {
+                    path: path.clone(),
+                    hash: *hash,
+                    bytes: Arc::new(bytes),
+                })
+            })
+            .collect()
+    }
 }
 
 /// A frame the farm has finished.
@@ -187,19 +235,29 @@ pub struct WireJob {
     pub with_text: pb::Job,
     /// Without it, for workers that have built the scene.
     pub without_text: pb::Job,
+    /// The files the scene names, served by hash (`GetAsset`).
+    pub assets: Vec<Asset>,
 }
 
 impl WireJob {
     /// The wire form of `job` (its frame is set per assignment).
     pub fn of(job: &FrameJob) -> WireJob {
+        let hashes: Vec<(String, u64)> = job
+            .assets
+            .iter()
+            .map(|a| (a.path.clone(), a.hash))
+            .collect();
         let with_text = pb::Job {
-            scene_hash: convert::scene_hash(
-                &job.scene_text,
-                job.width,
-                job.height,
-                job.spp.unwrap_or(0),
-                convert::quality_to_wire(job.quality) as i32,
-                &job.knobs,
+            scene_hash: convert::scene_hash_with_assets(
+                convert::scene_hash(
+                    &job.scene_text,
+                    job.width,
+                    job.height,
+                    job.spp.unwrap_or(0),
+                    convert::quality_to_wire(job.quality) as i32,
+                    &job.knobs,
+                ),
+                &hashes,
             ),
             scene_text: job.scene_text.clone(),
             scene_name: job.scene_name.clone(),
@@ -211,8 +269,18 @@ impl WireJob {
             knobs: convert::knobs_to_wire(&job.knobs),
             pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
             bake: job.bake.as_ref().map(convert::lattice_to_wire),
+            assets: job
+                .assets
+                .iter()
+                .map(|a| pb::AssetRef {
+                    path: a.path.clone(),
+                    hash: a.hash,
+                    size: a.bytes.len() as u64,
+                })
+                .collect(),
         };
         WireJob {
+            assets: job.assets.clone(),
             without_text: pb::Job {
                 scene_text: String::new(),
                 ..with_text.clone()
@@ -296,6 +364,15 @@ pub struct Shared {
     sink: Option<Arc<dyn TileSink>>,
     /// The interleave and the farm size new jobs' units are made for.
     unit_layout: Mutex<(u32, usize)>,
+    /// Assignments taken back from workers (worker id, assignment id), to
+    /// each worker's Withdrawals stream.
+    withdrawals: broadcast::Sender<Arc<Vec<(String, u64)>>>,
+    /// Set when the server stops: Withdrawals streams end.
+    closing: watch::Sender<bool>,
+    /// The front door: token checks before any body, connection limits.
+    gate: Arc<crate::gate::Gate>,
+    /// The files the jobs name, by content hash (`GetAsset`).
+    assets: Mutex<HashMap<u64, Arc<Vec<u8>>>>,
 }
 
 impl Shared {
@@ -311,8 +388,27 @@ impl Shared {
 
     /// The farm's state, locked.
     pub fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
+        let mut state = self.lock_state();
+        state.stats.unauthenticated = self.gate.refused();
+        state
+    }
+
+    /// The gate's counters: calls refused, unauthenticated connections closed.
+    pub fn gate(&self) -> (u64, u64) {
+        (self.gate.refused(), self.gate.closed())
+    }
+
+    fn lock_state(&self) -> std::sync::MutexGuard<'_, FarmState> {
         // A panic while holding the lock would be a bug; the state is still usable.
         self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Serves `assets` to workers (`GetAsset`) from now on.
+    pub fn add_assets(&self, assets: &[Asset]) {
+        let mut served = self.assets.lock().unwrap_or_else(|p| p.into_inner());
+        for a in assets {
+            served.insert(a.hash, Arc::clone(&a.bytes));
+        }
     }
 
     /// Adds a job: its wire form and its plan; idle workers hear of it at once.
@@ -323,6 +419,7 @@ impl Shared {
         wire: WireJob,
     ) -> Result<(), hypertexture_proto::convert::WireError> {
         let id = plan.id;
+        self.add_assets(&wire.assets);
         {
             let mut s = self.lock();
             s.scheduler.add_job(plan, resume)?;
@@ -338,7 +435,14 @@ impl Shared {
     pub fn remove_job(&self, job: JobId) -> bool {
         let mut s = self.lock();
         s.wire.remove(&job);
-        s.scheduler.remove_job(job).is_some()
+        let removed = s.scheduler.remove_job(job).is_some();
+        let withdrawn = s.scheduler.take_withdrawn();
+        drop(s);
+        if !withdrawn.is_empty() {
+            // No receiver (no worker listening) is not an error.
+            let _ = self.withdrawals.send(Arc::new(withdrawn));
+        }
+        removed
     }
 }
 
@@ -402,11 +506,8 @@ impl Service {
         if ok {
             Ok(())
         } else {
-            let peer = request
-                .remote_addr()
-                .map_or_else(|| "unknown".into(), |a| a.to_string());
-            self.state().stats.unauthenticated += 1;
-            tracing::warn!("refused a call from {peer}: missing or wrong token");
+            // The gate refuses such calls from their headers (and logs them);
+            // this check stands behind it.
             Err(Status::unauthenticated("missing or wrong token"))
         }
     }
@@ -655,6 +756,9 @@ impl FarmRpc for Service {
     }
 
     type SubmitTilesStream = Replies;
+    type WithdrawalsStream = std::pin::Pin<
+        Box<dyn futures_util::Stream<Item = Result<pb::Withdrawal, Status>> + Send + 'static>,
+    >;
 
     async fn submit_tiles(
         &self,
@@ -667,6 +771,32 @@ impl FarmRpc for Service {
             tiles: Some(request.into_inner()),
             service: self.clone(),
         }))
+    }
+
+    type GetAssetStream =
+        tonic::codegen::tokio_stream::Iter<std::vec::IntoIter<Result<pb::GetAssetResult, Status>>>;
+
+    async fn get_asset(
+        &self,
+        request: Request<pb::GetAssetParams>,
+    ) -> Result<Response<Self::GetAssetStream>, Status> {
+        self.authorize(&request)?;
+        let hash = request.get_ref().hash;
+        let bytes = self
+            .0
+            .assets
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(&hash)
+            .cloned()
+            .ok_or_else(|| {
+                Status::not_found(format!("no job names a file with hash {hash:016x}"))
+            })?;
+        let chunks: Vec<_> = bytes
+            .chunks(convert::ASSET_CHUNK_BYTES)
+            .map(|c| Ok(pb::GetAssetResult { chunk: c.to_vec() }))
+            .collect();
+        Ok(Response::new(tonic::codegen::tokio_stream::iter(chunks)))
     }
 
     async fn heartbeat(
@@ -745,7 +875,60 @@ impl FarmRpc for Service {
             counted: counted.is_some(),
         }))
     }
+
+    async fn withdrawals(
+        &self,
+        request: Request<pb::WithdrawalsParams>,
+    ) -> Result<Response<Self::WithdrawalsStream>, Status> {
+        self.authorize(&request)?;
+        let worker_id = request.into_inner().worker_id;
+        // Only a registered worker listens (and it counts as a sign of life).
+        self.state()
+            .scheduler
+            .heartbeat(&worker_id, Instant::now())
+            .map_err(refusal)?;
+        let listening = Withdrawals {
+            worker_id,
+            rx: self.0.withdrawals.subscribe(),
+            closing: self.0.closing.subscribe(),
+        };
+        let stream = futures_util::stream::unfold(listening, |mut l| async move {
+            loop {
+                let taken = tokio::select! {
+                    received = l.rx.recv() => received,
+                    _ = l.closing.wait_for(|c| *c) => return None,
+                };
+                match taken {
+                    Ok(taken) => {
+                        let assignment_ids: Vec<u64> = taken
+                            .iter()
+                            .filter(|(w, _)| *w == l.worker_id)
+                            .map(|&(_, id)| id)
+                            .collect();
+                        if !assignment_ids.is_empty() {
+                            return Some((Ok(pb::Withdrawal { assignment_ids }), l));
+                        }
+                    }
+                    // Missed some: those units render to the end, and their
+                    // tiles are ignored, as without this stream.
+                    Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(broadcast::error::RecvError::Closed) => return None,
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(stream)))
+    }
 }
+
+/// A worker's Withdrawals stream.
+struct Withdrawals {
+    worker_id: String,
+    rx: broadcast::Receiver<Arc<Vec<(String, u64)>>>,
+    closing: watch::Receiver<bool>,
+}
+
+/// Withdrawal batches a listening worker may fall behind by.
+const WITHDRAWALS_CAPACITY: usize = 256;
 
 /// Renders one frame on the farm (the first of `job.frames`) and returns its image.
 pub async fn render(mut job: FrameJob, config: FarmConfig) -> Result<FarmReport, FarmError> {
@@ -870,17 +1053,31 @@ impl Farm {
             first_assignment: Mutex::new(None),
             sink,
             unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
+            withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
+            closing: watch::channel(false).0,
+            gate: crate::gate::Gate::new(token.as_deref(), config.gate),
+            assets: Mutex::new(HashMap::new()),
         });
 
         // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
         // write for the worker and one wake-up here instead of two or three.
+        // Each connection gets a bounded share of streams; HTTP/2 and TCP
+        // keepalive drop peers that went away without closing.
         let mut server = tonic::transport::Server::builder()
             .max_frame_size(MAX_FRAME_BYTES)
+            .max_concurrent_streams(MAX_STREAMS)
+            .http2_keepalive_interval(Some(KEEPALIVE))
+            .http2_keepalive_timeout(Some(KEEPALIVE))
+            .tcp_keepalive(Some(KEEPALIVE))
             .accept_http1(routes.is_some());
         let scheme = if let Some((cert, key)) = &config.tls {
             let identity = tonic::transport::Identity::from_pem(cert, key);
             server = server
-                .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+                .tls_config(
+                    tonic::transport::ServerTlsConfig::new()
+                        .identity(identity)
+                        .timeout(config.gate.handshake),
+                )
                 .map_err(|e| FarmError::Tls(e.to_string()))?;
             "https"
         } else {
@@ -894,13 +1091,15 @@ impl Farm {
             None => tonic::service::Routes::new(service),
         };
         let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
-        let server_task = tokio::spawn(server.add_routes(router).serve_with_incoming_shutdown(
-            // No Nagle: a tile's reply must not wait for a delayed ACK.
-            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-            async {
-                let _ = server_stopped.await;
-            },
-        ));
+        let gate = Arc::clone(&shared.gate);
+        let server_task = tokio::spawn(
+            server
+                .layer(crate::gate::GateLayer(Arc::clone(&gate)))
+                .add_routes(router)
+                .serve_with_incoming_shutdown(gate.incoming(listener), async {
+                    let _ = server_stopped.await;
+                }),
+        );
 
         let public = if addr.ip().is_unspecified() {
             "THIS-HOST".to_string()
@@ -1012,6 +1211,7 @@ impl Farm {
             ..
         } = self;
         locals.stop(grace, terminate).await;
+        let _ = shared.closing.send(true);
         let _ = stop_server.send(());
         // Graceful shutdown waits for open connections: daemon workers keep theirs
         // (they wait for the next frame), so give them a moment, then stop serving.
@@ -1058,6 +1258,7 @@ pub async fn render_frames(
         .with_frames(job.frames.iter().map(|f| f.frame).collect());
     let wire = WireJob::of(&job);
     let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;
+    farm.shared.add_assets(&wire.assets);
     farm.shared
         .lock()
         .wire

@@ -10,6 +10,7 @@ pub mod cli;
 pub mod client;
 pub mod farm;
 pub mod files;
+pub mod gate;
 pub mod grid;
 pub mod jobs;
 pub mod local;
@@ -103,6 +104,7 @@ impl FarmOptions {
             tls,
             interleave: self.interleave,
             progress,
+            gate: Default::default(),
         })
     }
 }
@@ -156,6 +158,9 @@ pub enum CoordinatorError {
     /// An expression given on the command line is wrong.
     #[error("{0}")]
     Expression(String),
+    /// A file the scene names (a mesh) cannot be served to the farm.
+    #[error("{0}")]
+    Asset(String),
     /// An image could not be recoloured.
     #[error("{path}: {message}")]
     Recolor {
@@ -341,6 +346,8 @@ pub fn render_on_farm(
         frames,
         metadata: metadata.clone(),
         bake: None,
+        assets: farm::Asset::of_scene(scene, &metadata.scene_name)
+            .map_err(CoordinatorError::Asset)?,
     };
     let farm_config = options.farm_config(config.threads, config.progress)?;
     // One thread serves the farm: per unit it only checks and stores a tile, and

@@ -86,6 +86,9 @@ pub struct ImageMetadata {
     pub world_to_camera: Option<[f32; 16]>,
     /// OpenEXR's `worldToNDC` (row-major, for row vectors).
     pub world_to_ndc: Option<[f32; 16]>,
+    /// The files the scene names (path as written, content hash): part of
+    /// the scene hash.
+    pub assets: Vec<(String, u64)>,
 }
 
 /// The `software` an image names.
@@ -130,6 +133,7 @@ impl ImageMetadata {
             frame: 0,
             world_to_camera: Some(scene.camera().world_to_camera()),
             world_to_ndc: Some(scene.camera().world_to_ndc()),
+            assets: scene.asset_hashes().to_vec(),
         }
     }
 
@@ -154,6 +158,7 @@ impl ImageMetadata {
             frame: 0,
             world_to_camera,
             world_to_ndc,
+            assets: Vec::new(),
         }
     }
 
@@ -184,13 +189,16 @@ impl ImageMetadata {
     /// The hash the farm's workers cache the built scene by (the same inputs).
     pub fn scene_hash(&self) -> u64 {
         use hypertexture_proto::convert;
-        convert::scene_hash(
-            &self.scene_text,
-            self.width,
-            self.height,
-            self.spp_override.unwrap_or(0),
-            convert::quality_to_wire(self.quality) as i32,
-            &self.knobs,
+        convert::scene_hash_with_assets(
+            convert::scene_hash(
+                &self.scene_text,
+                self.width,
+                self.height,
+                self.spp_override.unwrap_or(0),
+                convert::quality_to_wire(self.quality) as i32,
+                &self.knobs,
+            ),
+            &self.assets,
         )
     }
 
@@ -683,6 +691,7 @@ mod tests {
             frame: 7,
             world_to_camera: Some(std::array::from_fn(|i| i as f32)),
             world_to_ndc: Some(std::array::from_fn(|i| -(i as f32) / 3.0)),
+            assets: Vec::new(),
         }
     }
 

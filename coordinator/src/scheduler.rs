@@ -236,8 +236,11 @@ pub struct CompletedFrame {
 /// What the coordinator knows of a worker.
 #[derive(Clone, Debug)]
 pub struct WorkerState {
-    /// Its id on the wire (`w7`).
+    /// Its id as views and logs show it (`w7`).
     pub id: String,
+    /// The secret half of the id handed to it at registration (`w7-<secret>`):
+    /// calls that do not carry it are not this worker's.
+    secret: u64,
     /// Its name.
     pub name: String,
     /// Its tags: it renders only jobs whose required tags it carries.
@@ -266,6 +269,17 @@ pub struct WorkerState {
 }
 
 impl WorkerState {
+    /// The id the worker presents on its calls: its number and its secret.
+    fn wire_id_of(number: u64, secret: u64) -> String {
+        format!("w{number}-{secret:016x}")
+    }
+
+    /// [`WorkerState::wire_id_of`] this worker.
+    pub fn wire_id(&self) -> String {
+        let number = self.id.trim_start_matches('w').parse().unwrap_or(0);
+        WorkerState::wire_id_of(number, self.secret)
+    }
+
     /// Pixels per second over the last minute of its tiles (since it joined,
     /// when that is sooner).
     pub fn pixels_per_second(&self, now: Instant) -> f64 {
@@ -288,6 +302,13 @@ struct Lease {
     unit: usize,
     worker: u64,
     issued: Instant,
+}
+
+/// The number of a worker's id as views show it (`w7`), or as it was handed
+/// to the worker (`w7-…`).
+fn number(worker_id: &str) -> Option<u64> {
+    let rest = worker_id.strip_prefix('w')?;
+    rest.split_once('-').map_or(rest, |(n, _)| n).parse().ok()
 }
 
 /// What the scheduler needs of a job.
@@ -456,6 +477,11 @@ pub struct Scheduler {
     one_shot: bool,
     /// Draining: nothing more is handed out.
     draining: bool,
+    /// Assignments taken back from their workers by [`Scheduler::remove_job`]
+    /// and not yet told them: (worker id, assignment id).
+    withdrawn: Vec<(String, u64)>,
+    /// Keys the secret half of the ids handed to workers at registration.
+    id_keys: std::collections::hash_map::RandomState,
 }
 
 impl Scheduler {
@@ -502,6 +528,8 @@ impl Scheduler {
             lease,
             one_shot: false,
             draining: false,
+            withdrawn: Vec::new(),
+            id_keys: std::collections::hash_map::RandomState::new(),
         }
     }
 
@@ -538,9 +566,22 @@ impl Scheduler {
     /// written).
     pub fn remove_job(&mut self, job: JobId) -> Option<JobPlan> {
         let removed = self.jobs.remove(&job)?;
+        let workers = &self.workers;
+        self.withdrawn.extend(
+            self.leases
+                .iter()
+                .filter(|(_, l)| l.job == job)
+                .filter_map(|(&id, l)| Some((workers.get(&l.worker)?.wire_id(), id))),
+        );
         self.leases.retain(|_, l| l.job != job);
         self.issued.retain(|_, (j, _, _)| *j != job);
         Some(removed.plan)
+    }
+
+    /// The assignments [`Scheduler::remove_job`] took back since the last
+    /// call, to tell their workers: (worker id, assignment id).
+    pub fn take_withdrawn(&mut self) -> Vec<(String, u64)> {
+        std::mem::take(&mut self.withdrawn)
     }
 
     /// Stops handing out units (a draining service).
@@ -571,13 +612,19 @@ impl Scheduler {
         tags: Vec<String>,
         now: Instant,
     ) -> String {
+        use std::hash::BuildHasher;
         let id = self.next_worker;
         self.next_worker += 1;
-        let wire_id = format!("w{id}");
+        // The id a worker presents is bound to its registration: its number
+        // (`w7`, what views and logs show) and a secret drawn for it here,
+        // which no other caller can guess.
+        let secret = self.id_keys.hash_one((id, now));
+        let wire_id = WorkerState::wire_id_of(id, secret);
         self.workers.insert(
             id,
             WorkerState {
-                id: wire_id.clone(),
+                id: format!("w{id}"),
+                secret,
                 name: name.to_string(),
                 tags,
                 threads,
@@ -598,12 +645,14 @@ impl Scheduler {
     fn worker_mut(&mut self, worker_id: &str) -> Result<(u64, &mut WorkerState), Refusal> {
         let unknown =
             || Refusal::UnknownWorker(hypertexture_proto::convert::name_from_wire(worker_id));
-        let id: u64 = worker_id
+        let (id, secret) = worker_id
             .strip_prefix('w')
-            .and_then(|n| n.parse().ok())
+            .and_then(|rest| rest.split_once('-'))
+            .and_then(|(n, s)| Some((n.parse::<u64>().ok()?, u64::from_str_radix(s, 16).ok()?)))
             .ok_or_else(unknown)?;
         match self.workers.get_mut(&id) {
-            Some(w) if w.alive => Ok((id, w)),
+            // A made-up or altered id names no worker.
+            Some(w) if w.alive && w.secret == secret => Ok((id, w)),
             _ => Err(unknown()),
         }
     }
@@ -1175,10 +1224,7 @@ impl Scheduler {
 
     /// The jobs a worker is blocklisted for.
     pub fn blocklisted_for(&self, worker_id: &str) -> Vec<JobId> {
-        let Some(id) = worker_id
-            .strip_prefix('w')
-            .and_then(|n| n.parse::<u64>().ok())
-        else {
+        let Some(id) = number(worker_id) else {
             return Vec::new();
         };
         self.jobs
@@ -1190,7 +1236,7 @@ impl Scheduler {
 
     /// The job a worker is rendering (its oldest lease's), if any.
     pub fn current_job(&self, worker_id: &str) -> Option<JobId> {
-        let id = worker_id.strip_prefix('w')?.parse::<u64>().ok()?;
+        let id = number(worker_id)?;
         self.leases
             .iter()
             .filter(|(_, l)| l.worker == id)
@@ -1313,6 +1359,25 @@ mod tests {
             } => (assignment_id, unit),
             other => panic!("expected an assignment, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn a_removed_jobs_units_in_flight_are_withdrawn_from_their_workers() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
+        let a = s.register("a", 1, now);
+        let b = s.register("b", 1, now);
+        let (first, _) = assign(&mut s, &a, now);
+        let (second, _) = assign(&mut s, &b, now);
+        let (third, _) = assign(&mut s, &a, now);
+        assert!(s.take_withdrawn().is_empty());
+        assert!(s.remove_job(ONE_SHOT_JOB).is_some());
+        let mut withdrawn = s.take_withdrawn();
+        withdrawn.sort_by_key(|w| w.1);
+        // Named by the ids the workers present (their secrets included).
+        assert_eq!(withdrawn, [(a.clone(), first), (b, second), (a, third)]);
+        assert!(s.take_withdrawn().is_empty());
     }
 
     #[test]
@@ -1483,6 +1548,14 @@ mod tests {
             s.submit("w77", id, Some(&wire), &good, 0, now),
             Err(Refusal::UnknownWorker(_))
         ));
+        // The right number with a made-up secret names no worker.
+        let honest = s.register("honest", 1, now);
+        let forged = format!("{}-0123456789abcdef", honest.split_once('-').unwrap().0);
+        assert!(matches!(
+            s.heartbeat(&forged, now),
+            Err(Refusal::UnknownWorker(_))
+        ));
+        assert!(s.heartbeat(&honest, now).is_ok());
         assert!(matches!(
             s.submit(&a, id, None, &good, 0, now),
             Err(Refusal::Malformed { .. })
@@ -1684,8 +1757,8 @@ mod tests {
             "unit 0",
             "pixel set 0 of 8×8",
             "failed 3 times",
-            "worker a (render): w1 broke",
-            "worker b (assignment): w2 broke",
+            "worker a (render): w1-",
+            "worker b (assignment): w2-",
             "worker c",
         ] {
             assert!(message.contains(needle), "{needle}: {message}");
@@ -1774,8 +1847,7 @@ mod tests {
         fail(&mut s, &a, id, FailureKind::Scene, now).unwrap();
         let message = s.gave_up().expect("nobody can render").to_string();
         assert!(
-            message.contains("can build the scene")
-                && message.contains("worker a (scene): w1 broke"),
+            message.contains("can build the scene") && message.contains("worker a (scene): w1-"),
             "{message}"
         );
     }

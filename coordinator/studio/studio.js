@@ -239,6 +239,7 @@ function listen() {
     studio.received++;
     if (studio.received === studio.units) studio.complete = true;
     schedule();
+    frameProgress();
   });
   source.addEventListener('done', (e) => {
     const d = JSON.parse(e.data);
@@ -262,7 +263,48 @@ function showStatus(s) {
     `<td class="num">${j.units_done}/${j.units_total}</td><td>${escape(j.out)}</td></tr>`).join('');
 }
 
-// ---- The scene: knobs and text ----------------------------------------------
+// ---- The scene: knobs, parameters, curves and text --------------------------
+
+const paramValues = {};   // parameters moved since the text was last replaced
+let dragging = null;      // the curve handle being dragged
+
+/** A labelled slider (`<input type=range>` with its `<output>`) in `box`. */
+function slider(box, id, label, min, max, step, onInput) {
+  const row = document.createElement('div');
+  row.className = 'knob';
+  row.innerHTML = `<label for="${escape(id)}">${escape(label)}</label>` +
+    `<input type="range" id="${escape(id)}" min="${min}" max="${max}" step="${step}">` +
+    `<output for="${escape(id)}"></output>`;
+  box.appendChild(row);
+  const input = row.querySelector('input');
+  input.addEventListener('input', () => onInput(input));
+  return input;
+}
+
+function setSlider(input, value) {
+  input.value = value;
+  input.nextElementSibling.textContent = format(value);
+  input.setAttribute('aria-valuetext', format(value));
+}
+
+const GROUPS = { object: 'Object', modulation: 'Modulation', distortion: 'Distortion',
+  camera: 'Camera', lights: 'Lights', shading: 'Shading' };
+
+/** `camera.eye[1]` → `eye y`; `modulation[0].Fur.frequency` → `Fur frequency`. */
+function paramLabel(id, group) {
+  let rest = id.slice(group.length).replace(/^\./, '');
+  const component = /\[(\d)\]$/.exec(rest);
+  if (component) {
+    const key = rest.slice(0, component.index).split('.').pop();
+    const names = /colour|ambient/.test(key) ? 'rgb' : 'xyz';
+    rest = rest.slice(0, component.index) + ' ' + (names[Number(component[1])] ?? component[1]);
+  }
+  return rest.replace(/\[(\d+)\]/g, ' $1').replace(/\./g, ' ').trim() || group;
+}
+
+function curveLabel(id) {
+  return id.replace(/\.points$/, '').replace(/\.Curve$/, '').replace(/\[(\d+)\]/g, ' $1').replace(/\./g, ' ');
+}
 
 /** Shows the scene; `text`: replace the text box, `sliders`: set the sliders. */
 function showScene(view, { text, sliders }) {
@@ -271,47 +313,270 @@ function showScene(view, { text, sliders }) {
   $('save').disabled = !view.savable;
   $('error').textContent = view.error || '';
   if (text) $('text').value = view.text;
-  const names = view.knobs.map((k) => k.name).join(',');
+
+  const knobNames = view.knobs.map((k) => k.name).join(',');
   const box = $('knobs');
-  const rebuilt = box.dataset.names !== names;
+  const rebuilt = box.dataset.names !== knobNames;
   if (rebuilt) {
-    box.dataset.names = names;
+    box.dataset.names = knobNames;
     box.innerHTML = '';
     for (const k of view.knobs) {
-      const row = document.createElement('div');
-      row.className = 'knob';
-      const id = 'knob-' + k.name;
-      row.innerHTML = `<label for="${escape(id)}">${escape(k.name)}</label>` +
-        `<input type="range" id="${escape(id)}" min="${k.min}" max="${k.max}" step="${(k.max - k.min) / 1000}">` +
-        `<output for="${escape(id)}"></output>`;
-      box.appendChild(row);
-      row.querySelector('input').addEventListener('input', (e) => moved(k.name, e.target));
+      slider(box, 'knob-' + k.name, k.name, k.min, k.max, (k.max - k.min) / 1000, (input) => moved(k.name, input));
     }
     if (!view.knobs.length) box.textContent = 'This scene has no knobs.';
   }
   for (const k of view.knobs) {
-    const input = $('knob-' + k.name);
     if (!sliders && !rebuilt) continue;
-    input.value = k.value;
+    setSlider($('knob-' + k.name), k.value);
     knobValues[k.name] = k.value;
-    input.nextElementSibling.textContent = format(k.value);
-    input.setAttribute('aria-valuetext', format(k.value));
   }
+
+  const paramIds = view.params.map((p) => p.id).join(',');
+  const params = $('params');
+  const paramsRebuilt = params.dataset.ids !== paramIds;
+  if (paramsRebuilt) {
+    params.dataset.ids = paramIds;
+    params.innerHTML = '';
+    for (const key of Object.keys(paramValues)) delete paramValues[key];
+    let group = null;
+    for (const p of view.params) {
+      if (p.group !== group) {
+        group = p.group;
+        const h = document.createElement('h3');
+        h.textContent = GROUPS[group] || group;
+        params.appendChild(h);
+      }
+      const input = slider(params, 'param-' + p.id, paramLabel(p.id, p.group), p.min, p.max, p.step,
+        (i) => paramMoved({ [p.id]: Number(Number(i.value).toPrecision(6)) }, i));
+      input.dataset.param = p.id;
+    }
+  }
+  for (const p of view.params) {
+    if (!sliders && !paramsRebuilt) continue;
+    setSlider(document.getElementById('param-' + p.id), p.value);
+  }
+  if (!dragging) showCurves(view.curves);
 }
 
 function format(v) {
   return Number(v.toPrecision(4)).toString();
 }
 
+// ---- Curves: colour and alpha maps, 1D shape transfer functions --------------
+
+const SVG = 'http://www.w3.org/2000/svg';
+const CURVE_W = 280, CURVE_H = 120, PAD = 8;
+let curves = [];          // the curves shown, with their control points
+
+/** The values of a curve's points, for comparing. */
+function curveKey(c) {
+  return c.id + ':' + c.points.map((p) => [p.x.value, p.y?.value, p.rgb].join('/')).join(';');
+}
+
+function showCurves(list) {
+  // Unchanged curves stay as drawn (a handle keeps its focus).
+  if (list.length === curves.length && list.every((c, i) => curveKey(c) === curveKey(curves[i]))) return;
+  const focused = document.activeElement?.closest?.('svg')?.id;
+  const point = document.activeElement?.dataset?.point;
+  curves = list.map((c) => ({ id: c.id, points: c.points.map((p) => ({
+    x: { ...p.x }, y: p.y && { ...p.y }, rgb: p.rgb && [...p.rgb] })) }));
+  const box = $('curves');
+  box.innerHTML = '';
+  for (const c of curves) {
+    const figure = document.createElement('figure');
+    figure.className = 'curve';
+    const caption = document.createElement('figcaption');
+    caption.textContent = curveLabel(c.id);
+    const svg = document.createElementNS(SVG, 'svg');
+    svg.setAttribute('viewBox', `0 0 ${CURVE_W} ${CURVE_H}`);
+    svg.setAttribute('width', CURVE_W);
+    svg.setAttribute('height', CURVE_H);
+    svg.setAttribute('role', 'group');
+    svg.setAttribute('aria-label', curveLabel(c.id) + ': drag a control point, or focus it and use the arrow keys');
+    svg.id = 'curve-' + c.id;
+    figure.append(caption, svg);
+    box.appendChild(figure);
+    c.svg = svg;
+    drawCurve(c);
+  }
+  if (!curves.length) box.textContent = 'This scene has no curves.';
+  if (focused && point !== undefined) document.getElementById(focused)?.querySelector(`[data-point="${point}"]`)?.focus();
+}
+
+/** The curve's domain: [0, 1] on each axis, widened to take every point. */
+function domain(c) {
+  const xs = c.points.map((p) => p.x.value);
+  const ys = c.points.filter((p) => p.y).map((p) => p.y.value);
+  return {
+    x0: Math.min(0, ...xs), x1: Math.max(1, ...xs),
+    y0: Math.min(0, ...ys), y1: Math.max(1, ...ys),
+  };
+}
+
+function toScreen(c, d, p) {
+  const sx = PAD + (p.x.value - d.x0) / (d.x1 - d.x0) * (CURVE_W - 2 * PAD);
+  const sy = p.y ? CURVE_H - PAD - (p.y.value - d.y0) / (d.y1 - d.y0) * (CURVE_H - 2 * PAD) : CURVE_H / 2;
+  return [sx, sy];
+}
+
+function rgbCss(rgb) {
+  return `rgb(${rgb.map((v) => Math.round(Math.min(1, Math.max(0, v)) ** (1 / 2.2) * 255)).join(',')})`;
+}
+
+function drawCurve(c) {
+  const svg = c.svg;
+  const d = c.domain ?? (c.domain = domain(c));
+  svg.replaceChildren();
+  const frame = document.createElementNS(SVG, 'rect');
+  frame.setAttribute('x', PAD); frame.setAttribute('y', PAD);
+  frame.setAttribute('width', CURVE_W - 2 * PAD); frame.setAttribute('height', CURVE_H - 2 * PAD);
+  frame.setAttribute('class', 'curve-frame');
+  svg.appendChild(frame);
+  const colour = c.points.every((p) => p.rgb);
+  if (colour) {
+    // The colour map as a strip, its stops at the control points.
+    const gradient = document.createElementNS(SVG, 'linearGradient');
+    gradient.id = 'gradient-' + c.id.replace(/[^A-Za-z0-9_-]/g, '_');
+    c.stops = c.points.map(() => gradient.appendChild(document.createElementNS(SVG, 'stop')));
+    const defs = document.createElementNS(SVG, 'defs');
+    defs.appendChild(gradient);
+    const strip = document.createElementNS(SVG, 'rect');
+    strip.setAttribute('x', PAD); strip.setAttribute('y', CURVE_H / 2 - 18);
+    strip.setAttribute('width', CURVE_W - 2 * PAD); strip.setAttribute('height', 36);
+    strip.setAttribute('fill', `url(#${gradient.id})`);
+    svg.append(defs, strip);
+  } else {
+    c.line = document.createElementNS(SVG, 'polyline');
+    c.line.setAttribute('class', 'curve-line');
+    svg.appendChild(c.line);
+  }
+  c.handles = c.points.map((p, i) => {
+    const handle = document.createElementNS(SVG, 'circle');
+    handle.setAttribute('r', 6);
+    handle.setAttribute('class', 'handle');
+    handle.setAttribute('tabindex', '0');
+    handle.setAttribute('role', 'slider');
+    handle.setAttribute('aria-label', `${curveLabel(c.id)}, point ${i + 1}`);
+    handle.dataset.point = i;
+    if (p.rgb) handle.setAttribute('fill', rgbCss(p.rgb));
+    handle.addEventListener('pointerdown', (e) => {
+      e.preventDefault();
+      handle.setPointerCapture(e.pointerId);
+      dragging = { c, i, pointer: e.pointerId };
+    });
+    handle.addEventListener('pointermove', (e) => {
+      if (!dragging || dragging.pointer !== e.pointerId) return;
+      const r = svg.getBoundingClientRect();
+      const sx = (e.clientX - r.left) * CURVE_W / r.width;
+      const sy = (e.clientY - r.top) * CURVE_H / r.height;
+      movePoint(c, i, d.x0 + (sx - PAD) / (CURVE_W - 2 * PAD) * (d.x1 - d.x0),
+        d.y0 + (CURVE_H - PAD - sy) / (CURVE_H - 2 * PAD) * (d.y1 - d.y0));
+    });
+    const end = () => { dragging = null; };
+    handle.addEventListener('pointerup', end);
+    handle.addEventListener('pointercancel', end);
+    handle.addEventListener('keydown', (e) => {
+      const step = (d.x1 - d.x0) / 100;
+      const moves = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowDown: [0, -step], ArrowUp: [0, step] };
+      const m = moves[e.key];
+      if (!m) return;
+      e.preventDefault();
+      movePoint(c, i, p.x.value + m[0], p.y ? p.y.value + m[1] : 0);
+    });
+    svg.appendChild(handle);
+    return handle;
+  });
+  placeCurve(c);
+}
+
+/** Puts the curve's line, colour stops and handles where its points are
+ * (the elements stay: a dragged handle keeps its pointer capture). */
+function placeCurve(c) {
+  const d = c.domain;
+  if (c.line) c.line.setAttribute('points', c.points.map((p) => toScreen(c, d, p).join(',')).join(' '));
+  c.stops?.forEach((stop, i) => {
+    const p = c.points[i];
+    stop.setAttribute('offset', (p.x.value - d.x0) / (d.x1 - d.x0));
+    stop.setAttribute('stop-color', rgbCss(p.rgb));
+  });
+  c.handles.forEach((handle, i) => {
+    const p = c.points[i];
+    const [x, y] = toScreen(c, d, p);
+    handle.setAttribute('cx', x);
+    handle.setAttribute('cy', y);
+    handle.setAttribute('aria-valuenow', p.x.value);
+    handle.setAttribute('aria-valuetext', p.y ? `x ${format(p.x.value)}, y ${format(p.y.value)}` : `x ${format(p.x.value)}`);
+  });
+}
+
+/** Moves control point `i` of `c` to (x, y), x kept between its neighbours
+ * and both inside the curve's domain, and asks for the frame. */
+function movePoint(c, i, x, y) {
+  const d = c.domain;
+  const eps = (d.x1 - d.x0) / 1000;
+  const lo = i > 0 ? c.points[i - 1].x.value + eps : d.x0;
+  const hi = i + 1 < c.points.length ? c.points[i + 1].x.value - eps : d.x1;
+  const p = c.points[i];
+  const round = (v) => Number(v.toPrecision(4));
+  p.x.value = round(Math.min(hi, Math.max(lo, x)));
+  const change = { [p.x.id]: p.x.value };
+  if (p.y) {
+    p.y.value = round(Math.min(d.y1, Math.max(d.y0, y)));
+    change[p.y.id] = p.y.value;
+  }
+  placeCurve(c);
+  paramMoved(change, null);
+}
+
+// ---- Sending changes ----------------------------------------------------------
+
 let restTimer = null;
 let inFlight = false;
 let queued = null;
 const REST_MS = 300;
+// While a slider moves, the next frame waits for the one in flight to be
+// drawn whole (or, if it is slow, to have shown something for GATE_MS): a
+// frame replaced before its first tile would never be seen.
+let waitingFor = null;
+let gateTimer = null;
+let gateSince = 0;
+const GATE_MS = 300;
+const GATE_MAX_MS = 2000;
+
+function gated() {
+  return waitingFor !== null;
+}
+
+function release() {
+  waitingFor = null;
+  clearTimeout(gateTimer);
+  flush();
+}
+
+/** Called as tiles arrive: the frame the gate waits for is whole. */
+function frameProgress() {
+  if (waitingFor !== null && studio.generation === waitingFor && studio.complete) release();
+}
+
+function checkGate() {
+  const now = performance.now();
+  const seen = studio.generation === waitingFor && studio.received > 0;
+  if ((seen && now - gateSince >= GATE_MS) || now - gateSince >= GATE_MAX_MS) release();
+  else gateTimer = setTimeout(checkGate, 50);
+}
+
+function flush() {
+  if (!inFlight && !gated() && queued) {
+    const [c, a, f] = queued;
+    queued = null;
+    send(c, a, f);
+  }
+}
 
 /** Sends a change (from a slider, or from the text); while one is in
  * flight, only the latest waits. */
 function send(change, asked, fromSlider) {
-  if (inFlight) {
+  if (inFlight || gated()) {
     queued = [change, asked, fromSlider];
     return;
   }
@@ -320,30 +585,45 @@ function send(change, asked, fromSlider) {
     studio.requested[view.generation] ??= asked;
     showScene(view, { text: fromSlider, sliders: !fromSlider });
     if (change.quality === 'interactive') {
+      if (fromSlider) {
+        waitingFor = view.generation;
+        gateSince = performance.now();
+        clearTimeout(gateTimer);
+        gateTimer = setTimeout(checkGate, 50);
+        frameProgress();
+      }
       clearTimeout(restTimer);
-      restTimer = setTimeout(() => send({ knobs: { ...knobValues }, quality: 'high' }, performance.now(), fromSlider), REST_MS);
+      restTimer = setTimeout(() => send(current('high'), performance.now(), fromSlider), REST_MS);
     }
   }, (error) => {
     clearTimeout(restTimer);
     $('error').textContent = error.message;
   }).finally(() => {
     inFlight = false;
-    if (queued) {
-      const [c, a, f] = queued;
-      queued = null;
-      send(c, a, f);
-    }
+    flush();
   });
+}
+
+/** The sliders' values as a change at `quality`. */
+function current(quality) {
+  return { knobs: { ...knobValues }, params: { ...paramValues }, quality };
 }
 
 function moved(name, input) {
   const asked = performance.now();
   const value = Number(input.value);
   knobValues[name] = value;
-  input.nextElementSibling.textContent = format(value);
-  input.setAttribute('aria-valuetext', format(value));
+  setSlider(input, value);
   clearTimeout(restTimer);
-  send({ knobs: { ...knobValues }, quality: 'interactive' }, asked, true);
+  send(current('interactive'), asked, true);
+}
+
+function paramMoved(values, input) {
+  const asked = performance.now();
+  Object.assign(paramValues, values);
+  if (input) setSlider(input, Number(input.value));
+  clearTimeout(restTimer);
+  send(current('interactive'), asked, true);
 }
 
 let editTimer = null;
@@ -351,7 +631,10 @@ $('text').addEventListener('input', () => {
   const asked = performance.now();
   clearTimeout(editTimer);
   clearTimeout(restTimer);
-  editTimer = setTimeout(() => send({ text: $('text').value, quality: 'interactive' }, asked, false), 150);
+  editTimer = setTimeout(() => {
+    for (const key of Object.keys(paramValues)) delete paramValues[key];
+    send({ text: $('text').value, quality: 'interactive' }, asked, false);
+  }, 150);
 });
 
 $('save').addEventListener('click', () => {

@@ -226,6 +226,24 @@ pub fn scene_hash(
     h.finish()
 }
 
+/// [`scene_hash`] with the files the scene names (path as written and
+/// content hash, in path order) hashed in after it; without files, `hash`
+/// itself, so a scene that names none keeps its hash.
+pub fn scene_hash_with_assets(hash: u64, assets: &[(String, u64)]) -> u64 {
+    if assets.is_empty() {
+        return hash;
+    }
+    let mut h = hypertexture::random::Fnv1a::default();
+    h.write(hash.to_le_bytes());
+    for (path, content) in assets {
+        h.write(path.bytes().chain([0]).chain(content.to_le_bytes()));
+    }
+    h.finish()
+}
+
+/// The chunk size of `GetAsset`: under gRPC's 4 MiB message limit.
+pub const ASSET_CHUNK_BYTES: usize = 1 << 20;
+
 /// A quality preset on the wire.
 pub fn quality_to_wire(quality: Option<Quality>) -> pb::Quality {
     match quality {
@@ -436,6 +454,14 @@ mod tests {
         assert_ne!(h, scene_hash("Scene()", 10, 11, 0, 0, &[]));
         assert_ne!(h, scene_hash("Scene()", 10, 10, 4, 0, &[]));
         assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 1, &[]));
+        // A scene without files keeps its hash; a changed file is a new scene.
+        assert_eq!(scene_hash_with_assets(h, &[]), h);
+        let mesh = |hash| [("m.obj".to_string(), hash)];
+        assert_ne!(scene_hash_with_assets(h, &mesh(1)), h);
+        assert_ne!(
+            scene_hash_with_assets(h, &mesh(1)),
+            scene_hash_with_assets(h, &mesh(2))
+        );
         let knob = |v: f64| vec![("curliness".to_string(), v)];
         assert_ne!(h, scene_hash("Scene()", 10, 10, 0, 0, &knob(0.5)));
         assert_ne!(

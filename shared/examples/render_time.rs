@@ -4,12 +4,13 @@
 //! compare them fairly while other processes come and go.
 //!
 //! `cargo run --release -p hypertexture --example render_time -- SIZE RUNS THREADS SCENE...`
-//! (`ISA=scalar`, `sse4.1` or `avx2` in the environment times that path).
+//! (`ISA=scalar`, `sse4.1` or `avx2` in the environment times that path;
+//! `QUALITY=interactive` the interactive preset, four times the step).
 
 use std::path::Path;
 use std::time::Instant;
 
-use hypertexture::{Overrides, Scene};
+use hypertexture::{Overrides, Quality, Scene};
 
 const USAGE: &str = "usage: render_time SIZE RUNS THREADS SCENE... (scenes by name under scenes/)";
 
@@ -50,6 +51,11 @@ fn run() -> Result<(), String> {
             Overrides {
                 width: Some(size),
                 height: Some(size),
+                quality: match std::env::var("QUALITY").as_deref() {
+                    Ok("interactive") => Some(Quality::Interactive),
+                    Ok("high") | Err(_) => None,
+                    Ok(q) => return Err(format!("QUALITY={q}: interactive or high")),
+                },
                 ..Overrides::default()
             },
         )

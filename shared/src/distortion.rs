@@ -200,7 +200,7 @@ impl VectorField {
     pub fn at(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
         if let VectorField::Boundary = self {
             return match object {
-                Density::Sphere(_) | Density::Box(_) | Density::Torus(_) => {
+                Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Mesh(_) => {
                     boundary_of(object, x) - x
                 }
                 _ => Vec3::ZERO,
@@ -258,6 +258,8 @@ fn exit_distance(object: &Density, x: Vec3, u: Vec3) -> Option<f32> {
                 0.0
             })
         }
+        // As for a torus: the distance to the nearest point of the outer surface.
+        Density::Mesh(m) => Some(m.exit_distance(x)),
         _ => None,
     }
 }
@@ -270,6 +272,7 @@ fn boundary_of(object: &Density, x: Vec3) -> Vec3 {
         Density::Sphere(s) => boundary_point::sphere(s, x),
         Density::Box(b) => boundary_point::soft_box(b, x),
         Density::Torus(t) => boundary_point::torus(t, x),
+        Density::Mesh(m) => m.boundary_point(x),
         _ => x,
     }
 }
@@ -412,7 +415,11 @@ fn k_bound(terms: &[(f32, f32, Operator)]) -> f32 {
 /// the undistorted objects as empty.
 pub fn max_displacement(density: &Density) -> f32 {
     match density {
-        Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Expression(_) => 0.0,
+        Density::Sphere(_)
+        | Density::Box(_)
+        | Density::Torus(_)
+        | Density::Mesh(_)
+        | Density::Expression(_) => 0.0,
         Density::Union(v) | Density::Intersection(v) | Density::Max(v) | Density::Min(v) => {
             v.iter().map(max_displacement).fold(0.0, f32::max)
         }
@@ -685,7 +692,7 @@ mod tests {
         let err = Scene::from_text(text, "t.ron", Overrides::default())
             .unwrap_err()
             .to_string();
-        assert!(err.contains("Sphere, Box or Torus"), "{err}");
+        assert!(err.contains("Sphere, Box, Torus or Mesh"), "{err}");
         let ok = text.replace("(terms:", "(field: Constant(0.0, 1.0, 0.0), terms:");
         assert!(Scene::from_text(&ok, "t.ron", Overrides::default()).is_ok());
         let bad_grid = text.replace(

@@ -23,6 +23,7 @@ pub mod film;
 pub mod interleave;
 pub mod lighting;
 pub mod march;
+pub mod mesh;
 pub mod motion;
 pub mod noise;
 pub mod probe;

@@ -352,6 +352,12 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                 Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
                 Gradient::Dual => dual_normal(scene, x, field),
             };
+        } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || first_normal.is_none()) {
+            // The ray reaches a hard region, where f = 1 and ∇f = 0: the
+            // object's own D gives the normal, over a stencil wide enough to
+            // reach the soft region from a sample up to a step inside.
+            let d_at = |p: Vec3| scene.object.eval_object(p, field);
+            normal = crate::lighting::central_normal(&d_at, x, 2.0 * step);
         }
 
         if f > 0.0 {

@@ -200,8 +200,9 @@ impl Noise {
     /// operations of `noise` per lane, so each lane has the bits `noise` gives.
     /// The hash stays scalar (6 byte loads a point: gathers are slower than
     /// loads on the CPUs we run on); each corner's 4 gradients are 4 aligned
-    /// loads and a 4×4 transpose. Only SSE2 (the x86-64 baseline) is used; it is
-    /// inlined into, and compiled per instruction set by, [`crate::simd`].
+    /// loads and a 4×4 transpose. SSE4.1 is used (the floor): it is inlined
+    /// only into the SSE4.1 and AVX2 copies of the lane code, never called on
+    /// the scalar path.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub(crate) fn noise_lanes(&self, px: &Lanes, py: &Lanes, pz: &Lanes) -> Lanes {
@@ -569,20 +570,18 @@ fn omega_slope(t: f32) -> f32 {
     }
 }
 
-/// [`floor`] on 4 lanes, with its operations.
+/// [`floor`] on 4 lanes, with its operations: the rounding instruction,
+/// plus +0.0 (so that −0 gives +0).
+///
+/// # Safety
+/// SSE4.1, by the caller's contract: it is inlined only into the SSE4.1 and
+/// AVX2 copies of the lane code.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn floor4(x: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
+unsafe fn floor4(x: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
     use std::arch::x86_64::*;
-    // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
-    unsafe {
-        let small = _mm_cmplt_ps(abs4(x), _mm_set1_ps(8_388_608.0));
-        // `lattice` of x or 0: |x| < 2²³ fits an i32.
-        let t = _mm_cvtepi32_ps(_mm_cvttps_epi32(_mm_and_ps(small, x)));
-        // t − 1 where t > x, else t − 0 = t (t is never −0).
-        let floor = _mm_sub_ps(t, _mm_and_ps(_mm_cmpgt_ps(t, x), _mm_set1_ps(1.0)));
-        _mm_or_ps(_mm_and_ps(small, floor), _mm_andnot_ps(small, x))
-    }
+    // SAFETY: SSE4.1 by the caller's contract.
+    unsafe { _mm_add_ps(_mm_floor_ps(x), _mm_setzero_ps()) }
 }
 
 /// [`lattice`] on 4 lanes, with its operations.
@@ -597,19 +596,14 @@ fn lattice4(x: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128i {
     }
 }
 
-/// [`floor`] on 8 lanes (AVX), with its operations.
+/// [`floor`] on 8 lanes (AVX), with its operations: the rounding
+/// instruction, plus +0.0 (so that −0 gives +0).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn floor8(x: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
     use std::arch::x86_64::*;
     // SAFETY: AVX by the caller's contract.
-    unsafe {
-        let small = _mm256_cmp_ps::<_CMP_LT_OQ>(abs8(x), _mm256_set1_ps(8_388_608.0));
-        let t = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(_mm256_and_ps(small, x)));
-        let gt = _mm256_cmp_ps::<_CMP_GT_OQ>(t, x);
-        let floor = _mm256_sub_ps(t, _mm256_and_ps(gt, _mm256_set1_ps(1.0)));
-        _mm256_or_ps(_mm256_and_ps(small, floor), _mm256_andnot_ps(small, x))
-    }
+    unsafe { _mm256_add_ps(_mm256_floor_ps(x), _mm256_setzero_ps()) }
 }
 
 /// [`lattice`] on 8 lanes (AVX), with its operations.

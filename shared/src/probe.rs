@@ -69,6 +69,8 @@ pub const PROBE_SCENES: &[(&str, &str)] = probe_scenes![
     "pse/tribble.ron",
     "pse/water.ron",
     "pse/wood.ron",
+    "mesh/furry_spot.ron",
+    "mesh/wool_spot.ron",
     "gilet/cave.ron",
     "gilet/clods.ron",
     "gilet/clouds_one_noise.ron",
@@ -126,6 +128,17 @@ pub fn digest(isa: Isa) -> Result<u64, ProbeError> {
     Ok(h.finish())
 }
 
+/// The files the probe scenes name, built into the program as the scenes are.
+fn probe_assets() -> crate::scene::Assets {
+    const SPOT: &[u8] = include_bytes!("../../scenes/mesh/meshes/spot.obj");
+    let mut assets = crate::scene::Assets::none();
+    // The repository's own file: a test loads every probe scene.
+    if let Ok(mesh) = crate::mesh::Mesh::from_obj("meshes/spot.obj", SPOT, Default::default()) {
+        assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
+    }
+    assets
+}
+
 /// The bytes the digest hashes for one probe scene: each probe pixel's channels
 /// (little-endian f32 bits) and its 8-bit sRGB encoding.
 fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, ProbeError> {
@@ -139,7 +152,8 @@ fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, Pro
             quality: Some(Quality::Interactive),
             ..Overrides::default()
         };
-        Scene::from_text(text, path, overrides).map_err(|error| ProbeError { path, error })
+        Scene::from_text_with(text, path, overrides, Some(&probe_assets()))
+            .map_err(|error| ProbeError { path, error })
     };
     let mut scene = build(None)?;
     if scene.spp() > PROBE_SPP {

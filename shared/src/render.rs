@@ -41,3 +41,45 @@ pub fn render_pixels(scene: &Scene, frame: u32, pixels: &[(u32, u32)]) -> Vec<Sa
         .map(|&(x, y)| render_pixel(scene, x, y, frame))
         .collect()
 }
+
+/// [`render_pixels`], given up as soon as `stop` is set (checked before each
+/// pixel): `None` then. The pixels it returns are [`render_pixels`]' own.
+pub fn render_pixels_until(
+    scene: &Scene,
+    frame: u32,
+    pixels: &[(u32, u32)],
+    stop: &std::sync::atomic::AtomicBool,
+) -> Option<Vec<Sample>> {
+    pixels
+        .par_iter()
+        .map(|&(x, y)| {
+            (!stop.load(std::sync::atomic::Ordering::Relaxed))
+                .then(|| render_pixel(scene, x, y, frame))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Overrides, Scene};
+    use std::sync::atomic::AtomicBool;
+
+    #[test]
+    fn a_render_until_stopped_is_render_pixels_or_nothing() {
+        let scene = Scene::load(
+            concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/noisy_sphere.ron"),
+            Overrides {
+                width: Some(16),
+                height: Some(16),
+                ..Overrides::default()
+            },
+        )
+        .unwrap();
+        let pixels: Vec<(u32, u32)> = (0..16).flat_map(|y| (0..16).map(move |x| (x, y))).collect();
+        let whole = render_pixels(&scene, 0, &pixels);
+        let until = render_pixels_until(&scene, 0, &pixels, &AtomicBool::new(false)).unwrap();
+        assert_eq!(format!("{whole:?}"), format!("{until:?}"));
+        assert!(render_pixels_until(&scene, 0, &pixels, &AtomicBool::new(true)).is_none());
+    }
+}

@@ -179,7 +179,8 @@ pub fn clamp01(t: f32) -> f32 {
 mod tests {
     use super::*;
 
-    const EPS: f32 = 1e-6;
+    /// The powers' largest absolute error (`fastmath`'s polynomials).
+    const EPS: f32 = crate::fastmath::POW01_MAX_ERROR as f32;
 
     #[test]
     fn bias_defining_points() {

@@ -243,6 +243,104 @@ impl SoftTorus {
     }
 }
 
+/// A closed triangle mesh as a soft object: D = 1 inside the mesh, and
+/// outside it the paper's falloff on the distance d to the surface with inner
+/// radius 0 and outer radius s, `D = (s² - d²) / s²` (a soft sphere of
+/// softness s swept over the surface), so the mesh's surface is the inner
+/// (D = 1) surface. The mesh is placed at `centre` and scaled by `scale`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SoftMesh {
+    /// The mesh and its distance queries.
+    pub mesh: std::sync::Arc<crate::mesh::Mesh>,
+    /// Where the mesh's origin goes.
+    pub centre: Vec3,
+    /// Uniform scale about the mesh's origin.
+    pub scale: f32,
+    /// `1 / scale`.
+    inv_scale: f32,
+    /// The falloff of inner radius 0 and outer radius s.
+    pub falloff: Falloff,
+}
+
+impl SoftMesh {
+    /// The mesh with softness `softness`, moved to `centre` and scaled by `scale`.
+    pub fn new(
+        mesh: std::sync::Arc<crate::mesh::Mesh>,
+        centre: Vec3,
+        scale: f32,
+        softness: f32,
+    ) -> Self {
+        SoftMesh {
+            mesh,
+            centre,
+            scale,
+            inv_scale: 1.0 / scale,
+            falloff: Falloff::new(softness / 2.0, softness),
+        }
+    }
+
+    /// The closest point of the surface in the mesh's own coordinates, with
+    /// the signed distance in the scene's.
+    #[inline]
+    fn closest(&self, x: Vec3) -> crate::mesh::Closest {
+        let c = self.mesh.closest((x - self.centre) * self.inv_scale);
+        crate::mesh::Closest {
+            point: self.centre + c.point * self.scale,
+            distance: c.distance * self.scale,
+            outward: c.outward,
+        }
+    }
+
+    /// The box (min, max) outside which D is 0.
+    pub fn support(&self) -> (Vec3, Vec3) {
+        let (lo, hi) = self.mesh.bounds();
+        let s = Vec3::splat(self.falloff.outer());
+        (
+            self.centre + lo * self.scale - s,
+            self.centre + hi * self.scale + s,
+        )
+    }
+
+    /// D(x).
+    #[inline]
+    pub fn density(&self, x: Vec3) -> f32 {
+        let (lo, hi) = self.support();
+        if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+            return 0.0;
+        }
+        let d = self.closest(x).distance;
+        if d <= 0.0 {
+            1.0
+        } else {
+            self.falloff.density(d * d)
+        }
+    }
+
+    /// x projected onto the inner (D = 1) surface: the mesh's nearest point.
+    #[inline]
+    pub fn project(&self, x: Vec3) -> Vec3 {
+        self.closest(x).point
+    }
+
+    /// The nearest point of the outer (D = 0) surface, s outside the mesh.
+    #[inline]
+    pub fn boundary_point(&self, x: Vec3) -> Vec3 {
+        let c = self.closest(x);
+        let away = if c.distance > 0.0 {
+            x - c.point
+        } else {
+            c.point - x
+        };
+        c.point + direction_or(away, c.outward) * self.falloff.outer()
+    }
+
+    /// The distance from x to the outer (D = 0) surface, 0 outside it.
+    #[inline]
+    pub fn exit_distance(&self, x: Vec3) -> f32 {
+        (self.falloff.outer() - self.closest(x).distance).max(0.0)
+    }
+}
+
 /// The primitives differentiated ([`crate::dual`]): the same formulas on a
 /// point with its Jacobian.
 mod dual {

@@ -84,8 +84,7 @@ fn knobs_change_the_image_and_are_checked() {
 
 #[test]
 fn expression_errors_name_the_file_position_the_expression_position_and_a_caret() {
-    let text =
-        scene_text("pse/fur.ron").replace("if d > 0 { fur(p, d) }", "if d > x { fur(p, d) }");
+    let text = scene_text("pse/fur.ron").replace("if d > 0 { if d < 1", "if d > x { if d < 1");
     let e = Scene::from_text(&text, "bad.ron", Overrides::default())
         .unwrap_err()
         .to_string();

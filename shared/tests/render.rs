@@ -160,7 +160,7 @@ const GALLERY: [&str; 10] = [
 fn every_scene() -> Vec<(String, u32)> {
     let mut all: Vec<(String, u32)> = GALLERY.iter().map(|n| (n.to_string(), 40)).collect();
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
-    for dir in ["gilet", "pse"] {
+    for dir in ["gilet", "pse", "mesh"] {
         let Ok(entries) = std::fs::read_dir(root.join(dir)) else {
             continue;
         };

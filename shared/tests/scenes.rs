@@ -39,6 +39,30 @@ fn fur_is_the_scene_the_issue_specifies() {
     // D = 1 inside minor radius 0.35, 0 beyond 0.60 (fur only thins the soft region).
     assert_eq!(scene.density_at(glam::Vec3::new(0.0, 0.0, 1.61), 0), 0.0);
     assert_eq!(scene.density_at(glam::Vec3::new(0.0, 0.61, 0.0), 0), 0.0);
+    // The hard region is solid by default; `hard_core: Shaped` applies the
+    // fur's formula there too, leaving most of it below 1.
+    let core: Vec<glam::Vec3> = (0..64)
+        .map(|i| {
+            let a = i as f32 * 0.1;
+            glam::Vec3::new(a.cos(), 0.2 * a.sin(), a.sin())
+        })
+        .collect();
+    assert!(core.iter().all(|&p| scene.density_at(p, 0) == 1.0));
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "modulation: [Fur(",
+        "hard_core: Shaped,\n    modulation: [Fur(",
+    );
+    let shaped = Scene::from_text(&text, "fur.ron", Overrides::default()).unwrap();
+    let below = core
+        .iter()
+        .filter(|&&p| shaped.density_at(p, 0) < 1.0)
+        .count();
+    assert!(below > 32, "{below} of 64 core points below 1");
+    let bad = text.replace("hard_core: Shaped", "hard_core: Soft");
+    let e = Scene::from_text(&bad, "fur.ron", Overrides::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("Soft") && e.contains("Solid"), "{e}");
 }
 
 const GOOD: &str = r#"Scene(

@@ -99,7 +99,8 @@ impl Running {
         )
     }
 
-    fn spawn(cmd: &mut Command) -> Running {
+    /// Starts `cmd` with its stderr captured line by line.
+    pub fn spawn(cmd: &mut Command) -> Running {
         use std::io::BufRead;
         let mut child = cmd
             .env("RUST_LOG", "info")

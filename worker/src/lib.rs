@@ -18,8 +18,9 @@ pub mod body;
 pub mod cli;
 pub mod logging;
 
-use std::collections::HashMap;
-use std::sync::Arc;
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use hypertexture::interleave::WorkUnit;
@@ -124,6 +125,9 @@ pub enum WorkerError {
 pub struct WorkerReport {
     /// Units rendered and accepted.
     pub units: u64,
+    /// Units dropped unfinished because the coordinator took them back (their
+    /// job was cancelled, or a studio frame superseded).
+    pub withdrawn: u64,
 }
 
 /// Resolves when the process is asked to stop (SIGTERM or Ctrl-C).
@@ -463,17 +467,24 @@ pub async fn run(
             registered.worker_id.clone(),
             Duration::from_millis(u64::from(registered.heartbeat_ms.max(50))),
         ));
+        let withdrawn = Arc::new(Withdrawn::default());
+        let listening = tokio::spawn(listen_for_withdrawals(
+            client.clone(),
+            registered.worker_id.clone(),
+            Arc::clone(&withdrawn),
+        ));
         let left = serve(
             &config,
             &mut client,
             &registered.worker_id,
-            &pool,
+            (&pool, &withdrawn),
             &mut scenes,
             &mut report,
             &mut stop,
         )
         .await;
         heartbeat.abort();
+        listening.abort();
         match left {
             Ok(Leave::Done) => {
                 let _ = client
@@ -601,7 +612,7 @@ async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
     worker_id: &str,
-    pool: &RenderPool,
+    (pool, withdrawn): (&RenderPool, &Arc<Withdrawn>),
     scenes: &mut SceneCache,
     report: &mut WorkerReport,
     stop: &mut watch::Receiver<bool>,
@@ -660,7 +671,11 @@ async fn serve(
                         }
                     }
                 };
-                match start_render(&assignment, pool, scenes, config.fault) {
+                let started = match fetch_assets(client, worker_id, scenes, &assignment).await {
+                    Ok(()) => start_render(&assignment, (pool, withdrawn), scenes, config.fault),
+                    Err(e) => Err(e),
+                };
+                match started {
                     Ok(rendering) => (assignment, rendering),
                     Err((kind, reason)) => {
                         // Give the unit back at once, with the reason: holding it would
@@ -700,7 +715,10 @@ async fn serve(
             && !*stop.borrow()
             && let Some(a) = ahead.take()
         {
-            match start_render(&a, pool, scenes, config.fault) {
+            // A new scene's files are fetched while the current unit renders
+            // (one that fails to arrive is tried again when its turn comes).
+            let _ = fetch_assets(client, worker_id, scenes, &a).await;
+            match start_render(&a, (pool, withdrawn), scenes, config.fault) {
                 Ok(rendering) => queued = Some((a, rendering)),
                 Err(_) => ahead = Some(a),
             }
@@ -709,7 +727,20 @@ async fn serve(
             .await
             .unwrap_or_else(|_| Err("the render task ended without a result".into()));
         let (unit, pixels, cpu) = match rendered {
-            Ok(tile) => tile,
+            Ok(Some(tile)) => tile,
+            Ok(None) => {
+                // Taken back while it rendered (or before it started): no
+                // tile, the next unit.
+                report.withdrawn += 1;
+                tracing::debug!(
+                    "dropped assignment {}: the coordinator took it back",
+                    assignment.assignment_id
+                );
+                if let Some(status) = lost_while_rendering {
+                    return lost(config, status);
+                }
+                continue;
+            }
             Err(reason) => {
                 if let Some(status) = lost_while_rendering {
                     return lost(config, status);
@@ -857,7 +888,79 @@ fn is_refusal(status: &Status) -> bool {
 type Tile = (WorkUnit, hypertexture_proto::Bytes, u64);
 
 /// A unit on the render pool: its tile, or why it could not be rendered.
-type Rendering = oneshot::Receiver<Result<Tile, String>>;
+/// The result of a unit: its tile, nothing when it was withdrawn, or the
+/// message of a panic.
+type Rendering = oneshot::Receiver<Result<Option<Tile>, String>>;
+
+/// The assignments the coordinator has taken back from this worker, and the
+/// stop flags of those rendering: a withdrawn unit stops before its next
+/// pixel, and one not started yet never starts.
+#[derive(Default)]
+struct Withdrawn(Mutex<WithdrawnState>);
+
+#[derive(Default)]
+struct WithdrawnState {
+    rendering: HashMap<u64, Arc<AtomicBool>>,
+    /// Withdrawn before this worker started them (the newest few).
+    before_start: VecDeque<u64>,
+}
+
+/// How many withdrawn assignments not started yet are remembered.
+const WITHDRAWN_REMEMBERED: usize = 1024;
+
+impl Withdrawn {
+    fn lock(&self) -> std::sync::MutexGuard<'_, WithdrawnState> {
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The stop flag of an assignment about to render; `None` when it has
+    /// been withdrawn already.
+    fn start(&self, assignment_id: u64) -> Option<Arc<AtomicBool>> {
+        let mut s = self.lock();
+        if s.before_start.contains(&assignment_id) {
+            return None;
+        }
+        let flag = Arc::new(AtomicBool::new(false));
+        s.rendering.insert(assignment_id, Arc::clone(&flag));
+        Some(flag)
+    }
+
+    fn finish(&self, assignment_id: u64) {
+        self.lock().rendering.remove(&assignment_id);
+    }
+
+    fn withdraw(&self, assignment_ids: &[u64]) {
+        let mut s = self.lock();
+        for id in assignment_ids {
+            match s.rendering.get(id) {
+                Some(flag) => flag.store(true, Ordering::Relaxed),
+                None => {
+                    if s.before_start.len() == WITHDRAWN_REMEMBERED {
+                        s.before_start.pop_front();
+                    }
+                    s.before_start.push_back(*id);
+                }
+            }
+        }
+    }
+}
+
+/// Listens for the assignments the coordinator takes back, for as long as
+/// this registration lasts. A coordinator without the call (UNIMPLEMENTED)
+/// or a broken stream leaves withdrawn units to render to the end, as their
+/// tiles are ignored.
+async fn listen_for_withdrawals(mut client: Client, worker_id: String, withdrawn: Arc<Withdrawn>) {
+    let Ok(response) = client
+        .withdrawals(pb::WithdrawalsParams { worker_id })
+        .await
+    else {
+        return;
+    };
+    let mut stream = response.into_inner();
+    while let Ok(Some(w)) = stream.message().await {
+        withdrawn.withdraw(&w.assignment_ids);
+    }
+}
 
 /// Starts rendering an assignment on the pool (the async thread goes on with
 /// heartbeats and tiles). The result comes straight from the render thread: the
@@ -865,7 +968,7 @@ type Rendering = oneshot::Receiver<Result<Tile, String>>;
 /// scene does not build here, it is malformed) is an error with its kind.
 fn start_render(
     assignment: &pb::Assignment,
-    pool: &RenderPool,
+    (pool, withdrawn): (&RenderPool, &Arc<Withdrawn>),
     scenes: &mut SceneCache,
     fault: Option<Fault>,
 ) -> Result<Rendering, (FailureKind, String)> {
@@ -900,6 +1003,12 @@ fn start_render(
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let frame = job.frame;
     let (done, result) = oneshot::channel();
+    let assignment_id = assignment.assignment_id;
+    let Some(stop) = withdrawn.start(assignment_id) else {
+        let _ = done.send(Ok(None));
+        return Ok(result);
+    };
+    let withdrawn = Arc::clone(withdrawn);
     let async_clock = pool.async_clock;
     let one_thread = pool.threads.current_num_threads() == 1;
     pool.threads.spawn(move || {
@@ -932,14 +1041,15 @@ fn start_render(
                     scene.width(),
                     &pixels,
                 ),
-                None => hypertexture::render::render_pixels(&scene, frame, &pixels),
+                None => hypertexture::render::render_pixels_until(&scene, frame, &pixels, &stop)?,
             };
             let tile = convert::tile_to_wire(&samples, format);
             let cpu = render_cpu().saturating_sub(before);
-            (unit, tile, cpu)
+            Some((unit, tile, cpu))
         };
         let tile = std::panic::catch_unwind(std::panic::AssertUnwindSafe(render))
             .map_err(|payload| format!("the render panicked: {}", panic_message(&*payload)));
+        withdrawn.finish(assignment_id);
         let _ = done.send(tile);
     });
     Ok(result)
@@ -958,6 +1068,9 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
 #[derive(Default)]
 struct SceneCache {
     scenes: HashMap<u64, Arc<Scene>>,
+    /// The files scenes name (meshes), fetched once, verified and built, by
+    /// content hash.
+    assets: HashMap<u64, Arc<hypertexture::mesh::Mesh>>,
     /// The hash of the scene used last (0: none): the coordinator leaves its
     /// text out of the assignments that follow.
     last: u64,
@@ -991,13 +1104,28 @@ impl SceneCache {
         }
         let scene_failure = |e: String| (FailureKind::Scene, e);
         let knobs = convert::knobs_from_wire(&job.knobs);
-        let hash = convert::scene_hash(
-            &job.scene_text,
-            job.width,
-            job.height,
-            job.spp,
-            job.quality,
-            &knobs,
+        let mut assets = hypertexture::scene::Assets::none();
+        let mut hashes = Vec::with_capacity(job.assets.len());
+        for a in &job.assets {
+            let mesh = self.assets.get(&a.hash).ok_or_else(|| {
+                (
+                    FailureKind::Assignment,
+                    format!("{}: the file {} has not arrived", job.scene_name, a.path),
+                )
+            })?;
+            assets.insert(&a.path, Arc::clone(mesh));
+            hashes.push((a.path.clone(), a.hash));
+        }
+        let hash = convert::scene_hash_with_assets(
+            convert::scene_hash(
+                &job.scene_text,
+                job.width,
+                job.height,
+                job.spp,
+                job.quality,
+                &knobs,
+            ),
+            &hashes,
         );
         if hash != job.scene_hash {
             return Err(scene_failure(format!(
@@ -1009,7 +1137,8 @@ impl SceneCache {
             self.last = hash;
             return Ok(Arc::clone(scene));
         }
-        let scene = Scene::from_text(
+        // Only the files that came with the job: a worker reads none from disk.
+        let scene = Scene::from_text_with(
             &job.scene_text,
             &job.scene_name,
             Overrides {
@@ -1020,6 +1149,7 @@ impl SceneCache {
                     .map_err(|e| scene_failure(e.to_string()))?,
                 knobs,
             },
+            Some(&assets),
         )
         .map_err(|e| scene_failure(e.to_string()))?;
         if self.scenes.len() >= Self::CAPACITY {
@@ -1030,6 +1160,87 @@ impl SceneCache {
         self.last = hash;
         Ok(scene)
     }
+}
+
+/// Fetches the files an assignment's scene names that this worker has not
+/// built yet (`GetAsset`), checks each against its size and hash, and builds
+/// its mesh off the async thread. A file that does not arrive whole and
+/// intact fails the assignment; one that arrives but is not a usable mesh
+/// fails the scene.
+async fn fetch_assets(
+    client: &mut Client,
+    worker_id: &str,
+    scenes: &mut SceneCache,
+    assignment: &pb::Assignment,
+) -> Result<(), (FailureKind, String)> {
+    let Some(job) = &assignment.job else {
+        return Ok(());
+    };
+    for a in &job.assets {
+        if scenes.assets.contains_key(&a.hash) {
+            continue;
+        }
+        let failed = |e: String| {
+            (
+                FailureKind::Assignment,
+                format!("{}: fetching {}: {e}", job.scene_name, a.path),
+            )
+        };
+        if a.size > hypertexture::mesh::MAX_OBJ_BYTES {
+            return Err(failed(format!(
+                "{} bytes is more than a mesh file may be",
+                a.size
+            )));
+        }
+        let started = std::time::Instant::now();
+        let mut stream = client
+            .get_asset(pb::GetAssetParams {
+                worker_id: worker_id.to_string(),
+                hash: a.hash,
+            })
+            .await
+            .map_err(|s| failed(s.message().to_string()))?
+            .into_inner();
+        let mut bytes = Vec::with_capacity(a.size as usize);
+        while let Some(chunk) = stream
+            .message()
+            .await
+            .map_err(|s| failed(s.message().to_string()))?
+        {
+            if bytes.len() as u64 + chunk.chunk.len() as u64 > a.size {
+                return Err(failed(format!("more than the {} bytes announced", a.size)));
+            }
+            bytes.extend_from_slice(&chunk.chunk);
+        }
+        let got = hypertexture::mesh::content_hash(&bytes);
+        if bytes.len() as u64 != a.size || got != a.hash {
+            return Err(failed(format!(
+                "{} bytes with hash {got:016x} arrived, not {} with hash {:016x}",
+                bytes.len(),
+                a.size,
+                a.hash
+            )));
+        }
+        let fetched = started.elapsed();
+        let path = a.path.clone();
+        let mesh = tokio::task::spawn_blocking(move || {
+            hypertexture::mesh::Mesh::from_obj(&path, &bytes, Default::default())
+        })
+        .await
+        .map_err(|e| failed(format!("the mesh build stopped: {e}")))?
+        .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+        tracing::info!(
+            "{}: {} ({} bytes, {} triangles) fetched in {:.1} ms, its distance tree built in {:.1} ms",
+            job.scene_name,
+            a.path,
+            a.size,
+            mesh.triangle_count(),
+            fetched.as_secs_f64() * 1e3,
+            (started.elapsed() - fetched).as_secs_f64() * 1e3
+        );
+        scenes.assets.insert(a.hash, Arc::new(mesh));
+    }
+    Ok(())
 }
 
 /// Beats every `every` until aborted. Failures are left to the work loop to notice.

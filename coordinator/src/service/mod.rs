@@ -13,6 +13,7 @@
 //! Lock order: a job table lock, then the farm's state, then the store.
 
 pub mod metrics;
+pub mod params;
 pub mod studio;
 
 use std::collections::BTreeMap;
@@ -238,8 +239,15 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         quality: spec.quality.map(Into::into),
         knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
     };
-    let scene =
-        Scene::from_text(&spec.scene, &name, overrides.clone()).map_err(|e| bad(e.to_string()))?;
+    // A scene sent over HTTP brings no files (the service reads none on a
+    // client's word): one that names a mesh is refused.
+    let scene = Scene::from_text_with(
+        &spec.scene,
+        &name,
+        overrides.clone(),
+        Some(&hypertexture::scene::Assets::none()),
+    )
+    .map_err(|e| bad(e.to_string()))?;
     let metadata = Arc::new(crate::output::ImageMetadata::new(
         &scene,
         &name,
@@ -307,6 +315,7 @@ impl Service {
             pixel_format: format,
             metadata: checked.metadata.clone(),
             bake: None,
+            assets: Vec::new(),
         };
         let plan = JobPlan {
             id,
@@ -755,6 +764,7 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
             tls,
             interleave: args.interleave,
             progress: false,
+            gate: Default::default(),
         },
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
         studio_scene: None,
@@ -791,6 +801,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
             tls: None,
             interleave: hypertexture::interleave::DEFAULT_INTERLEAVE,
             progress: false,
+            gate: Default::default(),
         },
         drain_timeout: Duration::from_secs(5),
         studio_scene: Some(args.scene),
@@ -827,7 +838,10 @@ pub async fn serve(
         .map_err(ServiceError::Studio)?,
     );
     let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
-        .merge(crate::api::router(control, config.farm.token.clone()));
+        .merge(crate::api::router(control, config.farm.token.clone()))
+        // Every refusal of these routes is a JSON error, the studio's and
+        // axum's own (405 on `/`) included; the gRPC routes come after.
+        .layer(axum::middleware::from_fn(crate::api::json_errors));
     // Units sized as for a LAN farm of the paper's 64 processors (at least one
     // unit each), or for the local workers when there are more.
     let expected = config.farm.local_workers.max(64);

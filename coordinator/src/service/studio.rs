@@ -52,6 +52,7 @@ use hypertexture::{Overrides, PixelFormat, Scene};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
+use super::params::{self, Curve, Param};
 use crate::farm::{self, Shared, WireJob};
 use crate::jobs::{Control, JobSpec, QualitySpec};
 use crate::scheduler::{Accepted, JobId, JobPlan, Resume};
@@ -108,6 +109,11 @@ struct Live {
     error: Option<String>,
     /// The quality of the frame asked last.
     quality: QualitySpec,
+    /// The sliders of the text's numeric parameters, and its curves.
+    params: Vec<Param>,
+    curves: Vec<Curve>,
+    /// Each slider's range, kept while it moves.
+    ranges: BTreeMap<String, (f64, f64)>,
     frame: Option<LiveFrame>,
     generation: u64,
 }
@@ -139,6 +145,10 @@ pub struct Change {
     /// Knob values (over the current text).
     #[serde(default)]
     pub knobs: BTreeMap<String, f64>,
+    /// Numeric parameters by path ([`params::numbers`]), written into the
+    /// text (the new one, or the current one).
+    #[serde(default)]
+    pub params: BTreeMap<String, f64>,
     /// `interactive` while a slider moves, `high` once it rests.
     pub quality: QualitySpec,
 }
@@ -162,6 +172,11 @@ pub struct SceneView {
     /// The text for the current knob values.
     text: String,
     knobs: Vec<KnobView>,
+    /// A slider per numeric parameter of the object, modulations,
+    /// distortion, camera, lights and shading.
+    params: Vec<Param>,
+    /// The curves, with their control points.
+    curves: Vec<Curve>,
     error: Option<String>,
     /// A job spec for "render final": the shown text at the scene's own size,
     /// quality and samples.
@@ -259,7 +274,8 @@ fn check(
             (k.clone(), v)
         })
         .collect();
-    let scene = Scene::from_text(
+    // A scene sent over HTTP brings no files: one that names a mesh is refused.
+    let scene = Scene::from_text_with(
         text,
         name,
         Overrides {
@@ -267,6 +283,7 @@ fn check(
             knobs: overrides(&values, &desc.knobs),
             ..Overrides::default()
         },
+        Some(&hypertexture::scene::Assets::none()),
     )
     .map_err(|e| e.to_string())?;
     let shown = with_knob_values(text, &values).unwrap_or_else(|| text.to_string());
@@ -329,6 +346,9 @@ impl Studio {
                 declared: BTreeMap::new(),
                 error: None,
                 quality: QualitySpec::High,
+                params: Vec::new(),
+                curves: Vec::new(),
+                ranges: BTreeMap::new(),
                 frame: None,
                 generation: 0,
             }),
@@ -362,6 +382,7 @@ impl Studio {
             let _ = self.change(Change {
                 text: Some(text),
                 knobs: BTreeMap::new(),
+                params: BTreeMap::new(),
                 quality: QualitySpec::High,
             });
         }
@@ -461,7 +482,12 @@ impl Studio {
             Some(text) => (text, BTreeMap::new()),
             None => (live.text.clone(), change.knobs),
         };
-        let checked = match check(&text, &self.name, &knobs, change.quality) {
+        let text = if change.params.is_empty() {
+            Ok(text)
+        } else {
+            params::with_values(&text, &change.params)
+        };
+        let checked = match text.and_then(|text| check(&text, &self.name, &knobs, change.quality)) {
             Ok(c) => c,
             Err(e) => {
                 live.error = Some(e.clone());
@@ -503,6 +529,7 @@ impl Studio {
                     None,
                 )),
                 bake: None,
+                assets: Vec::new(),
             };
             let plan = JobPlan {
                 id: job,
@@ -544,6 +571,14 @@ impl Studio {
         live.shown = checked.shown;
         live.declared = checked.declared;
         live.quality = change.quality;
+        let Live {
+            text,
+            ranges,
+            params,
+            curves,
+            ..
+        } = &mut *live;
+        (*params, *curves) = params::controls(text, ranges);
         Ok(self.view(&live))
     }
 
@@ -563,6 +598,8 @@ impl Studio {
                     default: d.default,
                 })
                 .collect(),
+            params: live.params.clone(),
+            curves: live.curves.clone(),
             error: live.error.clone(),
             final_job: JobSpec {
                 scene: live.shown.clone(),

@@ -86,6 +86,7 @@ impl Density {
                 let reach = across * t.major_radius + Vec3::splat(r);
                 Some((t.centre - reach, t.centre + reach))
             }
+            Density::Mesh(m) => Some(m.support()),
             Density::Union(v) | Density::Max(v) => all(v, hull),
             Density::Intersection(v) | Density::Min(v) => meet_known(v),
             Density::Difference(a, _) => a.support(),

@@ -16,6 +16,8 @@ impl Density {
             Density::Sphere(s) => s.density_dual(x),
             Density::Box(b) => b.density_dual(x),
             Density::Torus(t) => t.density_dual(x),
+            // No derivative written out: central differences, as expressions.
+            Density::Mesh(m) => x.apply(h, |p| m.density(p)),
             Density::Union(v) => v.iter().fold(Dual::constant(0.0), |a, d| {
                 let b = d.eval_dual(x, field, h);
                 a + b - a * b
@@ -60,6 +62,13 @@ impl Density {
             Density::Sphere(s) => s.project_dual(x),
             Density::Box(b) => b.project_dual(x),
             Density::Torus(t) => t.project_dual(x),
+            // Central differences over a thousandth of a unit (the mesh's
+            // projection has no derivative written out).
+            Density::Mesh(m) => DualPoint {
+                x: x.apply(1e-3, |p| m.project(p).x),
+                y: x.apply(1e-3, |p| m.project(p).y),
+                z: x.apply(1e-3, |p| m.project(p).z),
+            },
             _ => *x,
         }
     }
@@ -76,6 +85,9 @@ impl Hypertexture {
             p = p.through(h, |q| d.apply(q, &self.object, field));
         }
         let mut v = self.object.eval_dual(&p, field, h);
+        if self.keeps(v.v) {
+            return v;
+        }
         for m in &self.modulation {
             if v.v == 0.0 {
                 break; // every value DMF maps 0 to 0

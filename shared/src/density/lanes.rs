@@ -108,6 +108,7 @@ impl Density {
                 t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
                 p
             }
+            Density::Mesh(m) => x.map(|p| m.project(p)),
             _ => *x,
         }
     }
@@ -120,6 +121,7 @@ impl Density {
             Density::Sphere(s) => *x = x.map(|p| s.project(p)),
             Density::Box(b) => *x = x.map(|p| b.project(p)),
             Density::Torus(t) => t.project_lanes(&mut x.x, &mut x.y, &mut x.z),
+            Density::Mesh(m) => *x = x.map(|p| m.project(p)),
             _ => {}
         }
     }
@@ -151,6 +153,8 @@ impl Density {
             Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            // The scalar query lane by lane: a tree search per point.
+            Density::Mesh(m) => each(x, |p| m.density(p)),
             Density::Expression(program) => {
                 program.eval_lanes(x, &[0.0; LANES], field, isa)[0].map(crate::shaping::clamp01)
             }
@@ -247,7 +251,13 @@ impl Hypertexture {
         if let Some(d) = &self.distortion {
             p = p.map(|q| d.apply(q, &self.object, field));
         }
-        let mut v = self.object.eval_child(&p, field, isa);
+        let d = self.object.eval_child(&p, field, isa);
+        // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
+        let kept = d.map(|d| self.keeps(d));
+        if kept.iter().all(|&k| k) {
+            return d;
+        }
+        let mut v = d;
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
                 break;
@@ -255,6 +265,11 @@ impl Hypertexture {
             let next = m.apply_lanes(&v, &p, &self.object, field, isa);
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
+        }
+        for l in 0..v.len() {
+            if kept[l] {
+                v[l] = d[l];
+            }
         }
         v
     }

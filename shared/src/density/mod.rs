@@ -20,8 +20,8 @@ use glam::Vec3;
 use crate::distortion::Distortion;
 use crate::motion::Pose;
 use crate::noise::Noise;
-use crate::scene::desc::{DmfDesc, ObjectDesc};
-use crate::soft::{Falloff, SoftBox, SoftSphere, SoftTorus, boolean};
+use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
+use crate::soft::{Falloff, SoftBox, SoftMesh, SoftSphere, SoftTorus, boolean};
 
 pub mod bounds;
 pub mod dmf;
@@ -90,6 +90,8 @@ pub enum Density {
     Box(SoftBox),
     /// A soft torus.
     Torus(SoftTorus),
+    /// A closed triangle mesh, soft outside its surface.
+    Mesh(SoftMesh),
     /// Generalized union, folded.
     Union(Vec<Density>),
     /// Generalized intersection, folded.
@@ -134,6 +136,17 @@ impl Density {
                 major_radius: t.major_radius,
                 falloff: Falloff::new(t.minor_radius, t.softness),
             }),
+            ObjectDesc::Mesh(m) => match &m.mesh {
+                Some(mesh) => Density::Mesh(SoftMesh::new(
+                    std::sync::Arc::clone(mesh),
+                    m.centre.0,
+                    m.scale,
+                    m.softness,
+                )),
+                // Not attached (`SceneDesc::attach_meshes`): nothing, as a
+                // union of no objects. `Scene::from_text` always attaches.
+                None => Density::Union(Vec::new()),
+            },
             ObjectDesc::Union(v) => Density::Union(all(v)),
             ObjectDesc::Intersection(v) => Density::Intersection(all(v)),
             ObjectDesc::Max(v) => Density::Max(all(v)),
@@ -145,6 +158,7 @@ impl Density {
             ObjectDesc::Complement(a) => Density::Complement(Box::new(Density::build(a, step))),
             ObjectDesc::Hypertexture(h) => Density::Hypertexture(Box::new(
                 Hypertexture::build(Density::build(&h.object, step), &h.modulation, step)
+                    .with_hard_core(h.hard_core)
                     .with_distortion(h.distortion.as_ref().map(Distortion::build)),
             )),
         }
@@ -157,6 +171,7 @@ impl Density {
             Density::Sphere(s) => s.density(x),
             Density::Box(b) => b.density(x),
             Density::Torus(t) => t.density(x),
+            Density::Mesh(m) => m.density(x),
             Density::Union(v) => v
                 .iter()
                 .fold(0.0, |a, d| boolean::union(a, d.eval(x, field))),
@@ -187,6 +202,33 @@ impl Density {
         }
     }
 
+    /// The density with every hypertexture's value DMFs left out (warps and
+    /// distortions kept): the objects' own D, in [0, 1]. Its gradient is the
+    /// normal where a ray reaches a hard region, where f = 1 and ∇f = 0.
+    pub fn eval_object(&self, x: Vec3, field: &Field) -> f32 {
+        match self {
+            Density::Union(v) => v
+                .iter()
+                .fold(0.0, |a, d| boolean::union(a, d.eval_object(x, field))),
+            Density::Intersection(v) => v.iter().fold(1.0, |a, d| {
+                boolean::intersection(a, d.eval_object(x, field))
+            }),
+            Density::Difference(a, b) => {
+                boolean::difference(a.eval_object(x, field), b.eval_object(x, field))
+            }
+            Density::Complement(a) => boolean::complement(a.eval_object(x, field)),
+            Density::Max(v) => v.iter().fold(0.0, |a, d| a.max(d.eval_object(x, field))),
+            Density::Min(v) => v.iter().fold(1.0, |a, d| a.min(d.eval_object(x, field))),
+            Density::Hypertexture(h) => h.eval_object(x, field),
+            Density::Moving(d) => d.eval_object(field.object_point(x), field),
+            Density::Sphere(_)
+            | Density::Box(_)
+            | Density::Torus(_)
+            | Density::Mesh(_)
+            | Density::Expression(_) => self.eval(x, field),
+        }
+    }
+
     /// x projected perpendicularly onto the inner (D = 1) surface; only primitives
     /// can project (checked at load for every DMF that needs it).
     #[inline]
@@ -195,6 +237,7 @@ impl Density {
             Density::Sphere(s) => s.project(x),
             Density::Box(b) => b.project(x),
             Density::Torus(t) => t.project(x),
+            Density::Mesh(m) => m.project(x),
             _ => x,
         }
     }
@@ -202,10 +245,7 @@ impl Density {
     /// Whether `Density::project` (the fur's projection onto the inner surface) is
     /// defined for this node.
     pub fn can_project(desc: &ObjectDesc) -> bool {
-        matches!(
-            desc,
-            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_)
-        )
+        desc.is_primitive()
     }
 }
 
@@ -221,6 +261,9 @@ pub struct Hypertexture {
     modulation: Vec<Modulation>,
     /// Gilet & Dischler's distortion (formula 3), applied after the warps.
     distortion: Option<Distortion>,
+    /// Whether the hard region (D = 1) stays solid, f = 1 ([`HardCore::Solid`]):
+    /// the value DMFs then shape only the soft region.
+    solid_core: bool,
 }
 
 impl Hypertexture {
@@ -239,7 +282,23 @@ impl Hypertexture {
             warps,
             modulation,
             distortion: None,
+            solid_core: true,
         }
+    }
+
+    /// The same chain with the hard region solid or shaped by the DMFs.
+    pub fn with_hard_core(self, hard_core: HardCore) -> Hypertexture {
+        Hypertexture {
+            solid_core: hard_core == HardCore::Solid,
+            ..self
+        }
+    }
+
+    /// Whether the value DMFs leave this `d` = D(w(x)) as it is: 0 always
+    /// (every value DMF maps 0 to 0), 1 when the hard region is solid.
+    #[inline(always)]
+    pub(crate) fn keeps(&self, d: f32) -> bool {
+        d == 0.0 || (self.solid_core && d == 1.0)
     }
 
     /// The same chain with Gilet & Dischler's distortion after the warps.
@@ -268,6 +327,9 @@ impl Hypertexture {
             p = d.apply(p, &self.object, field);
         }
         let d = self.object.eval(p, field);
+        if self.keeps(d) {
+            return d;
+        }
         let mut v = d;
         for m in &self.modulation {
             if v == 0.0 {
@@ -276,5 +338,20 @@ impl Hypertexture {
             v = m.apply(v, p, &self.object, field);
         }
         v
+    }
+
+    /// D(w(x)): the object under the warps and the distortion, without the
+    /// value DMFs (the object's own density, whose gradient is the normal of
+    /// its hard region).
+    #[inline]
+    pub fn eval_object(&self, x: Vec3, field: &Field) -> f32 {
+        let mut p = x;
+        for w in &self.warps {
+            p = w.apply(p, field);
+        }
+        if let Some(d) = &self.distortion {
+            p = d.apply(p, &self.object, field);
+        }
+        self.object.eval_object(p, field)
     }
 }

@@ -958,7 +958,7 @@ impl<'a> Compiler<'a> {
         if name == "project" && self.ctx.surface.is_none() {
             return Err(ExprError::new(
                 at,
-                "project(p) projects onto the inner surface of the scene's object, which must then be a Sphere, Box or Torus",
+                "project(p) projects onto the inner surface of the scene's object, which must then be a Sphere, Box, Torus or Mesh",
             ));
         }
         let rp = self.reg_v(pv, at)?;

@@ -38,6 +38,9 @@ pub struct SceneDesc {
     /// Density modulation functions applied to the whole object, in order.
     #[serde(default)]
     pub modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape the object's hard region (D = 1) too.
+    #[serde(default)]
+    pub hard_core: HardCore,
     /// Colour over density (or over `colour_index`).
     #[serde(default = "CurveDesc::white")]
     pub colour_map: CurveDesc<Rgb>,
@@ -110,6 +113,7 @@ impl SceneDesc {
             ObjectDesc::Hypertexture(HypertextureDesc {
                 object: Box::new(self.object.clone()),
                 modulation: self.modulation.clone(),
+                hard_core: self.hard_core,
                 distortion: self.distortion.clone(),
             })
         }
@@ -136,6 +140,9 @@ struct SceneFields {
     /// Density modulation functions applied to the whole object, in order.
     #[serde(default)]
     modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape the object's hard region (D = 1) too.
+    #[serde(default)]
+    hard_core: HardCore,
     /// Colour over density (or over `colour_index`).
     #[serde(default = "CurveDesc::white")]
     colour_map: CurveDesc<Rgb>,
@@ -218,6 +225,7 @@ impl TryFrom<SceneFields> for SceneDesc {
             march: f.march,
             object: f.object,
             modulation: f.modulation,
+            hard_core: f.hard_core,
             colour_map: f.colour_map,
             colour_index: f.colour_index,
             alpha_map: f.alpha_map,
@@ -686,6 +694,8 @@ pub enum ObjectDesc {
     Box(BoxDesc),
     /// A soft torus.
     Torus(TorusDesc),
+    /// A closed triangle mesh read from an OBJ file, soft outside its surface.
+    Mesh(MeshDesc),
     /// Generalized union `a + b - ab`, folded over the list.
     Union(Vec<ObjectDesc>),
     /// Generalized intersection `ab`, folded over the list.
@@ -710,6 +720,8 @@ pub struct HypertextureDesc {
     pub object: Box<ObjectDesc>,
     /// Its DMFs, applied in order.
     pub modulation: Vec<DmfDesc>,
+    /// Whether the value DMFs shape its hard region (D = 1) too.
+    pub hard_core: HardCore,
     /// Gilet & Dischler's distortion, applied after the position DMFs.
     pub distortion: Option<DistortionDesc>,
 }
@@ -720,6 +732,8 @@ struct HypertextureFields {
     object: Box<ObjectDesc>,
     #[serde(default)]
     modulation: Vec<DmfDesc>,
+    #[serde(default)]
+    hard_core: HardCore,
     #[serde(default)]
     distortion: Option<DistortionDesc>,
 }
@@ -734,9 +748,27 @@ impl TryFrom<HypertextureFields> for HypertextureDesc {
         Ok(HypertextureDesc {
             object: f.object,
             modulation: f.modulation,
+            hard_core: f.hard_core,
             distortion: f.distortion,
         })
     }
+}
+
+/// What the value DMFs do where the object is solid (D = 1).
+///
+/// The paper's base shapes "have a hard region where they are completely
+/// solid, and a soft region where they are indeterminate"; the shaping
+/// functions apply in the soft region. `Solid` (the default) keeps f = 1
+/// where D = 1, so a ray reaching the hard region turns opaque there (unless
+/// an alpha map says otherwise). `Shaped` applies the DMFs literally
+/// everywhere, the hard region included.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+pub enum HardCore {
+    /// f = 1 where D = 1: the DMFs shape only the soft region.
+    #[default]
+    Solid,
+    /// f = f_n(… f_1(D)) everywhere, the hard region included.
+    Shaped,
 }
 
 /// The most DMFs one object may have.
@@ -763,18 +795,148 @@ pub fn check_chain(object: &ObjectDesc, dmfs: &[DmfDesc]) -> Result<(), String> 
         } else if first_value.is_none() {
             first_value = Some(dmf.name());
         }
-        if matches!(dmf, DmfDesc::Fur { .. })
-            && !matches!(
-                object,
-                ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_)
-            )
-        {
+        if matches!(dmf, DmfDesc::Fur { .. }) && !object.is_primitive() {
             return Err(format!(
-                "modulation[{i}]: Fur projects x onto the object's inner surface, so its object must be a Sphere, Box or Torus (wrap one in Hypertexture(object: ..., modulation: [Fur(...)]))"
+                "modulation[{i}]: Fur projects x onto the object's inner surface, so its object must be a Sphere, Box, Torus or Mesh (wrap one in Hypertexture(object: ..., modulation: [Fur(...)]))"
             ));
         }
     }
     Ok(())
+}
+
+/// A triangle mesh as a soft object: `Mesh(path: "meshes/spot.obj", softness: 0.1)`.
+/// The mesh's surface is the inner (D = 1) surface; D falls off outside it as a
+/// soft sphere's does, `D = (s² - d²) / s²` at a distance d < s, the paper's
+/// falloff of a sphere of inner radius 0 and outer radius s swept over the
+/// surface.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, try_from = "MeshFields")]
+pub struct MeshDesc {
+    /// The OBJ file, relative to the scene file's directory.
+    pub path: String,
+    /// Softness s: the thickness of the soft region outside the surface.
+    pub softness: f32,
+    /// Where the mesh's origin goes.
+    pub centre: V3,
+    /// Uniform scale of the mesh about its origin.
+    pub scale: f32,
+    /// The loaded mesh, attached before the scene is built
+    /// ([`SceneDesc::attach_meshes`]).
+    #[serde(skip)]
+    pub mesh: Option<std::sync::Arc<crate::mesh::Mesh>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename = "Mesh")]
+struct MeshFields {
+    path: String,
+    softness: NonNegative,
+    #[serde(default)]
+    centre: V3,
+    #[serde(default = "one")]
+    scale: Positive,
+}
+
+fn one() -> Positive {
+    Positive(1.0)
+}
+
+impl TryFrom<MeshFields> for MeshDesc {
+    type Error = String;
+    fn try_from(f: MeshFields) -> Result<Self, String> {
+        if f.path.trim().is_empty() || f.path.contains('\0') {
+            return Err(format!("mesh: path {:?} does not name a file", f.path));
+        }
+        Ok(MeshDesc {
+            path: f.path,
+            softness: f.softness.0,
+            centre: f.centre,
+            scale: f.scale.0,
+            mesh: None,
+        })
+    }
+}
+
+impl ObjectDesc {
+    /// Calls `f` on every mesh of the tree, in the order written.
+    pub fn for_each_mesh(&self, f: &mut impl FnMut(&MeshDesc)) {
+        match self {
+            ObjectDesc::Mesh(m) => f(m),
+            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_) => {}
+            ObjectDesc::Union(v)
+            | ObjectDesc::Intersection(v)
+            | ObjectDesc::Max(v)
+            | ObjectDesc::Min(v) => v.iter().for_each(|o| o.for_each_mesh(f)),
+            ObjectDesc::Difference(a, b) => {
+                a.for_each_mesh(f);
+                b.for_each_mesh(f);
+            }
+            ObjectDesc::Complement(a) => a.for_each_mesh(f),
+            ObjectDesc::Hypertexture(h) => h.object.for_each_mesh(f),
+        }
+    }
+
+    /// [`ObjectDesc::for_each_mesh`], mutably.
+    pub fn for_each_mesh_mut(&mut self, f: &mut impl FnMut(&mut MeshDesc)) {
+        match self {
+            ObjectDesc::Mesh(m) => f(m),
+            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_) => {}
+            ObjectDesc::Union(v)
+            | ObjectDesc::Intersection(v)
+            | ObjectDesc::Max(v)
+            | ObjectDesc::Min(v) => v.iter_mut().for_each(|o| o.for_each_mesh_mut(f)),
+            ObjectDesc::Difference(a, b) => {
+                a.for_each_mesh_mut(f);
+                b.for_each_mesh_mut(f);
+            }
+            ObjectDesc::Complement(a) => a.for_each_mesh_mut(f),
+            ObjectDesc::Hypertexture(h) => h.object.for_each_mesh_mut(f),
+        }
+    }
+
+    /// Whether the fur's projection onto the inner surface (and the boundary
+    /// vector fields) are defined for this object: a primitive.
+    pub fn is_primitive(&self) -> bool {
+        matches!(
+            self,
+            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_) | ObjectDesc::Mesh(_)
+        )
+    }
+}
+
+impl SceneDesc {
+    /// The mesh files the scene names, each once, in path order (as written).
+    pub fn mesh_paths(&self) -> Vec<String> {
+        let mut paths = std::collections::BTreeSet::new();
+        let mut add = |m: &MeshDesc| {
+            paths.insert(m.path.clone());
+        };
+        self.object.for_each_mesh(&mut add);
+        for o in self.objects.values() {
+            o.for_each_mesh(&mut add);
+        }
+        paths.into_iter().collect()
+    }
+
+    /// Gives every mesh of the scene its loaded [`crate::mesh::Mesh`]; the
+    /// first path `find` has none for is the error.
+    pub fn attach_meshes(
+        &mut self,
+        mut find: impl FnMut(&str) -> Option<std::sync::Arc<crate::mesh::Mesh>>,
+    ) -> Result<(), String> {
+        let mut missing = None;
+        let mut attach = |m: &mut MeshDesc| match find(&m.path) {
+            Some(mesh) => m.mesh = Some(mesh),
+            None => {
+                missing.get_or_insert_with(|| m.path.clone());
+            }
+        };
+        self.object.for_each_mesh_mut(&mut attach);
+        for o in self.objects.values_mut() {
+            o.for_each_mesh_mut(&mut attach);
+        }
+        missing.map_or(Ok(()), Err)
+    }
 }
 
 /// A soft sphere.

@@ -227,14 +227,9 @@ pub fn check_distortion(object: &ObjectDesc, d: &DistortionDesc) -> Result<(), S
             "distortion: fields may be nested at most {MAX_FIELD_DEPTH} deep"
         ));
     }
-    if d.field.needs_boundary()
-        && !matches!(
-            object,
-            ObjectDesc::Sphere(_) | ObjectDesc::Box(_) | ObjectDesc::Torus(_)
-        )
-    {
+    if d.field.needs_boundary() && !object.is_primitive() {
         return Err(
-            "distortion: this vector field points towards the object's boundary, so the object must be a Sphere, Box or Torus (use Constant(..), or wrap a primitive in Hypertexture(object: ..., distortion: ...))"
+            "distortion: this vector field points towards the object's boundary, so the object must be a Sphere, Box, Torus or Mesh (use Constant(..), or wrap a primitive in Hypertexture(object: ..., distortion: ...))"
                 .into(),
         );
     }

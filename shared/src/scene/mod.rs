@@ -10,13 +10,15 @@ mod diagnostic;
 pub mod distortion;
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use glam::Vec3;
 
 use crate::camera::Camera;
 use crate::curve::Curve;
 use crate::density::{Aabb, Density, Support};
+use crate::mesh::{Mesh, MeshError, MeshLimits};
 use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
 use crate::pse::{ExpressionFailure, SceneExpressions};
@@ -60,6 +62,15 @@ pub enum SceneError {
     /// An override (from the command line) is out of range.
     #[error("{0}")]
     Override(String),
+    /// A mesh the scene names is missing, unreadable, malformed, open or
+    /// too large.
+    #[error("{scene}: mesh {error}")]
+    Mesh {
+        /// The scene file.
+        scene: String,
+        /// The mesh file and what is wrong with it.
+        error: MeshError,
+    },
     /// An expression does not parse, names something unknown or mixes types.
     /// `line:column` is the spot in the scene file; `detail` gives the line and
     /// column inside the expression, the expression's line and a caret.
@@ -76,6 +87,95 @@ pub enum SceneError {
         /// `line:column: message`, the expression's line, a caret under the spot.
         detail: String,
     },
+}
+
+/// The files a scene names (meshes), loaded, by the path as the scene writes
+/// it: what a scene needs beyond its text. Loaded from disk beside the scene
+/// file ([`Assets::load`]) or from bytes sent over the farm ([`Assets::insert`]).
+#[derive(Clone, Debug, Default)]
+pub struct Assets {
+    meshes: BTreeMap<String, Arc<Mesh>>,
+}
+
+impl Assets {
+    /// No files: a scene that names one fails to build with it.
+    pub fn none() -> Assets {
+        Assets::default()
+    }
+
+    /// Gives the file the scene calls `path` (as written) its mesh.
+    pub fn insert(&mut self, path: &str, mesh: Arc<Mesh>) {
+        self.meshes.insert(path.to_string(), mesh);
+    }
+
+    /// The mesh the scene calls `path`.
+    pub fn mesh(&self, path: &str) -> Option<&Arc<Mesh>> {
+        self.meshes.get(path)
+    }
+
+    /// Every file, as (path as written, content hash), in path order: what the
+    /// scene hash covers beyond the text.
+    pub fn hashes(&self) -> Vec<(String, u64)> {
+        self.meshes
+            .iter()
+            .map(|(p, m)| (p.clone(), m.hash()))
+            .collect()
+    }
+
+    /// Reads and builds every mesh `desc` names, each path relative to the
+    /// directory of the scene file `scene_path`.
+    pub fn load(
+        desc: &SceneDesc,
+        scene_path: &str,
+        limits: MeshLimits,
+    ) -> Result<Assets, SceneError> {
+        let mut assets = Assets::default();
+        for path in desc.mesh_paths() {
+            let file = asset_path(scene_path, &path);
+            let name = file.display().to_string();
+            let mesh_error = |message: String| SceneError::Mesh {
+                scene: scene_path.to_string(),
+                error: MeshError {
+                    path: name.clone(),
+                    message,
+                },
+            };
+            let bytes = read_asset(&file).map_err(mesh_error)?;
+            let mesh = Mesh::from_obj(&name, &bytes, limits).map_err(|error| SceneError::Mesh {
+                scene: scene_path.to_string(),
+                error,
+            })?;
+            assets.insert(&path, Arc::new(mesh));
+        }
+        Ok(assets)
+    }
+}
+
+/// Where the file a scene at `scene_path` calls `asset` is: relative to the
+/// scene file's directory (an absolute path as it is).
+pub fn asset_path(scene_path: &str, asset: &str) -> PathBuf {
+    let base = Path::new(scene_path).parent().unwrap_or(Path::new(""));
+    base.join(asset)
+}
+
+/// An asset file's bytes (at most [`crate::mesh::MAX_OBJ_BYTES`]); the error
+/// says what the OS said.
+pub fn read_asset(path: &Path) -> Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| {
+            f.take(crate::mesh::MAX_OBJ_BYTES + 1)
+                .read_to_end(&mut bytes)
+        })
+        .map_err(|e| format!("cannot read the mesh: {e}"))?;
+    if bytes.len() as u64 > crate::mesh::MAX_OBJ_BYTES {
+        return Err(format!(
+            "the file is larger than {} bytes, the most a mesh file may be",
+            crate::mesh::MAX_OBJ_BYTES
+        ));
+    }
+    Ok(bytes)
 }
 
 /// Settings that replace the scene file's own at load time (from the command line).
@@ -332,6 +432,10 @@ pub struct Scene {
     pub(crate) opacity_exponent: f32,
     pub(crate) threshold: f32,
     pub(crate) density: Density,
+    /// The objects' own density D, without the value DMFs (what an expression
+    /// calls `D`, under the same motion): its gradient shades the samples
+    /// where a ray reaches a hard region (f = 1, where ∇f = 0).
+    pub(crate) object: Density,
     pub(crate) noise: Noise,
     pub(crate) colour_map: Curve<3>,
     pub(crate) colour_index: ColourIndex,
@@ -366,6 +470,8 @@ pub struct Scene {
     pub(crate) expressions: SceneExpressions,
     /// The object's rigid motion (`density` is then [`Density::Moving`]).
     pub(crate) motion: Option<Motion>,
+    /// The files the scene names (path as written, content hash), in path order.
+    pub(crate) assets: Vec<(String, u64)>,
 }
 
 impl Scene {
@@ -376,9 +482,38 @@ impl Scene {
         Scene::from_text(&text, &path.display().to_string(), overrides)
     }
 
-    /// Checks and builds a scene from its text; `path` names it in errors.
+    /// Checks and builds a scene from its text; `path` names it in errors,
+    /// and the meshes it names are read relative to `path`'s directory.
     pub fn from_text(text: &str, path: &str, overrides: Overrides) -> Result<Scene, SceneError> {
+        Scene::from_text_with(text, path, overrides, None)
+    }
+
+    /// [`Scene::from_text`] with the files the scene names given (`Some`:
+    /// nothing is read from disk; a file not among them is an error), or read
+    /// beside the scene file (`None`).
+    pub fn from_text_with(
+        text: &str,
+        path: &str,
+        overrides: Overrides,
+        assets: Option<&Assets>,
+    ) -> Result<Scene, SceneError> {
         let mut desc = parse(text, path)?;
+        let loaded;
+        let assets = match assets {
+            Some(a) => a,
+            None => {
+                loaded = Assets::load(&desc, path, MeshLimits::default())?;
+                &loaded
+            }
+        };
+        desc.attach_meshes(|p| assets.mesh(p).cloned())
+            .map_err(|missing| SceneError::Mesh {
+                scene: path.to_string(),
+                error: MeshError {
+                    path: missing,
+                    message: "not among the files sent with the scene".into(),
+                },
+            })?;
         if let Some(w) = overrides.width {
             desc.image.width = w;
         }
@@ -401,7 +536,19 @@ impl Scene {
         desc::check_resolution(desc.image.width, desc.image.height)
             .map_err(SceneError::Override)?;
         let knobs = knob_values(&desc, &overrides.knobs)?;
-        Scene::build(&desc, &knobs).map_err(|f| f.locate(text, path))
+        let mut scene = Scene::build(&desc, &knobs).map_err(|f| f.locate(text, path))?;
+        scene.assets = desc
+            .mesh_paths()
+            .into_iter()
+            .filter_map(|p| assets.mesh(&p).map(|m| (p, m.hash())))
+            .collect();
+        Ok(scene)
+    }
+
+    /// The files the scene names, as (path as written, content hash of the
+    /// bytes), in path order: what the farm's scene hash covers beyond the text.
+    pub fn asset_hashes(&self) -> &[(String, u64)] {
+        &self.assets
     }
 
     /// Builds the runtime scene from a checked description and its knob values,
@@ -452,9 +599,16 @@ impl Scene {
         let (density, expressions) =
             SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
         let motion = desc.transform.as_ref().map(Motion::build);
-        let density = match motion {
-            Some(_) => Density::Moving(Box::new(density)),
-            None => density,
+        let own = match desc.density {
+            Some(_) => Density::build(&object, step),
+            None => density.clone(),
+        };
+        let (density, own) = match motion {
+            Some(_) => (
+                Density::Moving(Box::new(density)),
+                Density::Moving(Box::new(own)),
+            ),
+            None => (density, own),
         };
         // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
@@ -467,6 +621,7 @@ impl Scene {
             opacity_exponent: desc.march.opacity.0 * step,
             threshold: desc.march.threshold.0,
             density,
+            object: own,
             noise: Noise::new(desc.seed),
             colour_map,
             colour_index,
@@ -489,6 +644,7 @@ impl Scene {
             frame_rate: desc.frame_rate.0,
             expressions,
             motion,
+            assets: Vec::new(),
         })
     }
 

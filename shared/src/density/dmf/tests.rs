@@ -10,7 +10,7 @@ use crate::density::{Density, Field, Hypertexture, Points};
 use crate::dual::DualPoint;
 use crate::noise::Noise;
 use crate::random::SplitMix64;
-use crate::scene::desc::{DmfDesc, ObjectDesc};
+use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
 use crate::simd::{Isa, LANES};
 
 /// The registered DMF a description builds, by name. The match has no
@@ -64,40 +64,94 @@ const CASES: &[(&str, &str)] = &[
         "Torus(major_radius: 0.8, minor_radius: 0.3, softness: 0.3)",
         "Fur(frequency: 25.0, curliness: 0.7)",
     ),
+    // An icosphere of radius 0.6 (the mesh tests' generator).
+    (
+        "Mesh(path: \"icosphere.obj\", softness: 0.4)",
+        "Fur(frequency: 25.0, curliness: 0.7)",
+    ),
+    (
+        "Mesh(path: \"icosphere.obj\", softness: 0.4, centre: (0.1, 0.0, 0.0), scale: 1.2)",
+        "NoisyRadius(frequency: 2.0, amplitude: 0.2), Bias(0.6), Fur(frequency: 12.0)",
+    ),
     (
         "Sphere(radius: 0.9, softness: 0.6)",
         "NoisyRadius(frequency: 2.0, amplitude: 0.2), TurbulentRadius(frequency: 3.0, amplitude: 0.3, octaves: 3), Bias(0.6), Gain(0.3), Fur(frequency: 12.0, curliness: 0.4)",
     ),
 ];
 
-fn case(object: &str, dmfs: &str) -> (Density, Vec<DmfDesc>) {
+fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>) {
     let step = 0.01;
     // The scene parser's extensions: `Sphere(radius: …)` for `Sphere(Sphere(…))`.
     let ron = ron::Options::default()
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
-    let object: ObjectDesc = ron.from_str(object).expect("a valid object");
+    let mut object: ObjectDesc = ron.from_str(object).expect("a valid object");
+    object.for_each_mesh_mut(&mut |m| {
+        let obj = crate::mesh::tests::icosphere_obj(0.6, 2);
+        let mesh = crate::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
+        m.mesh = Some(std::sync::Arc::new(
+            mesh.expect("the icosphere is a closed mesh"),
+        ));
+    });
     let dmfs: Vec<DmfDesc> = ron.from_str(&format!("[{dmfs}]")).expect("valid DMFs");
-    let h = Hypertexture::build(Density::build(&object, step), &dmfs, step);
+    let h =
+        Hypertexture::build(Density::build(&object, step), &dmfs, step).with_hard_core(hard_core);
     (Density::Hypertexture(Box::new(h)), dmfs)
 }
 
-#[test]
-fn every_dmf_gives_the_same_bits_on_every_path() {
-    let noise = Noise::new(1989);
-    let field = Field {
-        noise: &noise,
+fn field(noise: &Noise) -> Field<'_> {
+    Field {
+        noise,
         offset: Vec3::new(0.0, 0.06, 0.0),
         frame: 3,
         time: 3.0,
         frame_rate: 24.0,
         pose: None,
         support: None,
-    };
+    }
+}
+
+#[test]
+fn the_hard_region_is_solid_unless_shaped() {
+    let noise = Noise::new(1989);
+    let field = field(&noise);
+    let sphere = "Sphere(radius: 0.9, softness: 0.6)";
+    let fur = "Fur(frequency: 30.0, bias: 0.3, gain: 0.9)";
+    let (solid, _) = case(sphere, fur, HardCore::Solid);
+    let (shaped, _) = case(sphere, fur, HardCore::Shaped);
+    let (object, _) = case(sphere, "", HardCore::Solid);
+    let mut r = SplitMix64::new(1);
+    let (mut core, mut shaped_below_1, mut soft) = (0, 0, 0);
+    for _ in 0..2000 {
+        let p = (Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 2.0 - 1.0) * 1.2;
+        let d = object.eval(p, &field);
+        let (f, g) = (solid.eval(p, &field), shaped.eval(p, &field));
+        if d == 1.0 {
+            core += 1;
+            assert_eq!(f, 1.0, "solid at {p}");
+            assert_eq!(solid.eval_dual(&DualPoint::at(p), &field, 0.01).v, 1.0);
+            shaped_below_1 += usize::from(g < 1.0);
+        } else {
+            // The soft region and outside: the same DMFs either way.
+            assert_eq!(f.to_bits(), g.to_bits(), "soft at {p}");
+            soft += usize::from(d > 0.0 && f < d);
+        }
+        assert_eq!(solid.eval_object(p, &field).to_bits(), d.to_bits());
+    }
+    assert!(core > 100 && soft > 100, "{core} core, {soft} soft points");
+    // The literal formula f = fur(x)·D leaves most of the core below 1.
+    assert!(shaped_below_1 > core / 2, "{shaped_below_1} of {core}");
+}
+
+#[test]
+fn every_dmf_gives_the_same_bits_on_every_path() {
+    let noise = Noise::new(1989);
+    let field = field(&noise);
     let isas = Isa::available();
     assert!(isas.contains(&Isa::Scalar));
     let mut seen = BTreeSet::new();
-    for &(object, dmfs) in CASES {
-        let (density, descs) = case(object, dmfs);
+    let modes = [HardCore::Solid, HardCore::Shaped];
+    for (&(object, dmfs), hard_core) in CASES.iter().flat_map(|c| modes.map(|m| (c, m))) {
+        let (density, descs) = case(object, dmfs, hard_core);
         for d in &descs {
             seen.insert(registered(&Dmf::build(d, 0.01)));
         }
@@ -116,7 +170,7 @@ fn every_dmf_gives_the_same_bits_on_every_path() {
                 assert_eq!(
                     lanes.map(f32::to_bits),
                     scalar.map(f32::to_bits),
-                    "{dmfs} on {object}, {isa:?} at {points:?}"
+                    "{dmfs} on {object} ({hard_core:?}), {isa:?} at {points:?}"
                 );
             }
             for (l, &v) in scalar.iter().enumerate() {

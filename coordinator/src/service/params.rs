@@ -1,0 +1,569 @@
+//! The numbers of a scene's text, found where they stand, so that the studio
+//! can give each numeric parameter of the object, its modulations, the
+//! distortion, the camera and the lights a slider, and each control point of
+//! a curve (colour and alpha maps, 1D shape transfer functions) a handle, and
+//! write a moved value back into the text without touching anything else.
+//!
+//! A number's *path* names it by the fields, variants and positions that lead
+//! to it: `object.Torus.minor_radius`, `camera.eye[1]`,
+//! `modulation[0].Fur.frequency`, `alpha_map.points[1][0]`. Paths are stable
+//! while only numbers change, so a slider keeps its identity as it moves.
+//!
+//! The scanner reads RON's shape only (brackets, `name:`, commas, comments,
+//! strings); the scene parser still decides whether the text is a scene.
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+
+/// A number in the text.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Number {
+    pub path: String,
+    pub value: f64,
+    /// Written without a point or exponent.
+    pub integer: bool,
+    /// Its bytes in the text.
+    pub span: std::ops::Range<usize>,
+}
+
+/// One open bracket while scanning.
+struct Level {
+    /// The path up to and including this bracket's own segment.
+    path: String,
+    /// Position among the bracket's comma-separated items.
+    index: usize,
+    /// The `name:` seen for the current item.
+    key: Option<String>,
+}
+
+impl Level {
+    /// The segment of the current item: its field name, or its position.
+    fn item(&self) -> String {
+        match &self.key {
+            Some(k) => join(&self.path, k),
+            None => format!("{}[{}]", self.path, self.index),
+        }
+    }
+}
+
+fn join(path: &str, segment: &str) -> String {
+    if path.is_empty() {
+        segment.to_string()
+    } else {
+        format!("{path}.{segment}")
+    }
+}
+
+/// Every number in `text` with its path, in the order they stand. Numbers in
+/// comments and strings are not numbers of the scene.
+pub fn numbers(text: &str) -> Vec<Number> {
+    let bytes = text.as_bytes();
+    let mut out = Vec::new();
+    // The outermost `Scene(` opens the root: its fields' paths start bare.
+    let mut levels: Vec<Level> = Vec::new();
+    // An identifier just read (a field name before `:`, or a variant before `(`).
+    let mut ident: Option<String> = None;
+    let mut i = 0;
+    while i < bytes.len() {
+        let c = bytes[i];
+        match c {
+            b'/' if bytes.get(i + 1) == Some(&b'/') => {
+                while i < bytes.len() && bytes[i] != b'\n' {
+                    i += 1;
+                }
+                continue;
+            }
+            b'/' if bytes.get(i + 1) == Some(&b'*') => {
+                // RON's block comments nest.
+                let mut depth = 0;
+                while i < bytes.len() {
+                    if bytes[i..].starts_with(b"/*") {
+                        depth += 1;
+                        i += 2;
+                    } else if bytes[i..].starts_with(b"*/") {
+                        depth -= 1;
+                        i += 2;
+                        if depth == 0 {
+                            break;
+                        }
+                    } else {
+                        i += 1;
+                    }
+                }
+                continue;
+            }
+            b'"' => {
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    i += if bytes[i] == b'\\' { 2 } else { 1 };
+                }
+                i += 1;
+                ident = None;
+                continue;
+            }
+            b'r' if matches!(bytes.get(i + 1), Some(b'"' | b'#')) => {
+                // A raw string r"…" or r#"…"#.
+                let hashes = bytes[i + 1..].iter().take_while(|&&b| b == b'#').count();
+                let close: Vec<u8> = std::iter::once(b'"')
+                    .chain(std::iter::repeat_n(b'#', hashes))
+                    .collect();
+                i += 2 + hashes;
+                while i < bytes.len() && !bytes[i..].starts_with(&close) {
+                    i += 1;
+                }
+                i += close.len();
+                ident = None;
+                continue;
+            }
+            b'(' | b'[' => {
+                let path = match levels.last() {
+                    None => String::new(),
+                    Some(level) => {
+                        let item = level.item();
+                        match ident.take() {
+                            Some(variant) => join(&item, &variant),
+                            None => item,
+                        }
+                    }
+                };
+                ident = None;
+                levels.push(Level {
+                    path,
+                    index: 0,
+                    key: None,
+                });
+            }
+            b')' | b']' => {
+                levels.pop();
+                ident = None;
+            }
+            b',' => {
+                if let Some(level) = levels.last_mut() {
+                    level.index += 1;
+                    level.key = None;
+                }
+                ident = None;
+            }
+            b':' => {
+                if let Some(level) = levels.last_mut() {
+                    level.key = ident.take();
+                }
+            }
+            b'-' | b'+' | b'.' | b'0'..=b'9' => {
+                let start = i;
+                let mut end = i + 1;
+                while end < bytes.len()
+                    && (bytes[end].is_ascii_alphanumeric()
+                        || bytes[end] == b'.'
+                        || bytes[end] == b'_'
+                        || (matches!(bytes[end], b'-' | b'+')
+                            && matches!(bytes[end - 1], b'e' | b'E')))
+                {
+                    end += 1;
+                }
+                let literal = &text[start..end];
+                let plain = literal.replace('_', "");
+                if let (Some(level), Ok(value)) = (levels.last(), plain.parse::<f64>())
+                    && value.is_finite()
+                {
+                    out.push(Number {
+                        path: level.item(),
+                        value,
+                        integer: !plain.contains(['.', 'e', 'E']),
+                        span: start..end,
+                    });
+                }
+                ident = None;
+                i = end;
+                continue;
+            }
+            c if c.is_ascii_alphabetic() || c == b'_' => {
+                let start = i;
+                while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
+                    i += 1;
+                }
+                ident = Some(text[start..i].to_string());
+                continue;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    out
+}
+
+/// `text` with the numbers at `values`' paths set to them (each written as the
+/// literal it replaces was: an integer stays an integer). Paths that are not
+/// in the text are named in the error.
+pub fn with_values(text: &str, values: &BTreeMap<String, f64>) -> Result<String, String> {
+    let found = numbers(text);
+    let mut edits = Vec::new();
+    for (path, value) in values {
+        let n = found
+            .iter()
+            .find(|n| &n.path == path)
+            .ok_or_else(|| format!("the scene has no number at `{path}`"))?;
+        if !value.is_finite() {
+            return Err(format!("`{path}`: {value} is not a number"));
+        }
+        edits.push((n.span.clone(), literal(*value, n.integer)));
+    }
+    edits.sort_by_key(|(span, _)| std::cmp::Reverse(span.start));
+    let mut out = text.to_string();
+    for (span, with) in edits {
+        out.replace_range(span, &with);
+    }
+    Ok(out)
+}
+
+/// A value as RON reads it back to the same f64 (shortest round trip).
+fn literal(value: f64, integer: bool) -> String {
+    if integer {
+        format!("{}", value.round() as i64)
+    } else {
+        format!("{value:?}")
+    }
+}
+
+/// Which of a scene's top-level fields get sliders. Sizes, bounds, steps and
+/// seeds are not modelling parameters; curves get handles instead.
+const SLIDER_FIELDS: &[&str] = &[
+    "object",
+    "modulation",
+    "distortion",
+    "camera",
+    "lights",
+    "shading",
+];
+
+/// A slider for one number.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Param {
+    /// Its path (what the page sends back).
+    pub id: String,
+    /// The top-level field it belongs to (the page groups by it).
+    pub group: String,
+    pub value: f64,
+    pub min: f64,
+    pub max: f64,
+    pub step: f64,
+}
+
+/// A control point's coordinate on a curve.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Coordinate {
+    pub id: String,
+    pub value: f64,
+}
+
+/// A control point: its x, and its y (a scalar curve) or its colour.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct ControlPoint {
+    pub x: Coordinate,
+    pub y: Option<Coordinate>,
+    pub rgb: Option<[f64; 3]>,
+}
+
+/// A curve with draggable control points.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Curve {
+    /// The path of its `points` list.
+    pub id: String,
+    pub points: Vec<ControlPoint>,
+}
+
+/// The sliders and curves of a scene text. `ranges` keeps each slider's range
+/// from one call to the next (a range is chosen around the value when its
+/// path first appears, and again only if the value leaves it), so that a
+/// moving slider's scale stays put.
+pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<Param>, Vec<Curve>) {
+    let found = numbers(text);
+    let mut params = Vec::new();
+    let mut curves: Vec<Curve> = Vec::new();
+    for n in &found {
+        if let Some((curve, index, rest)) = curve_point(&n.path) {
+            let at = match curves.iter().position(|c| c.id == curve) {
+                Some(at) => at,
+                None => {
+                    curves.push(Curve {
+                        id: curve.to_string(),
+                        points: Vec::new(),
+                    });
+                    curves.len() - 1
+                }
+            };
+            let points = &mut curves[at].points;
+            if points.len() <= index {
+                points.resize(
+                    index + 1,
+                    ControlPoint {
+                        x: Coordinate {
+                            id: String::new(),
+                            value: 0.0,
+                        },
+                        y: None,
+                        rgb: None,
+                    },
+                );
+            }
+            let point = &mut points[index];
+            let coordinate = Coordinate {
+                id: n.path.clone(),
+                value: n.value,
+            };
+            match rest {
+                "[0]" => point.x = coordinate,
+                "[1]" => point.y = Some(coordinate),
+                _ => {
+                    if let Some(k) = ["[1][0]", "[1][1]", "[1][2]"]
+                        .iter()
+                        .position(|r| *r == rest)
+                    {
+                        point.rgb.get_or_insert([0.0; 3])[k] = n.value;
+                    }
+                }
+            }
+            continue;
+        }
+        let group = n.path.split(['.', '[']).next().unwrap_or_default();
+        if !SLIDER_FIELDS.contains(&group) {
+            continue;
+        }
+        let (min, max) = match ranges.get(&n.path) {
+            Some(&(lo, hi)) if lo <= n.value && n.value <= hi => (lo, hi),
+            _ => range(&n.path, n.value, n.integer),
+        };
+        ranges.insert(n.path.clone(), (min, max));
+        params.push(Param {
+            id: n.path.clone(),
+            group: group.to_string(),
+            value: n.value,
+            min,
+            max,
+            step: if n.integer { 1.0 } else { step(max - min) },
+        });
+    }
+    ranges.retain(|path, _| params.iter().any(|p| &p.id == path));
+    // A list of points is a curve when every point has an x and a y or colour.
+    curves.retain(|c| {
+        !c.points.is_empty()
+            && c.points
+                .iter()
+                .all(|p| !p.x.id.is_empty() && (p.y.is_some() || p.rgb.is_some()))
+    });
+    (params, curves)
+}
+
+/// A slider's step: the power of ten at most a thousandth of its span, so
+/// that round values (0.4, not 0.39995) lie on its grid.
+fn step(span: f64) -> f64 {
+    if span > 0.0 {
+        let exponent = (span / 1000.0).log10().floor() as i32;
+        format!("1e{exponent}").parse().unwrap_or(1.0)
+    } else {
+        1.0
+    }
+}
+
+/// `(curve path, point index, the rest)` when `path` is a coordinate of a
+/// curve's control point: `….points[i][0]` (x), `[1]` (y) or `[1][k]` (colour).
+fn curve_point(path: &str) -> Option<(&str, usize, &str)> {
+    let at = path.rfind(".points[")?;
+    let curve = &path[..at + ".points".len()];
+    let rest = &path[at + ".points[".len()..];
+    let close = rest.find(']')?;
+    let index = rest[..close].parse().ok()?;
+    let rest = &rest[close + 1..];
+    matches!(rest, "[0]" | "[1]" | "[1][0]" | "[1][1]" | "[1][2]").then_some((curve, index, rest))
+}
+
+/// A sensible slider range for the number at `path`: the parameter's own
+/// domain where the scene format fixes one, otherwise a span around the value.
+fn range(path: &str, value: f64, integer: bool) -> (f64, f64) {
+    let key = path
+        .rsplit('.')
+        .map(|s| s.split('[').next().unwrap_or(s))
+        .find(|s| !s.is_empty())
+        .unwrap_or_default();
+    let component = path.ends_with(']');
+    let fixed = match key {
+        "bias" | "gain" => Some((0.01, 0.99)),
+        "fov_y" => Some((5.0, 150.0)),
+        "ambient" | "diffuse" | "specular" => Some((0.0, 1.0)),
+        "colour" if component => Some((0.0, 1.0)),
+        "direction" | "up" => Some((-1.0, 1.0)),
+        "shift" => Some((-1.0, 1.0)),
+        "eye" | "look_at" | "position" => Some((value - 4.0, value + 4.0)),
+        _ => None,
+    };
+    let (lo, hi) = fixed.unwrap_or(if integer {
+        (1.0_f64.min(value), (2.0 * value).max(value + 4.0))
+    } else if value > 0.0 {
+        (0.0, 2.0 * value)
+    } else if value < 0.0 {
+        (2.0 * value, -2.0 * value)
+    } else {
+        (-1.0, 1.0)
+    });
+    (lo.min(value), hi.max(value))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FUR: &str = include_str!("../../../scenes/fur.ron");
+
+    fn at<'a>(found: &'a [Number], path: &str) -> &'a Number {
+        found
+            .iter()
+            .find(|n| n.path == path)
+            .unwrap_or_else(|| panic!("no {path} in {:#?}", found))
+    }
+
+    #[test]
+    fn numbers_are_named_by_their_fields_variants_and_positions() {
+        let found = numbers(FUR);
+        assert_eq!(at(&found, "object.Torus.minor_radius").value, 0.475);
+        assert_eq!(at(&found, "camera.eye[1]").value, 2.3);
+        assert_eq!(
+            at(&found, "camera.projection.Perspective.fov_y").value,
+            50.0
+        );
+        assert_eq!(at(&found, "modulation[0].Fur.frequency").value, 40.0);
+        assert_eq!(at(&found, "march.step.Diagonal[0]").value, 200.0);
+        assert!(at(&found, "march.step.Diagonal[0]").integer);
+        assert_eq!(
+            at(&found, "lights.sources[0].Directional.direction[2]").value,
+            0.5
+        );
+        assert_eq!(at(&found, "colour_map.points[1][1][0]").value, 0.80);
+        // The numbers in the comments are not the scene's.
+        assert!(found.iter().all(|n| !n.path.is_empty()));
+        assert_eq!(found.iter().filter(|n| n.value == 0.35).count(), 0);
+        for n in &found {
+            assert_eq!(FUR[n.span.clone()].parse::<f64>().unwrap(), n.value);
+        }
+    }
+
+    #[test]
+    fn a_value_written_back_changes_that_number_only() {
+        let values: BTreeMap<String, f64> = [
+            ("object.Torus.minor_radius".to_string(), 0.4),
+            ("march.step.Diagonal[0]".to_string(), 120.4),
+        ]
+        .into();
+        let text = with_values(FUR, &values).unwrap();
+        let desc = hypertexture::scene::parse(&text, "fur.ron").unwrap();
+        let before = hypertexture::scene::parse(FUR, "fur.ron").unwrap();
+        assert_ne!(format!("{:?}", desc.object), format!("{:?}", before.object));
+        assert!(text.contains("minor_radius: 0.4,"));
+        assert!(text.contains("Diagonal(120)"));
+        assert_eq!(
+            numbers(&text).len(),
+            numbers(FUR).len(),
+            "the same numbers at the same paths"
+        );
+        let err = with_values(FUR, &[("object.Sphere.radius".to_string(), 1.0)].into());
+        assert!(err.unwrap_err().contains("object.Sphere.radius"));
+    }
+
+    #[test]
+    fn sliders_cover_the_modelling_fields_and_curves_get_handles() {
+        let mut ranges = BTreeMap::new();
+        let (params, curves) = controls(FUR, &mut ranges);
+        let ids: Vec<&str> = params.iter().map(|p| p.id.as_str()).collect();
+        for id in [
+            "object.Torus.major_radius",
+            "object.Torus.minor_radius",
+            "object.Torus.softness",
+            "modulation[0].Fur.frequency",
+            "modulation[0].Fur.bias",
+            "modulation[0].Fur.gain",
+            "camera.eye[0]",
+            "camera.projection.Perspective.fov_y",
+            "lights.ambient[0]",
+            "lights.sources[0].Directional.direction[0]",
+            "lights.sources[0].Directional.colour[2]",
+        ] {
+            assert!(ids.contains(&id), "{id} in {ids:?}");
+        }
+        assert!(
+            !ids.iter()
+                .any(|i| i.starts_with("image") || i.starts_with("march"))
+        );
+        for p in &params {
+            assert!(p.min <= p.value && p.value <= p.max, "{p:?}");
+            assert!(p.step > 0.0);
+        }
+        let bias = params.iter().find(|p| p.id.ends_with("Fur.bias")).unwrap();
+        assert_eq!((bias.min, bias.max, bias.step), (0.01, 0.99, 0.0001));
+        assert_eq!(curves.len(), 1);
+        assert_eq!(curves[0].id, "colour_map.points");
+        assert_eq!(curves[0].points.len(), 3);
+        assert_eq!(curves[0].points[1].x.value, 0.5);
+        assert_eq!(curves[0].points[1].rgb, Some([0.80, 0.62, 0.42]));
+
+        // A moved slider keeps its range.
+        let moved =
+            with_values(FUR, &[("object.Torus.softness".to_string(), 0.49)].into()).unwrap();
+        let (again, _) = controls(&moved, &mut ranges);
+        let s = |ps: &[Param]| {
+            ps.iter()
+                .find(|p| p.id == "object.Torus.softness")
+                .map(|p| (p.min, p.max))
+                .unwrap()
+        };
+        assert_eq!(s(&again), s(&params));
+    }
+
+    #[test]
+    fn scalar_curves_and_transfer_functions_have_x_and_y() {
+        let text = include_str!("../../../scenes/gilet/craters_r0.ron");
+        let mut ranges = BTreeMap::new();
+        let (params, curves) = controls(text, &mut ranges);
+        let ids: Vec<&str> = curves.iter().map(|c| c.id.as_str()).collect();
+        assert_eq!(
+            ids,
+            [
+                "distortion.terms[0].transfer.Curve.points",
+                "alpha_map.points",
+                "colour_map.points"
+            ]
+        );
+        let transfer = &curves[0];
+        assert_eq!(transfer.points.len(), 6);
+        assert_eq!(transfer.points[2].x.value, 0.74);
+        assert_eq!(transfer.points[2].y.as_ref().unwrap().value, 1.0);
+        assert!(
+            params
+                .iter()
+                .any(|p| p.id == "distortion.terms[0].amplitude")
+        );
+        assert!(params.iter().any(|p| p.id == "shading.specular"));
+        assert!(!params.iter().any(|p| p.id.contains("points")));
+    }
+
+    #[test]
+    fn strings_comments_and_odd_text_do_not_confuse_the_scanner() {
+        let text = "Scene(a: \"x: 1.0, (\", /* b: 2.0 /* nested */ 3.0 */ c: r#\"4\"#, d: [1e-3, -2, +.5])";
+        let found = numbers(text);
+        let paths: Vec<(&str, f64)> = found.iter().map(|n| (n.path.as_str(), n.value)).collect();
+        assert_eq!(paths, [("d[0]", 1e-3), ("d[1]", -2.0), ("d[2]", 0.5)]);
+        // Unbalanced or empty text: no panic.
+        for t in [
+            "",
+            ")))",
+            "(((",
+            "Scene(x: 1.0",
+            "[1, 2",
+            "\"",
+            "/*",
+            "r#\"",
+        ] {
+            let _ = numbers(t);
+            let _ = controls(t, &mut BTreeMap::new());
+        }
+    }
+}
