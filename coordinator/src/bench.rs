@@ -267,6 +267,7 @@ fn farm_render(
             text,
             &Default::default(),
         )),
+        bake: None,
         assets: farm::Asset::of_scene(scene, &path.display().to_string())
             .map_err(CoordinatorError::Asset)?,
     };

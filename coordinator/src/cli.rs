@@ -124,6 +124,10 @@ pub enum Command {
     /// Print the value of an expression at a point: a probe for designing
     /// hypertextures, e.g. `coordinator eval "improved(3.14, 42, 7)"`.
     Eval(EvalArgs),
+    /// Sample the scene's hypertexture on a voxel lattice and write it as an
+    /// OpenVDB file: a `density` grid and a `color` grid, for Blender or
+    /// Houdini.
+    Bake(BakeArgs),
     /// Map the density channel of a rendered EXR to colour again, without
     /// re-rendering (the 1985 paper's two-pass compositing).
     Recolor(RecolorArgs),
@@ -348,6 +352,87 @@ pub struct EvalArgs {
     /// Set a knob of the scene (repeatable).
     #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
     pub set: Vec<(String, f64)>,
+}
+
+/// Arguments of `coordinator bake`.
+#[derive(Debug, clap::Args)]
+pub struct BakeArgs {
+    /// Scene file (RON), e.g. scenes/fur.ron.
+    #[arg(value_name = "SCENE")]
+    pub scene: PathBuf,
+    /// The OpenVDB file; a run of # is the frame number padded to its length
+    /// (fur.####.vdb), needed with --frames.
+    #[arg(long, value_name = "FILE")]
+    pub out: String,
+    /// Voxels along the longest edge of the box where the density can be non-zero.
+    #[arg(long, value_name = "N", default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=i64::from(crate::bake::MAX_RESOLUTION)))]
+    pub resolution: u32,
+    /// Frame number (animated scenes).
+    #[arg(long, value_name = "F", default_value_t = 0)]
+    pub frame: u32,
+    /// Bake frames A to B (A..B excludes B, A..=B includes it), one file each.
+    #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
+    pub frames: Option<(u32, u32)>,
+    /// Threads: of the pool with --in-process (default: every core), or of
+    /// each local worker on the farm (default 1).
+    #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
+    pub threads: Option<NonZeroUsize>,
+    /// Set a knob of the scene (repeatable): --set curliness=0.8.
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
+    pub set: Vec<(String, f64)>,
+    /// Bake in this process with a thread pool, without the farm (no gRPC).
+    #[arg(long)]
+    pub in_process: bool,
+    /// Where the farm listens for workers. Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// Shared secret workers must present (required beyond loopback).
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+    /// Give up (exit non-zero) when no worker is connected for this many seconds.
+    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
+    pub worker_timeout: f64,
+    /// No log lines; errors are still printed.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+impl BakeArgs {
+    /// The library configuration of the bake.
+    pub fn into_config(self) -> crate::bake::BakeConfig {
+        crate::bake::BakeConfig {
+            scene: self.scene,
+            out: self.out,
+            resolution: self.resolution,
+            frame: self.frame,
+            frames: self.frames,
+            threads: self.threads,
+            knobs: self.set,
+            farm: (!self.in_process).then(|| FarmOptions {
+                listen: self.listen,
+                token: self.token.filter(|t| !t.is_empty()),
+                lease: Duration::from_secs_f64(self.lease_timeout),
+                worker_timeout: Duration::from_secs_f64(self.worker_timeout),
+                local_workers: self.local_workers.unwrap_or_else(|| {
+                    std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
+                }),
+                preview_every: None,
+                tls: None,
+                interleave: 8,
+            }),
+        }
+    }
 }
 
 /// Arguments of `coordinator recolor`.

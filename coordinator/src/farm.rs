@@ -144,6 +144,10 @@ pub struct FrameJob {
     pub pixel_format: PixelFormat,
     /// What the images record (previews too).
     pub metadata: std::sync::Arc<crate::output::ImageMetadata>,
+    /// For a bake: the lattice whose voxels the pixels are
+    /// ([`hypertexture::bake`]); the image is `width` × `height` as
+    /// [`hypertexture::bake::Lattice::image_size`] lays it out.
+    pub bake: Option<hypertexture::bake::Lattice>,
     /// The files the scene names (meshes), which workers fetch by hash.
     pub assets: Vec<Asset>,
 }
@@ -264,6 +268,7 @@ impl WireJob {
             quality: convert::quality_to_wire(job.quality) as i32,
             knobs: convert::knobs_to_wire(&job.knobs),
             pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
+            bake: job.bake.as_ref().map(convert::lattice_to_wire),
             assets: job
                 .assets
                 .iter()

@@ -3,6 +3,7 @@
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
 pub mod api;
+pub mod bake;
 pub mod bench;
 pub mod canvas;
 pub mod cli;
@@ -21,6 +22,7 @@ pub mod recolor;
 pub mod scheduler;
 pub mod service;
 pub mod store;
+pub mod vdb;
 
 use std::io::IsTerminal;
 use std::num::NonZeroUsize;
@@ -77,6 +79,34 @@ pub struct FarmOptions {
     pub tls: Option<(PathBuf, PathBuf)>,
     /// The interleave B.
     pub interleave: u32,
+}
+
+impl FarmOptions {
+    /// The farm's configuration: these options, with `threads` per local
+    /// worker (default 1) and the TLS files read.
+    pub fn farm_config(
+        &self,
+        threads: Option<NonZeroUsize>,
+        progress: bool,
+    ) -> Result<farm::FarmConfig, CoordinatorError> {
+        let tls = match &self.tls {
+            Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+            None => None,
+        };
+        Ok(farm::FarmConfig {
+            listen: self.listen,
+            token: self.token.clone(),
+            lease: self.lease,
+            worker_timeout: self.worker_timeout,
+            local_workers: self.local_workers,
+            local_threads: threads.map_or(1, NonZeroUsize::get),
+            preview_every: self.preview_every,
+            tls,
+            interleave: self.interleave,
+            progress,
+            gate: Default::default(),
+        })
+    }
 }
 
 impl Config {
@@ -139,6 +169,9 @@ pub enum CoordinatorError {
         /// What went wrong.
         message: String,
     },
+    /// A bake cannot be done as asked.
+    #[error("{0}")]
+    Bake(String),
     /// The service failed.
     #[error(transparent)]
     Service(Box<service::ServiceError>),
@@ -300,10 +333,6 @@ pub fn render_on_farm(
     metadata: output::ImageMetadata,
     frames: Vec<farm::FrameOut>,
 ) -> Result<Vec<Summary>, CoordinatorError> {
-    let tls = match &options.tls {
-        Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
-        None => None,
-    };
     let metadata = std::sync::Arc::new(metadata);
     let job = farm::FrameJob {
         scene_text: metadata.scene_text.clone(),
@@ -316,22 +345,11 @@ pub fn render_on_farm(
         pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
         frames,
         metadata: metadata.clone(),
+        bake: None,
         assets: farm::Asset::of_scene(scene, &metadata.scene_name)
             .map_err(CoordinatorError::Asset)?,
     };
-    let farm_config = farm::FarmConfig {
-        listen: options.listen,
-        token: options.token.clone(),
-        lease: options.lease,
-        worker_timeout: options.worker_timeout,
-        local_workers: options.local_workers,
-        local_threads: config.threads.map_or(1, NonZeroUsize::get),
-        preview_every: options.preview_every,
-        tls,
-        interleave: options.interleave,
-        progress: config.progress,
-        gate: Default::default(),
-    };
+    let farm_config = options.farm_config(config.threads, config.progress)?;
     // One thread serves the farm: per unit it only checks and stores a tile, and
     // any thread more competes with the render threads of local workers.
     let runtime = tokio::runtime::Builder::new_current_thread()
@@ -435,6 +453,21 @@ pub fn eval(
         })
 }
 
+/// A pool of `threads` threads named `name-0`, `name-1`, ….
+pub(crate) fn thread_pool(
+    threads: usize,
+    name: &'static str,
+) -> Result<rayon::ThreadPool, CoordinatorError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(move |i| format!("{name}-{i}"))
+        .build()
+        .map_err(|e| CoordinatorError::Threads {
+            threads,
+            message: e.to_string(),
+        })
+}
+
 /// Renders the whole frame on a pool of `threads` threads in this process.
 pub fn render_in_process(
     scene: &Scene,
@@ -442,14 +475,7 @@ pub fn render_in_process(
     threads: usize,
     progress: bool,
 ) -> Result<(Film, Duration), CoordinatorError> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("render-{i}"))
-        .build()
-        .map_err(|e| CoordinatorError::Threads {
-            threads,
-            message: e.to_string(),
-        })?;
+    let pool = thread_pool(threads, "render")?;
     let bar = if progress && std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(u64::from(scene.height()));
         bar.set_style(

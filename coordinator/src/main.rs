@@ -34,6 +34,12 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         })
         .map_err(|e| e.to_string()),
+        Some(Command::Bake(args)) => {
+            coordinator::logging::init(args.quiet);
+            coordinator::bake::run(&args.into_config())
+                .map(|_| ExitCode::SUCCESS)
+                .map_err(|e| e.to_string())
+        }
         Some(Command::Recolor(args)) => {
             coordinator::logging::init(false);
             coordinator::recolor::run(&args.input, &args.colormap, &args.out)

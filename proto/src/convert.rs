@@ -2,6 +2,7 @@
 
 use std::fmt::Write as _;
 
+use hypertexture::bake::Lattice;
 use hypertexture::interleave::{PixelSet, WorkUnit};
 use hypertexture::{PixelFormat, Quality, Sample};
 
@@ -37,6 +38,9 @@ pub enum WireError {
     /// A failure report names no kind, or one this build does not know.
     #[error("unknown failure kind {0}")]
     UnknownFailureKind(i32),
+    /// A bake's lattice is unusable or does not fit the job's image.
+    #[error("invalid bake lattice: {0}")]
+    InvalidLattice(String),
     /// A tile value is NaN or infinite.
     #[error("tile value {index} is not finite ({value})")]
     NotFinite {
@@ -135,6 +139,50 @@ pub fn tile_from_wire(
         }
     }
     Ok(bytes)
+}
+
+/// A bake's lattice on the wire.
+pub fn lattice_to_wire(lattice: &Lattice) -> pb::BakeLattice {
+    let [nx, ny, nz] = lattice.dims;
+    pb::BakeLattice {
+        origin_x: lattice.origin.x,
+        origin_y: lattice.origin.y,
+        origin_z: lattice.origin.z,
+        voxel: lattice.voxel,
+        nx,
+        ny,
+        nz,
+    }
+}
+
+/// A bake's lattice from the wire, checked: finite, voxels of a positive
+/// size, and laid out as exactly the job's `width` × `height` image.
+pub fn lattice_from_wire(
+    lattice: &pb::BakeLattice,
+    width: u32,
+    height: u32,
+) -> Result<Lattice, WireError> {
+    let l = Lattice {
+        origin: glam::Vec3::new(lattice.origin_x, lattice.origin_y, lattice.origin_z),
+        voxel: lattice.voxel,
+        dims: [lattice.nx, lattice.ny, lattice.nz],
+    };
+    if !l.is_usable() {
+        return Err(WireError::InvalidLattice(format!(
+            "origin {}, voxel {}, {}×{}×{} voxels: expected finite numbers, a positive voxel and no empty axis",
+            l.origin, l.voxel, l.dims[0], l.dims[1], l.dims[2]
+        )));
+    }
+    match l.image_size() {
+        Some(size) if size == (width, height) => Ok(l),
+        size => Err(WireError::InvalidLattice(format!(
+            "{}×{}×{} voxels lay out as {} but the job's image is {width}×{height}",
+            l.dims[0],
+            l.dims[1],
+            l.dims[2],
+            size.map_or_else(|| "no image".to_string(), |(w, h)| format!("{w}×{h}"))
+        ))),
+    }
 }
 
 /// A pixel format on the wire.
@@ -465,5 +513,41 @@ mod tests {
             format!("{}…", "y".repeat(64))
         );
         assert_eq!(spp_from_wire(4), Some(4));
+    }
+
+    #[test]
+    fn lattices_round_trip_and_are_checked() {
+        let lattice = Lattice {
+            origin: glam::Vec3::new(-1.0, 0.5, 2.0),
+            voxel: 0.125,
+            dims: [10, 20, 30],
+        };
+        let (w, h) = lattice.image_size().expect("6000 voxels fit");
+        let wire = lattice_to_wire(&lattice);
+        assert_eq!(lattice_from_wire(&wire, w, h), Ok(lattice));
+        assert!(matches!(
+            lattice_from_wire(&wire, w, h + 1),
+            Err(WireError::InvalidLattice(_))
+        ));
+        for bad in [
+            pb::BakeLattice { voxel: 0.0, ..wire },
+            pb::BakeLattice {
+                origin_x: f32::NAN,
+                ..wire
+            },
+            pb::BakeLattice { nz: 0, ..wire },
+            pb::BakeLattice {
+                nx: u32::MAX,
+                ..wire
+            },
+        ] {
+            assert!(
+                matches!(
+                    lattice_from_wire(&bad, w, h),
+                    Err(WireError::InvalidLattice(_))
+                ),
+                "{bad:?}"
+            );
+        }
     }
 }

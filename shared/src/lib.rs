@@ -12,6 +12,7 @@
 //! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
 //! - [`probe`]: the known-answer probe, a digest of this build's arithmetic.
 
+pub mod bake;
 pub mod camera;
 pub mod curve;
 pub mod density;

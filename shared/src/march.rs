@@ -17,7 +17,7 @@ use crate::density::{Field, Points, Support};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::pse::surface as pse;
-use crate::scene::{ColourIndex, Gradient, Light, Scene};
+use crate::scene::{Gradient, Light, Scene};
 use crate::shaping::clamp01;
 use crate::simd::Isa;
 use crate::simd::{LANES, Lanes};
@@ -378,18 +378,7 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             } else {
                 shading_normal // `shade` reads it only for lights
             };
-            let key = match scene.colour_index {
-                ColourIndex::Density => f,
-                ColourIndex::Strata {
-                    frequency,
-                    amplitude,
-                    octaves,
-                } => {
-                    let q = object_x - field.offset;
-                    let turb = field.noise.turbulence(q, octaves);
-                    0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
-                }
-            };
+            let key = scene.colour_key(object_x, f, field);
             let base = pse::surface_colour(
                 &scene.expressions,
                 &scene.colour_map,

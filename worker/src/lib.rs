@@ -994,6 +994,13 @@ fn start_render(
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let format = convert::pixel_format_from_wire(job.pixel_format)
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+    // A bake's pixels are the voxels of its lattice (`hypertexture::bake`).
+    let bake = job
+        .bake
+        .as_ref()
+        .map(|l| convert::lattice_from_wire(l, scene.width(), scene.height()))
+        .transpose()
+        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let frame = job.frame;
     let (done, result) = oneshot::channel();
     let assignment_id = assignment.assignment_id;
@@ -1026,7 +1033,16 @@ fn start_render(
                 }
             };
             let before = render_cpu();
-            let samples = hypertexture::render::render_pixels_until(&scene, frame, &pixels, &stop)?;
+            let samples = match &bake {
+                Some(lattice) => hypertexture::bake::sample_pixels(
+                    &scene,
+                    lattice,
+                    frame,
+                    scene.width(),
+                    &pixels,
+                ),
+                None => hypertexture::render::render_pixels_until(&scene, frame, &pixels, &stop)?,
+            };
             let tile = convert::tile_to_wire(&samples, format);
             let cpu = render_cpu().saturating_sub(before);
             Some((unit, tile, cpu))

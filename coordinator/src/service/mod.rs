@@ -314,6 +314,7 @@ impl Service {
             knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
             pixel_format: format,
             metadata: checked.metadata.clone(),
+            bake: None,
             assets: Vec::new(),
         };
         let plan = JobPlan {

@@ -528,6 +528,7 @@ impl Studio {
                     None,
                     None,
                 )),
+                bake: None,
                 assets: Vec::new(),
             };
             let plan = JobPlan {

@@ -17,7 +17,7 @@ use glam::Vec3;
 
 use crate::camera::Camera;
 use crate::curve::Curve;
-use crate::density::{Density, Support};
+use crate::density::{Aabb, Density, Support};
 use crate::mesh::{Mesh, MeshError, MeshLimits};
 use crate::motion::Motion;
 use crate::noise::{Noise, clamped_octaves};
@@ -732,6 +732,55 @@ impl Scene {
     /// The hypertexture H(x) for `frame`, in [0, 1].
     pub fn density_at(&self, x: Vec3, frame: u32) -> f32 {
         self.density.eval(x, &self.field(frame))
+    }
+
+    /// The box where H can be non-zero at `frame`, in world space: the
+    /// density's support (widened by two steps) within the marching bounds,
+    /// or the marching bounds when the support is unknown (a complement).
+    pub fn density_box(&self, frame: u32) -> Aabb {
+        let (min, max) = self.bounds;
+        match self.field(frame).support {
+            Some(s) => {
+                let lo = s.aabb.0.max(min);
+                (lo, s.aabb.1.min(max).max(lo))
+            }
+            None => (min, max),
+        }
+    }
+
+    /// The base colour of a sample of density `f` at world point x of
+    /// `frame`, before lighting: the `colour` expression, or the colour map at
+    /// the colour index, as the marcher colours it.
+    pub fn colour_at(&self, x: Vec3, f: f32, frame: u32) -> Vec3 {
+        let field = self.field(frame);
+        let object_x = field.object_point(x);
+        let key = self.colour_key(object_x, f, &field);
+        crate::pse::surface::surface_colour(
+            &self.expressions,
+            &self.colour_map,
+            object_x,
+            f,
+            key,
+            &field,
+        )
+    }
+
+    /// What indexes the colour map for a sample of density `f` at the
+    /// object-space point `object_x`: the density, or the marble strata.
+    #[inline]
+    pub(crate) fn colour_key(&self, object_x: Vec3, f: f32, field: &crate::density::Field) -> f32 {
+        match self.colour_index {
+            ColourIndex::Density => f,
+            ColourIndex::Strata {
+                frequency,
+                amplitude,
+                octaves,
+            } => {
+                let q = object_x - field.offset;
+                let turb = field.noise.turbulence(q, octaves);
+                0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
+            }
+        }
     }
 
     /// H(x) for `frame` and its gradient ∇H(x), by forward-mode
