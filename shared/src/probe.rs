@@ -136,8 +136,7 @@ fn probe_assets() -> &'static crate::scene::Assets {
         const SPOT: &[u8] = include_bytes!("../../scenes/mesh/meshes/spot.obj");
         let mut assets = crate::scene::Assets::none();
         // The repository's own file: a test loads every probe scene.
-        if let Ok(mesh) = crate::mesh::Mesh::from_obj("meshes/spot.obj", SPOT, Default::default())
-        {
+        if let Ok(mesh) = crate::mesh::Mesh::from_obj("meshes/spot.obj", SPOT, Default::default()) {
             assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
         }
         assets
