@@ -32,7 +32,13 @@ const context = image.getContext('2d');
 let rgba = new Uint8ClampedArray(0);   // pixels received, row-major RGBA
 let have = new Uint8Array(0);          // 1 where a pixel was received
 let shown = null;                      // ImageData drawn
-let dirty = false;
+// While a frame refines, the canvas is composed at most every DRAW_EVERY_MS
+// (composing is a pass over every pixel, and the browser shares the machine
+// with the workers); a frame's first tile and its last are drawn at once.
+const DRAW_EVERY_MS = 100;
+let rafPending = false;
+let drawTimer = null;
+let lastDraw = -Infinity;
 let pending = null;                    // the frame event waiting for its first tile
 const knobValues = {};
 const setWorkers = [];                 // per set: the worker that rendered it last
@@ -91,6 +97,7 @@ function startFrame(f) {
     image.height = f.height;
     shown = null;
   }
+  lastDraw = -Infinity;
   rgba = new Uint8ClampedArray(f.width * f.height * 4);
   have = new Uint8Array(f.width * f.height);
   setWorkers.length = 0;
@@ -159,7 +166,8 @@ function compose() {
 }
 
 function draw() {
-  dirty = false;
+  rafPending = false;
+  lastDraw = performance.now();
   compose();
   context.putImageData(shown, 0, 0);
   studio.drawn = studio.complete;
@@ -181,9 +189,16 @@ function draw() {
 }
 
 function schedule() {
-  if (!dirty) {
-    dirty = true;
-    requestAnimationFrame(draw);
+  const wait = studio.complete ? 0 : lastDraw + DRAW_EVERY_MS - performance.now();
+  if (wait <= 0) {
+    clearTimeout(drawTimer);
+    drawTimer = null;
+    if (!rafPending) {
+      rafPending = true;
+      requestAnimationFrame(draw);
+    }
+  } else if (!drawTimer && !rafPending) {
+    drawTimer = setTimeout(() => { drawTimer = null; schedule(); }, wait);
   }
 }
 
