@@ -478,13 +478,17 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Latency of the studio on the PSE fur with 2 local workers, measured in the
+/// Latency of the studio on `scenes/fur.ron` with 2 local workers, its fur's
+/// frequency slider moved (a parameter: the text changes), measured in the
 /// page (`performance.now()` from the slider's input event to the canvas
 /// drawn). In the test suite at 64² (one round) it checks that each slider
 /// step gives an interactive frame then a high-quality one, each drawn first
 /// coarse and then whole, and that dragging shows frames; the figures at the
 /// scene's own 512² come from
 /// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=7 cargo test --release -p coordinator --test studio -- --nocapture latency`.
+/// The slider the latency test moves: the fur's frequency (40 in the scene).
+const SLIDER: &str = "param-modulation[0].Fur.frequency";
+
 #[test]
 fn latency() {
     let Some(chromium) = chromium() else {
@@ -504,7 +508,7 @@ fn latency() {
     };
     let size = env("HYPERTEXTURE_LATENCY_SIZE", 64);
     let rounds = env("HYPERTEXTURE_LATENCY_ROUNDS", 1).max(1);
-    let text = std::fs::read_to_string(root().join("scenes/pse/fur.ron"))
+    let text = std::fs::read_to_string(root().join("scenes/fur.ron"))
         .unwrap()
         .replace(
             "image: (width: 512, height: 512)",
@@ -535,10 +539,11 @@ fn latency() {
     // Rounds of one slider step then rest, each followed by a one-shot render
     // of the same scene (the two taking turns on the machine).
     let (mut first, mut whole, mut high, mut one_shot) = (vec![], vec![], vec![], vec![]);
+    let (mut answered, mut arrived) = (vec![], vec![]);
     for round in 0..rounds {
         let g = browser.eval("studio.generation").as_u64().unwrap();
         browser.eval(&format!(
-            "(() => {{ const k = document.getElementById('knob-fineness'); \
+            "(() => {{ const k = document.getElementById({SLIDER:?}); \
              k.value = {}; k.dispatchEvent(new Event('input')); }})()",
             41 + round
         ));
@@ -571,6 +576,8 @@ fn latency() {
             "the high-quality frame is drawn whole: {timings}"
         );
         first.push(parsed[0]["first"].as_f64().unwrap());
+        answered.push(parsed[0]["answered"].as_f64().unwrap());
+        arrived.push(parsed[0]["arrived"].as_f64().unwrap_or(f64::INFINITY));
         // An interactive frame overtaken by the high one before it was whole
         // (a slow machine) counts as not drawn.
         whole.push(parsed[0]["complete"].as_f64().unwrap_or(f64::INFINITY));
@@ -581,9 +588,11 @@ fn latency() {
     // Dragging: a step every 16 ms for 4 s (a pointer at 60 Hz).
     let g = browser.eval("studio.generation").as_u64().unwrap();
     browser.eval(
-        "new Promise(done => { let v = 20, n = 0; const k = document.getElementById('knob-fineness'); \
-         const t = setInterval(() => { k.value = v += 0.25; k.dispatchEvent(new Event('input')); \
-         if (++n === 250) { clearInterval(t); done(); } }, 16); })",
+        &format!(
+            "new Promise(done => {{ let v = 20, n = 0; const k = document.getElementById({SLIDER:?}); \
+             const t = setInterval(() => {{ k.value = v += 0.25; k.dispatchEvent(new Event('input')); \
+             if (++n === 250) {{ clearInterval(t); done(); }} }}, 16); }})"
+        ),
     );
     let seconds = 4.0;
     let drag = browser.eval(&format!(
@@ -595,13 +604,17 @@ fn latency() {
     assert!(seen >= 1, "dragging shows frames: {drag:?}");
     let ratios: Vec<f64> = high.iter().zip(&one_shot).map(|(h, o)| h / o).collect();
     eprintln!(
-        "studio latency, PSE fur {size}², 2 local workers, {rounds} rounds\n\
+        "studio latency, scenes/fur.ron at {size}², 2 local workers, {rounds} rounds\n\
+         slider step → the change answered: median {:.1} ms {answered:?}\n\
+         slider step → first tile's event in the page: median {:.1} ms {arrived:?}\n\
          slider step → first (coarse) image drawn: median {:.1} ms {first:?}\n\
          slider step → whole interactive frame drawn: median {:.1} ms {whole:?}\n\
          high-quality frame, studio (server: frame asked → last tile): median {:.3} s {high:?}\n\
          high-quality frame, one-shot farm (first unit out → last tile): median {:.3} s {one_shot:?}\n\
          studio / one-shot, per round: median {:.3} {ratios:?}\n\
          dragging {seconds} s at 60 Hz: {drawn_whole} interactive frames drawn whole ({:.1}/s), {seen} with an image ({:.1}/s)",
+        median(answered.clone()),
+        median(arrived.clone()),
         median(first.clone()),
         median(whole.clone()),
         median(high.clone()),

@@ -446,6 +446,10 @@ impl Shared {
     }
 }
 
+/// How long a worker told to wait sleeps before it asks again (the least it
+/// accepts): GetWork itself waits for work, so this is short.
+const RETRY_AFTER_MS: u32 = 10;
+
 /// The gRPC service.
 #[derive(Clone)]
 struct Service(Arc<Shared>);
@@ -603,9 +607,10 @@ impl Service {
                     })
                 }
                 // Every job in the scheduler has its wire form: not reached.
-                None => Outcome::RetryAfterMs(50),
+                None => Outcome::RetryAfterMs(RETRY_AFTER_MS),
             },
-            Next::Wait => Outcome::RetryAfterMs(50),
+            // The worker asks again at once, and GetWork waits for it.
+            Next::Wait => Outcome::RetryAfterMs(RETRY_AFTER_MS),
             Next::Finished => Outcome::Finished(true),
         };
         pb::GetWorkResult {
@@ -719,31 +724,39 @@ impl FarmRpc for Service {
     ) -> Result<Response<pb::GetWorkResult>, Status> {
         self.authorize(&request)?;
         let p = request.get_ref();
-        // An idle worker's call waits (up to a second) for a job to arrive, so
-        // a job submitted to an idle farm starts at once, without polling.
+        // A worker with nothing to do waits here (up to a second) rather than
+        // in a sleep of its own: a job added meanwhile starts at once. While
+        // units are queued that it may not take yet, it looks again every 50 ms.
         let mut added = self.0.jobs_added.subscribe();
-        for attempt in 0..2 {
-            let work = {
+        let deadline = Instant::now() + Duration::from_secs(1);
+        loop {
+            let queued = {
                 let mut state = self.state();
                 let next = state
                     .scheduler
                     .next(&p.worker_id, Instant::now())
                     .map_err(refusal)?;
-                if next == Next::Wait && attempt == 0 && state.scheduler.queued_units() == 0 {
-                    None
-                } else {
-                    Some(self.work(&state, next, p.known_scene_hash))
+                if next != Next::Wait {
+                    return Ok(Response::new(self.work(&state, next, p.known_scene_hash)));
                 }
+                state.scheduler.queued_units()
             };
-            match work {
-                Some(work) => return Ok(Response::new(work)),
-                None => {
-                    let _ = tokio::time::timeout(Duration::from_secs(1), added.changed()).await;
-                }
+            let now = Instant::now();
+            if now >= deadline {
+                break;
+            }
+            let wait = if queued == 0 {
+                deadline - now
+            } else {
+                (deadline - now).min(Duration::from_millis(50))
+            };
+            if let Ok(Err(_)) = tokio::time::timeout(wait, added.changed()).await {
+                // The farm is stopping: no job will be added.
+                tokio::time::sleep(wait).await;
             }
         }
         Ok(Response::new(pb::GetWorkResult {
-            outcome: Some(Outcome::RetryAfterMs(50)),
+            outcome: Some(Outcome::RetryAfterMs(RETRY_AFTER_MS)),
         }))
     }
 

@@ -19,8 +19,19 @@ const studio = window.studio = {
   complete: false,    // every unit received
   drawn: false,       // every unit received and drawn on the canvas
   serverSeconds: null,
-  requested: {},      // generation → performance.now() of the input that asked it
-  timings: [],        // {generation, quality, first, complete} ms after the input
+  // generation → performance.now() of: the input that asked for it (asked),
+  // the change's answer, its first tile's event (arrived), its first
+  // drawing and its drawing whole (first, complete).
+  moments: {},
+  /** The asked frames: {generation, quality, answered, arrived, first,
+   * complete}, each in ms after the input (null: not yet). */
+  get timings() {
+    return Object.entries(this.moments).filter(([, m]) => m.asked !== undefined).map(([g, m]) => {
+      const after = (t) => (t === undefined ? null : t - m.asked);
+      return { generation: Number(g), quality: m.quality, answered: after(m.answered),
+        arrived: after(m.arrived), first: after(m.first), complete: after(m.complete) };
+    });
+  },
   framesDrawn: 0,     // canvas updates
   view: null,         // the last /studio/scene answer
 };
@@ -29,12 +40,15 @@ let token = sessionStorage.getItem('hypertexture-token') || '';
 const $ = (id) => document.getElementById(id);
 const image = $('image');
 const context = image.getContext('2d');
-let rgba = new Uint8ClampedArray(0);   // pixels received, row-major RGBA
-let have = new Uint8Array(0);          // 1 where a pixel was received
+// The picture: each pixel shows its own value once its set has arrived,
+// until then the nearest stored pixel of a coarser lattice (spacing 2, 4, …
+// 64). `level` holds, per pixel, log2 of the spacing of the pixel it shows
+// (0: its own); a tile updates only the pixels it improves.
+const NONE = 255;
+let level = new Uint8Array(0);
 let shown = null;                      // ImageData drawn
-// While a frame refines, the canvas is composed at most every DRAW_EVERY_MS
-// (composing is a pass over every pixel, and the browser shares the machine
-// with the workers); a frame's first tile and its last are drawn at once.
+// While a frame refines, the canvas is drawn at most every DRAW_EVERY_MS; a
+// frame's first tile and its last are drawn at once.
 const DRAW_EVERY_MS = 100;
 let rafPending = false;
 let drawTimer = null;
@@ -98,8 +112,9 @@ function startFrame(f) {
     shown = null;
   }
   lastDraw = -Infinity;
-  rgba = new Uint8ClampedArray(f.width * f.height * 4);
-  have = new Uint8Array(f.width * f.height);
+  if (!shown) shown = context.createImageData(f.width, f.height);
+  shown.data.fill(0);
+  level = new Uint8Array(f.width * f.height).fill(NONE);
   setWorkers.length = 0;
   drawSets();
 }
@@ -119,68 +134,49 @@ function placeTile(t) {
   let source = 0;
   for (let i = 0; i < t.row_count; i++) {
     const y = oy + (t.first_row + i * t.row_stride) * b;
-    for (let c = 0; c < columns; c++) {
-      const x = ox + c * b;
-      const p = y * w + x;
-      if (y < h) {
-        rgba.set(pixels.subarray(source, source + 4), p * 4);
-        have[p] = 1;
-      }
-      source += 4;
-    }
+    if (y >= h) break;
+    for (let c = 0; c < columns; c++, source += 4) place(ox + c * b, y, pixels, source);
   }
   setWorkers[t.set] = t.worker;
 }
 
-/** The frame so far, each missing pixel from the nearest coarser lattice. */
-function compose() {
-  const w = studio.width, h = studio.height;
-  if (!shown || shown.width !== w || shown.height !== h) shown = context.createImageData(w, h);
-  const out = shown.data;
-  if (studio.complete) {
-    out.set(rgba);
-    return;
-  }
-  for (let y = 0; y < h; y++) {
-    for (let x = 0; x < w; x++) {
-      const i = y * w + x;
-      let j = -1;
-      if (have[i]) {
-        j = i;
-      } else {
-        for (let spacing = 2; spacing <= 64; spacing *= 2) {
-          const k = (y - y % spacing) * w + (x - x % spacing);
-          if (have[k]) { j = k; break; }
-        }
-      }
-      if (j >= 0) {
-        out[i * 4] = rgba[j * 4];
-        out[i * 4 + 1] = rgba[j * 4 + 1];
-        out[i * 4 + 2] = rgba[j * 4 + 2];
-        out[i * 4 + 3] = rgba[j * 4 + 3];
-      } else {
-        out[i * 4 + 3] = 0;
+/** Pixel (x, y) arrives: it is shown by every pixel of the 2^k block at
+ * (x, y) (for each spacing 2^k ≤ 64 that divides x and y) whose own source
+ * lies on a coarser lattice, as Canvas::preview does. */
+function place(x, y, pixels, source) {
+  const w = studio.width, h = studio.height, out = shown.data;
+  let top = 0;
+  while (top < 6 && x % (2 << top) === 0 && y % (2 << top) === 0) top++;
+  const x1 = Math.min(w, x + (1 << top)), y1 = Math.min(h, y + (1 << top));
+  const r = pixels[source], g = pixels[source + 1], bl = pixels[source + 2], a = pixels[source + 3];
+  for (let qy = y; qy < y1; qy++) {
+    const dy = qy - y;
+    let q = qy * w + x;
+    for (let qx = x; qx < x1; qx++, q++) {
+      const d = Math.max(qx - x, dy);
+      const k = d === 0 ? 0 : 32 - Math.clz32(d);   // the least k with d < 2^k
+      if (k < level[q]) {
+        level[q] = k;
+        const o = q * 4;
+        out[o] = r; out[o + 1] = g; out[o + 2] = bl; out[o + 3] = a;
       }
     }
   }
+}
+
+function moment(generation) {
+  return studio.moments[generation] ??= {};
 }
 
 function draw() {
   rafPending = false;
   lastDraw = performance.now();
-  compose();
   context.putImageData(shown, 0, 0);
   studio.drawn = studio.complete;
   studio.framesDrawn++;
-  const asked = studio.requested[studio.generation];
-  const now = performance.now();
-  let timing = studio.timings.find((t) => t.generation === studio.generation);
-  if (!timing) {
-    timing = { generation: studio.generation, quality: studio.quality, first: null, complete: null };
-    studio.timings.push(timing);
-  }
-  if (asked !== undefined && timing.first === null) timing.first = now - asked;
-  if (asked !== undefined && studio.complete && timing.complete === null) timing.complete = now - asked;
+  const m = moment(studio.generation);
+  m.first ??= lastDraw;
+  if (studio.complete) m.complete ??= lastDraw;
   $('frame-progress').value = studio.units ? studio.received / studio.units : 0;
   const seconds = studio.serverSeconds !== null ? ` in ${studio.serverSeconds.toFixed(2)} s` : '';
   $('frame-info').textContent =
@@ -189,7 +185,14 @@ function draw() {
 }
 
 function schedule() {
-  const wait = studio.complete ? 0 : lastDraw + DRAW_EVERY_MS - performance.now();
+  if (studio.complete || lastDraw === -Infinity) {
+    // The frame's first tile and its last are drawn now.
+    clearTimeout(drawTimer);
+    drawTimer = null;
+    draw();
+    return;
+  }
+  const wait = lastDraw + DRAW_EVERY_MS - performance.now();
   if (wait <= 0) {
     clearTimeout(drawTimer);
     drawTimer = null;
@@ -248,6 +251,7 @@ function listen() {
   });
   source.addEventListener('tile', (e) => {
     const t = JSON.parse(e.data);
+    moment(t.generation).arrived ??= performance.now();
     if (pending && pending.generation === t.generation) startFrame(pending);
     if (t.generation !== studio.generation) return;
     placeTile(t);
@@ -597,7 +601,10 @@ function send(change, asked, fromSlider) {
   }
   inFlight = true;
   call('POST', '/studio/scene', change).then((view) => {
-    studio.requested[view.generation] ??= asked;
+    const m = moment(view.generation);
+    m.asked ??= asked;
+    m.answered ??= performance.now();
+    m.quality ??= change.quality ?? 'high';
     showScene(view, { text: fromSlider, sliders: !fromSlider });
     if (change.quality === 'interactive') {
       if (fromSlider) {
