@@ -224,7 +224,7 @@ impl Noise {
     }
 
     /// [`Noise::noise_lanes`] in the copy of the code for `isa` (a SIMD path):
-    /// 8 lanes in one AVX register on AVX2, two halves of 4 otherwise.
+    /// 8 lanes at a time in AVX registers on AVX2, 4 at a time otherwise.
     #[inline(always)]
     pub(crate) fn noise_lanes_on(&self, isa: Isa, px: &Lanes, py: &Lanes, pz: &Lanes) -> Lanes {
         #[cfg(target_arch = "x86_64")]
@@ -234,13 +234,15 @@ impl Noise {
             // SAFETY: the path is AVX2 only on CPUs that have it (a scene
             // carries only an available path), and this code is inlined into
             // that path's copy; the loads and stores are of 8 f32.
-            unsafe {
-                let n = self.noise8(
-                    _mm256_loadu_ps(px.as_ptr()),
-                    _mm256_loadu_ps(py.as_ptr()),
-                    _mm256_loadu_ps(pz.as_ptr()),
-                );
-                _mm256_storeu_ps(out.as_mut_ptr(), n);
+            for h in 0..LANES / 8 {
+                unsafe {
+                    let n = self.noise8(
+                        _mm256_loadu_ps(px.as_ptr().add(8 * h)),
+                        _mm256_loadu_ps(py.as_ptr().add(8 * h)),
+                        _mm256_loadu_ps(pz.as_ptr().add(8 * h)),
+                    );
+                    _mm256_storeu_ps(out.as_mut_ptr().add(8 * h), n);
+                }
             }
             return out;
         }

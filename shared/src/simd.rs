@@ -18,8 +18,10 @@
 
 use glam::Vec3;
 
-/// Points per batch in the vectorised paths.
-pub const LANES: usize = 8;
+/// Points per batch in the vectorised paths: 16 (a ray's chunk of samples,
+/// or the gradient neighbours of 8 samples). Fewer calls of the kernels per
+/// ray outweigh the lanes evaluated past a ray's end (docs/benchmark-log.md).
+pub const LANES: usize = 16;
 
 /// One f32 per lane.
 pub type Lanes = [f32; LANES];
