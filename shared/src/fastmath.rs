@@ -119,6 +119,8 @@ pub fn pow01_on(isa: Isa, x: &Lanes, e: f32) -> Lanes {
         Isa::Sse41 => unsafe { x86::pow01_sse41(x, e) },
         #[cfg(target_arch = "x86_64")]
         Isa::Avx2 => unsafe { x86::pow01_avx2(x, e) },
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => unsafe { x86::pow01_avx512(x, e) },
         #[cfg(not(target_arch = "x86_64"))]
         _ => pow01_on(Isa::Scalar, x, e),
     }
@@ -148,6 +150,11 @@ pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn pow01_avx512(x: &Lanes, e: f32) -> Lanes {
+        pow01_lanes(x, e)
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn pow01_avx2(x: &Lanes, e: f32) -> Lanes {

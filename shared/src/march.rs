@@ -166,6 +166,8 @@ impl Chunk {
             Isa::Sse41 => unsafe { x86::samples_sse41(scene, basis, k, field) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { x86::samples_avx2(scene, basis, k, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::samples_avx512(scene, basis, k, field) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => samples(scene, basis, k, field, false),
         };
@@ -259,6 +261,16 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn samples_avx512(
+        scene: &Scene,
+        basis: &Basis,
+        k: u32,
+        field: &Field,
+    ) -> (Lanes, Lanes) {
+        samples(scene, basis, k, field, true)
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn samples_avx2(

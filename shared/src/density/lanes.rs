@@ -138,6 +138,8 @@ impl Density {
             Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::eval_lanes_avx512(self, x, field) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => each(x, |p| self.eval(p, field)),
         }
@@ -227,6 +229,11 @@ impl Density {
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn eval_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx512)
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
