@@ -301,6 +301,20 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 /// [`trace`] with the samples shifted by `phase` steps (in [0, 1)) along the ray:
 /// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
 pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
+    if scene.common_case {
+        march::<true>(scene, ray, field, phase)
+    } else {
+        march::<false>(scene, ray, field, phase)
+    }
+}
+
+/// The sample loop of [`trace_with_phase`]. `COMMON` is the scene's
+/// `common_case`, chosen once per scene: no refraction, no motion, no colour
+/// or normal expressions, no shadows, the density as the colour key. Its
+/// copy of the loop leaves those out (the object point is the world point,
+/// the colour the colour map at f, the normal unperturbed, a ray never
+/// bends), computing what the general copy computes in that case.
+fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
@@ -324,7 +338,11 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
     let mut last_normal: Option<Vec3> = None;
     // f(x - Δx_μ): the previous sample, when it lay on the current segment.
     let mut previous: Option<f32> = None;
-    let mut medium_index = scene.refraction.as_ref().map(|c| c.eval1(0.0));
+    let mut medium_index = if COMMON {
+        None
+    } else {
+        scene.refraction.as_ref().map(|c| c.eval1(0.0))
+    };
     // Every sample costs a step of the budget, so a ray bent back and forth inside
     // the volume (total internal reflection) still terminates.
     let diagonal = (max - min).length();
@@ -383,23 +401,29 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                 }
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
-            // Colours and textures belong to the object: its point, not the world's.
-            let object_x = field.object_point(x);
-            let shading_normal = if lit {
-                pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+            let (shading_normal, base) = if COMMON {
+                (shading_normal, Vec3::from_array(scene.colour_map.eval(f)))
             } else {
-                shading_normal // `shade` reads it only for lights
+                // Colours and textures belong to the object: its point, not the world's.
+                let object_x = field.object_point(x);
+                let shading_normal = if lit {
+                    pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+                } else {
+                    shading_normal // `shade` reads it only for lights
+                };
+                let key = scene.colour_key(object_x, f, field);
+                let base = pse::surface_colour(
+                    &scene.expressions,
+                    &scene.colour_map,
+                    object_x,
+                    f,
+                    key,
+                    field,
+                );
+                (shading_normal, base)
             };
-            let key = scene.colour_key(object_x, f, field);
-            let base = pse::surface_colour(
-                &scene.expressions,
-                &scene.colour_map,
-                object_x,
-                f,
-                key,
-                field,
-            );
-            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
+            let sample_colour =
+                base * shade::<COMMON>(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;
@@ -409,7 +433,9 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             }
         }
 
-        if let (Some(refraction), Some(n1)) = (scene.refraction.as_ref(), medium_index) {
+        if let (false, Some(refraction), Some(n1)) =
+            (COMMON, scene.refraction.as_ref(), medium_index)
+        {
             let n2 = refraction.eval1(f);
             if (n2 - n1).abs() > 1e-6 {
                 medium_index = Some(n2);
@@ -510,9 +536,10 @@ fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
 }
 
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
-/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light.
+/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light
+/// (`COMMON`: a scene without shadows).
 #[inline]
-fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
+fn shade<const COMMON: bool>(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
     let mut light = scene.ambient;
     for source in &scene.lights {
         let (l, colour, distance) = match *source {
@@ -528,7 +555,7 @@ fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
         if lambert <= 0.0 {
             continue;
         }
-        let colour = if scene.shadows {
+        let colour = if !COMMON && scene.shadows {
             colour * crate::lighting::transmittance(scene, field, x, n, l, distance)
         } else {
             colour

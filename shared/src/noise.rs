@@ -1182,7 +1182,11 @@ mod tests {
             }
             // Lattice points too.
             if round == 0 {
-                p[0] = [0.0, -0.0, 1.0, -1.0, 255.0, 256.0, -300.0, 1.0e9];
+                let lattice = [0.0, -0.0, 1.0, -1.0, 255.0, 256.0, -300.0, 1.0e9];
+                let more = [0.5, -0.5, 1.0e-30, -1.0e9, 2.5, -2.5, 65536.0, -65537.0];
+                for (v, &l) in p[0].iter_mut().zip(lattice.iter().chain(&more)) {
+                    *v = l;
+                }
             }
             let reference = n.noise_on(Isa::Scalar, &p[0], &p[1], &p[2]);
             for isa in Isa::available() {
