@@ -198,9 +198,10 @@ impl Chunk {
                     n += 1;
                 }
             }
-            // Unused lanes repeat the first point (valid, and discarded).
+            // Unused lanes (discarded) take a point outside the support, where
+            // the modulation is skipped, or else repeat the first point.
             for l in 2 * n..LANES {
-                x.set(l, x.get(l % 2));
+                x.set(l, outside(field).unwrap_or(x.get(l % 2)));
             }
             let v = scene.density.eval_lanes(&x, field, scene.isa);
             for (i, &l) in which[..n].iter().enumerate() {
@@ -216,11 +217,25 @@ impl Chunk {
 /// of `basis`. With `simd` (a constant where it is inlined: into the copies
 /// per instruction set below) the density tree's lane code and the powers are
 /// inlined here too, so the points go from the ray to the powers in registers.
+///
+/// Samples past the ray's end (`t1`, or the end of the support), which the
+/// marcher never reads, are evaluated at a point outside the support: 0 at
+/// once, and the modulation's noise is skipped where a register holds only
+/// such lanes.
 #[inline(always)]
 fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (Lanes, Lanes) {
     let mut x = Points::default();
+    let end = basis.t1.min(basis.last);
+    let outside = outside(field);
     for l in 0..LANES {
-        x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
+        let t = basis.t(k + l as u32, scene.step);
+        x.set(
+            l,
+            match outside {
+                Some(o) if t > end => o,
+                _ => basis.ray.at(t),
+            },
+        );
     }
     let f = if simd {
         scene.density.eval_lanes_simd(&x, field, scene.isa)
@@ -255,6 +270,14 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
         alpha[l] = 1.0 - p[l];
     }
     (f, alpha)
+}
+
+/// A point outside the support of the density (where it and every object's
+/// D are 0 for certain), when the scene has one: what the lanes the marcher
+/// discards are evaluated at.
+#[inline(always)]
+fn outside(field: &Field) -> Option<Vec3> {
+    field.support.map(|s| s.aabb.1 + Vec3::ONE)
 }
 
 /// The copies of [`samples`] per instruction set.

@@ -228,11 +228,29 @@ impl Noise {
     /// on AVX2, 4 at a time otherwise.
     #[inline(always)]
     pub(crate) fn noise_lanes_on(&self, isa: Isa, px: &Lanes, py: &Lanes, pz: &Lanes) -> Lanes {
+        self.noise_lanes_live(isa, u32::MAX, px, py, pz)
+    }
+
+    /// [`Noise::noise_lanes_on`] at the lanes whose bit is set in `live`: a
+    /// register's worth of lanes none of which is live is skipped (and comes
+    /// out 0).
+    #[inline(always)]
+    pub(crate) fn noise_lanes_live(
+        &self,
+        isa: Isa,
+        live: u32,
+        px: &Lanes,
+        py: &Lanes,
+        pz: &Lanes,
+    ) -> Lanes {
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx512 {
             use std::arch::x86_64::*;
             let mut out = [0.0; LANES];
             for h in 0..LANES / 16 {
+                if (live >> (16 * h)) & 0xffff == 0 {
+                    continue;
+                }
                 // SAFETY: the path is AVX-512 only on CPUs that have it, and
                 // this code is inlined into that path's copy; the loads and
                 // stores are of 16 f32 within arrays of LANES.
@@ -251,10 +269,14 @@ impl Noise {
         if isa == Isa::Avx2 {
             use std::arch::x86_64::*;
             let mut out = [0.0; LANES];
-            // SAFETY: the path is AVX2 only on CPUs that have it (a scene
-            // carries only an available path), and this code is inlined into
-            // that path's copy; the loads and stores are of 8 f32.
             for h in 0..LANES / 8 {
+                if (live >> (8 * h)) & 0xff == 0 {
+                    continue;
+                }
+                // SAFETY: the path is AVX2 only on CPUs that have it (a scene
+                // carries only an available path), and this code is inlined
+                // into that path's copy; the loads and stores are of 8 f32
+                // within arrays of LANES.
                 unsafe {
                     let n = self.noise8(
                         _mm256_loadu_ps(px.as_ptr().add(8 * h)),
