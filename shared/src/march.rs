@@ -124,6 +124,9 @@ struct Chunk {
     full: bool,
     /// Index of the first sample held.
     start: u32,
+    /// The points of samples `start + l` (past the ray's end, a point
+    /// outside the support: see [`sample_points`]).
+    x: Points,
     /// f at samples `start + l`.
     f: Lanes,
     /// The opacity α_k = 1 − (1 − ρ)^(c·step) of samples `start + l`.
@@ -140,6 +143,7 @@ impl Chunk {
         Chunk {
             full: false,
             start: 0,
+            x: Points::default(),
             f: [0.0; LANES],
             alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
@@ -158,26 +162,29 @@ impl Chunk {
         }
         self.full = true;
         self.start = k;
+        self.x = sample_points(scene, basis, k, field);
+        let x = &self.x;
         (self.f, self.alpha) = match scene.isa {
-            Isa::Scalar => samples(scene, basis, k, field, false),
+            Isa::Scalar => samples(scene, x, field, false),
             // SAFETY: a scene only carries a path that `Isa::available`
             // reported, and `Scene::with_isa` refuses the others.
             #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::samples_sse41(scene, basis, k, field) },
+            Isa::Sse41 => unsafe { x86::samples_sse41(scene, x, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::samples_avx2(scene, basis, k, field) },
+            Isa::Avx2 => unsafe { x86::samples_avx2(scene, x, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::samples_avx512(scene, basis, k, field) },
+            Isa::Avx512 => unsafe { x86::samples_avx512(scene, x, field) },
             #[cfg(not(target_arch = "x86_64"))]
-            _ => samples(scene, basis, k, field, false),
+            _ => samples(scene, x, field, false),
         };
         self.has_gradient = 0;
         self.empty = self.f.iter().all(|f| f.to_bits() == 0);
         (self.f[0], self.alpha[0])
     }
 
-    /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and up to three
-    /// more held samples after it in the soft region, evaluated together.
+    /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and the held
+    /// samples after it in the soft region, [`LANES`] / 2 at most, evaluated
+    /// together, at the offsets of the chunk's own points.
     #[inline]
     fn neighbours(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
         let j = (k - self.start) as usize;
@@ -191,7 +198,9 @@ impl Chunk {
                 }
                 let f = self.f[l];
                 if l == j || (f > 0.0 && f < 1.0) {
-                    let p = basis.ray.at(basis.t(self.start + l as u32, scene.step));
+                    // A sample read or in the soft region is before the
+                    // ray's end: its point is its own.
+                    let p = self.x.get(l);
                     x.set(2 * n, p + basis.dv);
                     x.set(2 * n + 1, p + basis.dw);
                     which[n] = l;
@@ -213,17 +222,12 @@ impl Chunk {
     }
 }
 
-/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at samples k .. k + [`LANES`]
-/// of `basis`. With `simd` (a constant where it is inlined: into the copies
-/// per instruction set below) the density tree's lane code and the powers are
-/// inlined here too, so the points go from the ray to the powers in registers.
-///
-/// Samples past the ray's end (`t1`, or the end of the support), which the
-/// marcher never reads, are evaluated at a point outside the support: 0 at
-/// once, and the modulation's noise is skipped where a register holds only
-/// such lanes.
-#[inline(always)]
-fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (Lanes, Lanes) {
+/// The points of samples k .. k + [`LANES`] of `basis`. Samples past the
+/// ray's end (`t1`, or the end of the support), which the marcher never
+/// reads, get a point outside the support: 0 at once, and the modulation's
+/// noise is skipped where a register holds only such lanes.
+#[inline]
+fn sample_points(scene: &Scene, basis: &Basis, k: u32, field: &Field) -> Points {
     let mut x = Points::default();
     let end = basis.t1.min(basis.last);
     let outside = outside(field);
@@ -237,10 +241,19 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
             },
         );
     }
+    x
+}
+
+/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at the points `x` of a
+/// chunk. With `simd` (a constant where it is inlined: into the copies per
+/// instruction set below) the density tree's lane code and the powers are
+/// inlined here too, so the points go to the powers in registers.
+#[inline(always)]
+fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lanes) {
     let f = if simd {
-        scene.density.eval_lanes_simd(&x, field, scene.isa)
+        scene.density.eval_lanes_simd(x, field, scene.isa)
     } else {
-        scene.density.eval_lanes(&x, field, Isa::Scalar)
+        scene.density.eval_lanes(x, field, Isa::Scalar)
     };
     let mut transmit = [0.0; LANES];
     match &scene.alpha_map {
@@ -286,33 +299,18 @@ mod x86 {
     use super::*;
 
     #[target_feature(enable = "avx512f")]
-    pub(super) fn samples_avx512(
-        scene: &Scene,
-        basis: &Basis,
-        k: u32,
-        field: &Field,
-    ) -> (Lanes, Lanes) {
-        samples(scene, basis, k, field, true)
+    pub(super) fn samples_avx512(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) fn samples_avx2(
-        scene: &Scene,
-        basis: &Basis,
-        k: u32,
-        field: &Field,
-    ) -> (Lanes, Lanes) {
-        samples(scene, basis, k, field, true)
+    pub(super) fn samples_avx2(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
     }
 
     #[target_feature(enable = "sse4.1")]
-    pub(super) fn samples_sse41(
-        scene: &Scene,
-        basis: &Basis,
-        k: u32,
-        field: &Field,
-    ) -> (Lanes, Lanes) {
-        samples(scene, basis, k, field, true)
+    pub(super) fn samples_sse41(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
     }
 }
 
