@@ -61,7 +61,7 @@ fn gallery_matches_golden_images() {
 
 /// The golden images hold on every instruction-set path this CPU has, not
 /// only the fastest the binary picks: each scene is rendered in-process on
-/// scalar, SSE4.1 and AVX2 (as available) and compared byte for byte.
+/// scalar, SSE4.1, AVX2 and AVX-512 (as available) and compared byte for byte.
 #[test]
 fn golden_images_hold_on_every_isa_path() {
     if std::env::var_os("HYPERTEXTURE_BLESS").is_some_and(|v| v == "1") {

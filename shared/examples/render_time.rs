@@ -4,7 +4,7 @@
 //! compare them fairly while other processes come and go.
 //!
 //! `cargo run --release -p hypertexture --example render_time -- SIZE RUNS THREADS SCENE...`
-//! (`ISA=scalar`, `sse4.1` or `avx2` in the environment times that path;
+//! (`ISA=scalar`, `sse4.1`, `avx2` or `avx512` in the environment times that path;
 //! `QUALITY=interactive` the interactive preset, four times the step).
 
 use std::path::Path;
@@ -65,7 +65,7 @@ fn run() -> Result<(), String> {
                 .into_iter()
                 .find(|i| i.name() == isa)
                 .ok_or_else(|| {
-                    format!("ISA={isa}: not a path this CPU has (scalar, sse4.1, avx2)")
+                    format!("ISA={isa}: not a path this CPU has (scalar, sse4.1, avx2, avx512)")
                 })?;
             scene.set_isa(isa);
         }

@@ -124,6 +124,9 @@ struct Chunk {
     full: bool,
     /// Index of the first sample held.
     start: u32,
+    /// The points of samples `start + l` (past the ray's end, a point
+    /// outside the support: see [`sample_points`]).
+    x: Points,
     /// f at samples `start + l`.
     f: Lanes,
     /// The opacity α_k = 1 − (1 − ρ)^(c·step) of samples `start + l`.
@@ -140,6 +143,7 @@ impl Chunk {
         Chunk {
             full: false,
             start: 0,
+            x: Points::default(),
             f: [0.0; LANES],
             alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
@@ -158,24 +162,29 @@ impl Chunk {
         }
         self.full = true;
         self.start = k;
+        self.x = sample_points(scene, basis, k, field);
+        let x = &self.x;
         (self.f, self.alpha) = match scene.isa {
-            Isa::Scalar => samples(scene, basis, k, field, false),
+            Isa::Scalar => samples(scene, x, field, false),
             // SAFETY: a scene only carries a path that `Isa::available`
             // reported, and `Scene::with_isa` refuses the others.
             #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::samples_sse41(scene, basis, k, field) },
+            Isa::Sse41 => unsafe { x86::samples_sse41(scene, x, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::samples_avx2(scene, basis, k, field) },
+            Isa::Avx2 => unsafe { x86::samples_avx2(scene, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::samples_avx512(scene, x, field) },
             #[cfg(not(target_arch = "x86_64"))]
-            _ => samples(scene, basis, k, field, false),
+            _ => samples(scene, x, field, false),
         };
         self.has_gradient = 0;
         self.empty = self.f.iter().all(|f| f.to_bits() == 0);
         (self.f[0], self.alpha[0])
     }
 
-    /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and up to three
-    /// more held samples after it in the soft region, evaluated together.
+    /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and the held
+    /// samples after it in the soft region, [`LANES`] / 2 at most, evaluated
+    /// together, at the offsets of the chunk's own points.
     #[inline]
     fn neighbours(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
         let j = (k - self.start) as usize;
@@ -189,16 +198,19 @@ impl Chunk {
                 }
                 let f = self.f[l];
                 if l == j || (f > 0.0 && f < 1.0) {
-                    let p = basis.ray.at(basis.t(self.start + l as u32, scene.step));
+                    // A sample read or in the soft region is before the
+                    // ray's end: its point is its own.
+                    let p = self.x.get(l);
                     x.set(2 * n, p + basis.dv);
                     x.set(2 * n + 1, p + basis.dw);
                     which[n] = l;
                     n += 1;
                 }
             }
-            // Unused lanes repeat the first point (valid, and discarded).
+            // Unused lanes (discarded) take a point outside the support, where
+            // the modulation is skipped, or else repeat the first point.
             for l in 2 * n..LANES {
-                x.set(l, x.get(l % 2));
+                x.set(l, outside(field).unwrap_or(x.get(l % 2)));
             }
             let v = scene.density.eval_lanes(&x, field, scene.isa);
             for (i, &l) in which[..n].iter().enumerate() {
@@ -210,20 +222,38 @@ impl Chunk {
     }
 }
 
-/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at samples k .. k + [`LANES`]
-/// of `basis`. With `simd` (a constant where it is inlined: into the copies
-/// per instruction set below) the density tree's lane code and the powers are
-/// inlined here too, so the points go from the ray to the powers in registers.
-#[inline(always)]
-fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (Lanes, Lanes) {
+/// The points of samples k .. k + [`LANES`] of `basis`. Samples past the
+/// ray's end (`t1`, or the end of the support), which the marcher never
+/// reads, get a point outside the support: 0 at once, and the modulation's
+/// noise is skipped where a register holds only such lanes.
+#[inline]
+fn sample_points(scene: &Scene, basis: &Basis, k: u32, field: &Field) -> Points {
     let mut x = Points::default();
+    let end = basis.t1.min(basis.last);
+    let outside = outside(field);
     for l in 0..LANES {
-        x.set(l, basis.ray.at(basis.t(k + l as u32, scene.step)));
+        let t = basis.t(k + l as u32, scene.step);
+        x.set(
+            l,
+            match outside {
+                Some(o) if t > end => o,
+                _ => basis.ray.at(t),
+            },
+        );
     }
+    x
+}
+
+/// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at the points `x` of a
+/// chunk. With `simd` (a constant where it is inlined: into the copies per
+/// instruction set below) the density tree's lane code and the powers are
+/// inlined here too, so the points go to the powers in registers.
+#[inline(always)]
+fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lanes) {
     let f = if simd {
-        scene.density.eval_lanes_simd(&x, field, scene.isa)
+        scene.density.eval_lanes_simd(x, field, scene.isa)
     } else {
-        scene.density.eval_lanes(&x, field, Isa::Scalar)
+        scene.density.eval_lanes(x, field, Isa::Scalar)
     };
     let mut transmit = [0.0; LANES];
     match &scene.alpha_map {
@@ -255,29 +285,32 @@ fn samples(scene: &Scene, basis: &Basis, k: u32, field: &Field, simd: bool) -> (
     (f, alpha)
 }
 
+/// A point outside the support of the density (where it and every object's
+/// D are 0 for certain), when the scene has one: what the lanes the marcher
+/// discards are evaluated at.
+#[inline(always)]
+fn outside(field: &Field) -> Option<Vec3> {
+    field.support.map(|s| s.aabb.1 + Vec3::ONE)
+}
+
 /// The copies of [`samples`] per instruction set.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
 
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn samples_avx512(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
+    }
+
     #[target_feature(enable = "avx2")]
-    pub(super) fn samples_avx2(
-        scene: &Scene,
-        basis: &Basis,
-        k: u32,
-        field: &Field,
-    ) -> (Lanes, Lanes) {
-        samples(scene, basis, k, field, true)
+    pub(super) fn samples_avx2(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
     }
 
     #[target_feature(enable = "sse4.1")]
-    pub(super) fn samples_sse41(
-        scene: &Scene,
-        basis: &Basis,
-        k: u32,
-        field: &Field,
-    ) -> (Lanes, Lanes) {
-        samples(scene, basis, k, field, true)
+    pub(super) fn samples_sse41(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
+        samples(scene, x, field, true)
     }
 }
 
@@ -289,6 +322,20 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 /// [`trace`] with the samples shifted by `phase` steps (in [0, 1)) along the ray:
 /// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
 pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
+    if scene.common_case {
+        march::<true>(scene, ray, field, phase)
+    } else {
+        march::<false>(scene, ray, field, phase)
+    }
+}
+
+/// The sample loop of [`trace_with_phase`]. `COMMON` is the scene's
+/// `common_case`, chosen once per scene: no refraction, no motion, no colour
+/// or normal expressions, no shadows, the density as the colour key. Its
+/// copy of the loop leaves those out (the object point is the world point,
+/// the colour the colour map at f, the normal unperturbed, a ray never
+/// bends), computing what the general copy computes in that case.
+fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
@@ -312,7 +359,11 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
     let mut last_normal: Option<Vec3> = None;
     // f(x - Δx_μ): the previous sample, when it lay on the current segment.
     let mut previous: Option<f32> = None;
-    let mut medium_index = scene.refraction.as_ref().map(|c| c.eval1(0.0));
+    let mut medium_index = if COMMON {
+        None
+    } else {
+        scene.refraction.as_ref().map(|c| c.eval1(0.0))
+    };
     // Every sample costs a step of the budget, so a ray bent back and forth inside
     // the volume (total internal reflection) still terminates.
     let diagonal = (max - min).length();
@@ -371,23 +422,29 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
                 }
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
-            // Colours and textures belong to the object: its point, not the world's.
-            let object_x = field.object_point(x);
-            let shading_normal = if lit {
-                pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+            let (shading_normal, base) = if COMMON {
+                (shading_normal, Vec3::from_array(scene.colour_map.eval(f)))
             } else {
-                shading_normal // `shade` reads it only for lights
+                // Colours and textures belong to the object: its point, not the world's.
+                let object_x = field.object_point(x);
+                let shading_normal = if lit {
+                    pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+                } else {
+                    shading_normal // `shade` reads it only for lights
+                };
+                let key = scene.colour_key(object_x, f, field);
+                let base = pse::surface_colour(
+                    &scene.expressions,
+                    &scene.colour_map,
+                    object_x,
+                    f,
+                    key,
+                    field,
+                );
+                (shading_normal, base)
             };
-            let key = scene.colour_key(object_x, f, field);
-            let base = pse::surface_colour(
-                &scene.expressions,
-                &scene.colour_map,
-                object_x,
-                f,
-                key,
-                field,
-            );
-            let sample_colour = base * shade(scene, x, shading_normal, basis.ray.direction, field);
+            let sample_colour =
+                base * shade::<COMMON>(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;
@@ -397,7 +454,9 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
             }
         }
 
-        if let (Some(refraction), Some(n1)) = (scene.refraction.as_ref(), medium_index) {
+        if let (false, Some(refraction), Some(n1)) =
+            (COMMON, scene.refraction.as_ref(), medium_index)
+        {
             let n2 = refraction.eval1(f);
             if (n2 - n1).abs() > 1e-6 {
                 medium_index = Some(n2);
@@ -498,9 +557,10 @@ fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
 }
 
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
-/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light.
+/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light
+/// (`COMMON`: a scene without shadows).
 #[inline]
-fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
+fn shade<const COMMON: bool>(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
     let mut light = scene.ambient;
     for source in &scene.lights {
         let (l, colour, distance) = match *source {
@@ -516,7 +576,7 @@ fn shade(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
         if lambert <= 0.0 {
             continue;
         }
-        let colour = if scene.shadows {
+        let colour = if !COMMON && scene.shadows {
             colour * crate::lighting::transmittance(scene, field, x, n, l, distance)
         } else {
             colour

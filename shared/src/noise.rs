@@ -201,7 +201,7 @@ impl Noise {
     /// The hash stays scalar (6 byte loads a point: gathers are slower than
     /// loads on the CPUs we run on); each corner's 4 gradients are 4 aligned
     /// loads and a 4×4 transpose. SSE4.1 is used (the floor): it is inlined
-    /// only into the SSE4.1 and AVX2 copies of the lane code, never called on
+    /// only into the SIMD copies of the lane code, never called on
     /// the scalar path.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
@@ -224,23 +224,67 @@ impl Noise {
     }
 
     /// [`Noise::noise_lanes`] in the copy of the code for `isa` (a SIMD path):
-    /// 8 lanes in one AVX register on AVX2, two halves of 4 otherwise.
+    /// 16 lanes at a time in AVX-512 registers, 8 at a time in AVX registers
+    /// on AVX2, 4 at a time otherwise.
     #[inline(always)]
     pub(crate) fn noise_lanes_on(&self, isa: Isa, px: &Lanes, py: &Lanes, pz: &Lanes) -> Lanes {
+        self.noise_lanes_live(isa, u32::MAX, px, py, pz)
+    }
+
+    /// [`Noise::noise_lanes_on`] at the lanes whose bit is set in `live`: a
+    /// register's worth of lanes none of which is live is skipped (and comes
+    /// out 0).
+    #[inline(always)]
+    pub(crate) fn noise_lanes_live(
+        &self,
+        isa: Isa,
+        live: u32,
+        px: &Lanes,
+        py: &Lanes,
+        pz: &Lanes,
+    ) -> Lanes {
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::Avx512 {
+            use std::arch::x86_64::*;
+            let mut out = [0.0; LANES];
+            for h in 0..LANES / 16 {
+                if (live >> (16 * h)) & 0xffff == 0 {
+                    continue;
+                }
+                // SAFETY: the path is AVX-512 only on CPUs that have it, and
+                // this code is inlined into that path's copy; the loads and
+                // stores are of 16 f32 within arrays of LANES.
+                unsafe {
+                    let n = self.noise16(
+                        _mm512_loadu_ps(px.as_ptr().add(16 * h)),
+                        _mm512_loadu_ps(py.as_ptr().add(16 * h)),
+                        _mm512_loadu_ps(pz.as_ptr().add(16 * h)),
+                    );
+                    _mm512_storeu_ps(out.as_mut_ptr().add(16 * h), n);
+                }
+            }
+            return out;
+        }
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx2 {
             use std::arch::x86_64::*;
             let mut out = [0.0; LANES];
-            // SAFETY: the path is AVX2 only on CPUs that have it (a scene
-            // carries only an available path), and this code is inlined into
-            // that path's copy; the loads and stores are of 8 f32.
-            unsafe {
-                let n = self.noise8(
-                    _mm256_loadu_ps(px.as_ptr()),
-                    _mm256_loadu_ps(py.as_ptr()),
-                    _mm256_loadu_ps(pz.as_ptr()),
-                );
-                _mm256_storeu_ps(out.as_mut_ptr(), n);
+            for h in 0..LANES / 8 {
+                if (live >> (8 * h)) & 0xff == 0 {
+                    continue;
+                }
+                // SAFETY: the path is AVX2 only on CPUs that have it (a scene
+                // carries only an available path), and this code is inlined
+                // into that path's copy; the loads and stores are of 8 f32
+                // within arrays of LANES.
+                unsafe {
+                    let n = self.noise8(
+                        _mm256_loadu_ps(px.as_ptr().add(8 * h)),
+                        _mm256_loadu_ps(py.as_ptr().add(8 * h)),
+                        _mm256_loadu_ps(pz.as_ptr().add(8 * h)),
+                    );
+                    _mm256_storeu_ps(out.as_mut_ptr().add(8 * h), n);
+                }
             }
             return out;
         }
@@ -329,6 +373,103 @@ impl Noise {
                             _mm256_mul_ps(gz, zs[dk]),
                         );
                         sum = _mm256_add_ps(sum, _mm256_mul_ps(_mm256_mul_ps(wx[di], wyz), dot));
+                    }
+                }
+            }
+            sum
+        }
+    }
+
+    /// [`Noise::noise`] at 16 points in AVX-512 registers: [`Noise::noise8`]'s
+    /// operations, 16 lanes at a time (gradient rows of lanes l, l + 4,
+    /// l + 8 and l + 12 in the four 128-bit blocks, so the in-block shuffles
+    /// transpose all four at once).
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512F.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub(crate) unsafe fn noise16(
+        &self,
+        x: std::arch::x86_64::__m512,
+        y: std::arch::x86_64::__m512,
+        z: std::arch::x86_64::__m512,
+    ) -> std::arch::x86_64::__m512 {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX-512F by the caller's contract; the stores are of 16
+        // i32 into arrays of 16; the rows are 16-byte aligned and in the
+        // table (below).
+        unsafe {
+            let (fx, fy, fz) = (floor16(x), floor16(y), floor16(z));
+            let mut cell = [[0u32; 16]; 3];
+            let n = _mm512_set1_epi32(255);
+            _mm512_storeu_si512(
+                cell[0].as_mut_ptr().cast(),
+                _mm512_and_si512(lattice16(fx), n),
+            );
+            _mm512_storeu_si512(
+                cell[1].as_mut_ptr().cast(),
+                _mm512_and_si512(lattice16(fy), n),
+            );
+            _mm512_storeu_si512(
+                cell[2].as_mut_ptr().cast(),
+                _mm512_and_si512(lattice16(fz), n),
+            );
+            let mut corners = [[0usize; 4]; 16];
+            for (l, c) in corners.iter_mut().enumerate() {
+                *c = self.corners(
+                    cell[0][l] as usize,
+                    cell[1][l] as usize,
+                    cell[2][l] as usize,
+                );
+            }
+            let rows = self.gradient_of.as_ptr();
+            let one = _mm512_set1_ps(1.0);
+            let (u, v, w) = (
+                _mm512_sub_ps(x, fx),
+                _mm512_sub_ps(y, fy),
+                _mm512_sub_ps(z, fz),
+            );
+            let xs = [u, _mm512_sub_ps(u, one)];
+            let ys = [v, _mm512_sub_ps(v, one)];
+            let zs = [w, _mm512_sub_ps(w, one)];
+            let wx = [omega16(xs[0]), omega16(xs[1])];
+            let wy = [omega16(ys[0]), omega16(ys[1])];
+            let wz = [omega16(zs[0]), omega16(zs[1])];
+            let mut sum = _mm512_setzero_ps();
+            for dk in 0..2 {
+                for dj in 0..2 {
+                    let wyz = _mm512_mul_ps(wy[dj], wz[dk]);
+                    for di in 0..2 {
+                        // SAFETY: `corners` are < 511, so the row is in the table.
+                        let row = |l: usize| {
+                            _mm_load_ps((*rows.add(corners[l][dj + 2 * dk] + di)).0.as_ptr())
+                        };
+                        let quad = |l: usize| {
+                            let low = _mm256_set_m128(row(l + 4), row(l));
+                            let high = _mm256_set_m128(row(l + 12), row(l + 8));
+                            _mm512_castpd_ps(_mm512_insertf64x4::<1>(
+                                _mm512_castps_pd(_mm512_castps256_ps512(low)),
+                                _mm256_castps_pd(high),
+                            ))
+                        };
+                        let (r0, r1, r2, r3) = (quad(0), quad(1), quad(2), quad(3));
+                        let (lo01, lo23) = (
+                            _mm512_castps_pd(_mm512_unpacklo_ps(r0, r1)),
+                            _mm512_castps_pd(_mm512_unpacklo_ps(r2, r3)),
+                        );
+                        let (hi01, hi23) = (
+                            _mm512_castps_pd(_mm512_unpackhi_ps(r0, r1)),
+                            _mm512_castps_pd(_mm512_unpackhi_ps(r2, r3)),
+                        );
+                        let gx = _mm512_castpd_ps(_mm512_unpacklo_pd(lo01, lo23));
+                        let gy = _mm512_castpd_ps(_mm512_unpackhi_pd(lo01, lo23));
+                        let gz = _mm512_castpd_ps(_mm512_unpacklo_pd(hi01, hi23));
+                        let dot = _mm512_add_ps(
+                            _mm512_add_ps(_mm512_mul_ps(gx, xs[di]), _mm512_mul_ps(gy, ys[dj])),
+                            _mm512_mul_ps(gz, zs[dk]),
+                        );
+                        sum = _mm512_add_ps(sum, _mm512_mul_ps(_mm512_mul_ps(wx[di], wyz), dot));
                     }
                 }
             }
@@ -455,6 +596,8 @@ impl Noise {
             Isa::Sse41 => unsafe { batch::noise_sse41(n, x, y, z) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { batch::noise_avx2(n, x, y, z) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { batch::noise_avx512(n, x, y, z) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => n.noise_on(Isa::Scalar, x, y, z),
         }
@@ -472,8 +615,9 @@ impl Noise {
             // SAFETY: as in `noise`.
             #[cfg(target_arch = "x86_64")]
             Isa::Sse41 => unsafe { batch::noise_batch_sse41(n, points, out) },
+            // The slice kernel's AVX2 form serves AVX-512 too (the same bits).
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { batch::noise_batch_avx2(n, points, out) },
+            Isa::Avx2 | Isa::Avx512 => unsafe { batch::noise_batch_avx2(n, points, out) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => n.noise_batch(Isa::Scalar, points, out),
         }
@@ -536,6 +680,11 @@ mod batch {
     #[target_feature(enable = "sse4.1")]
     pub(super) fn noise_batch_sse41(n: &Noise, points: &[Vec3], out: &mut [f32]) {
         noise_batch_lanes(n, points, out)
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn noise_avx512(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        n.noise_lanes_on(Isa::Avx512, x, y, z)
     }
 
     #[target_feature(enable = "avx2")]
@@ -646,6 +795,57 @@ unsafe fn omega8(t: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
         _mm256_and_ps(
             _mm256_cmp_ps::<_CMP_LT_OQ>(t, one),
             _mm256_add_ps(cubic, one),
+        )
+    }
+}
+
+/// [`floor`] on 16 lanes (AVX-512), with its operations: rounding towards
+/// −∞, plus +0.0 (so that −0 gives +0).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn floor16(x: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512 {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX-512F by the caller's contract.
+    unsafe {
+        _mm512_add_ps(
+            _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(x),
+            _mm512_setzero_ps(),
+        )
+    }
+}
+
+/// [`lattice`] on 16 lanes (AVX-512), with its operations.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn lattice16(x: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512i {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX-512F by the caller's contract.
+    unsafe {
+        let fits =
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_abs_ps(x), _mm512_set1_ps(2_147_483_520.0));
+        _mm512_cvttps_epi32(_mm512_maskz_mov_ps(fits, x))
+    }
+}
+
+/// [`omega`] on 16 lanes (AVX-512), with its operations.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn omega16(t: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512 {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX-512F by the caller's contract.
+    unsafe {
+        let t = _mm512_abs_ps(t);
+        let one = _mm512_set1_ps(1.0);
+        let cubic = _mm512_mul_ps(
+            _mm512_mul_ps(
+                _mm512_sub_ps(_mm512_mul_ps(_mm512_set1_ps(2.0), t), _mm512_set1_ps(3.0)),
+                t,
+            ),
+            t,
+        );
+        _mm512_maskz_mov_ps(
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t, one),
+            _mm512_add_ps(cubic, one),
         )
     }
 }
@@ -1004,7 +1204,11 @@ mod tests {
             }
             // Lattice points too.
             if round == 0 {
-                p[0] = [0.0, -0.0, 1.0, -1.0, 255.0, 256.0, -300.0, 1.0e9];
+                let lattice = [0.0, -0.0, 1.0, -1.0, 255.0, 256.0, -300.0, 1.0e9];
+                let more = [0.5, -0.5, 1.0e-30, -1.0e9, 2.5, -2.5, 65536.0, -65537.0];
+                for (v, &l) in p[0].iter_mut().zip(lattice.iter().chain(&more)) {
+                    *v = l;
+                }
             }
             let reference = n.noise_on(Isa::Scalar, &p[0], &p[1], &p[2]);
             for isa in Isa::available() {

@@ -4,13 +4,16 @@
 //! The bottom layer of the crate: it uses nothing of it. Each kernel (noise in
 //! [`crate::noise`], `pow01` in [`crate::fastmath`]) is written once,
 //! lane-parallel over [`LANES`] points (noise with SSE intrinsics, 8 lanes in
-//! AVX registers on AVX2), and compiled for AVX2 and SSE4.1 behind
+//! AVX registers on AVX2, 16 in AVX-512 registers), and compiled for
+//! AVX-512, AVX2 and SSE4.1 behind
 //! `#[target_feature]` beside its scalar form. The hot paths that call them
 //! have their own `#[target_feature]` copies with the kernels inlined
 //! (`density::lanes::x86`, `march::x86`); the rest of the program is built for
 //! the x86-64 baseline (SSE2). Every path does
 //! the same IEEE operations in the same order per lane (no FMA: Rust never
-//! contracts `a * b + c`), so [`Isa::Scalar`], [`Isa::Sse41`] and [`Isa::Avx2`]
+//! contracts `a * b + c`, and the fused instructions that AVX-512 brings are
+//! never asked for), so [`Isa::Scalar`], [`Isa::Sse41`], [`Isa::Avx2`] and
+//! [`Isa::Avx512`]
 //! give the same bits; `tests/` renders whole images on each and compares them.
 //!
 //! The choice is a field of the scene (`Scene::isa`), not global
@@ -18,8 +21,10 @@
 
 use glam::Vec3;
 
-/// Points per batch in the vectorised paths.
-pub const LANES: usize = 8;
+/// Points per batch in the vectorised paths: 16 (a ray's chunk of samples,
+/// or the gradient neighbours of 8 samples). Fewer calls of the kernels per
+/// ray outweigh the lanes evaluated past a ray's end (docs/benchmark-log.md).
+pub const LANES: usize = 16;
 
 /// One f32 per lane.
 pub type Lanes = [f32; LANES];
@@ -33,12 +38,24 @@ pub enum Isa {
     Sse41,
     /// Lane-parallel code compiled for AVX2 (8-wide).
     Avx2,
+    /// Lane-parallel code compiled for AVX-512 (16-wide: all [`LANES`] in
+    /// one register).
+    Avx512,
 }
 
 impl Isa {
-    /// The fastest path this CPU supports.
+    /// The path the renderer takes on this CPU: the widest it supports, but
+    /// AVX2 where there is AVX-512 too. On the Xeon measured (Sapphire
+    /// Rapids class) the 16-wide path takes 1.07× the CPU time of AVX2 for
+    /// the fur (docs/benchmark-log.md): the marcher's scalar code between
+    /// the kernels runs slower after 512-bit instructions.
+    /// [`crate::Scene::set_isa`] asks for it (`ISA=avx512` in the examples).
     pub fn detect() -> Isa {
-        Isa::available().into_iter().last().unwrap_or(Isa::Scalar)
+        let available = Isa::available();
+        if available.contains(&Isa::Avx2) {
+            return Isa::Avx2;
+        }
+        available.into_iter().last().unwrap_or(Isa::Scalar)
     }
 
     /// Every path this CPU can run, slowest first.
@@ -51,6 +68,9 @@ impl Isa {
             }
             if std::is_x86_feature_detected!("avx2") {
                 v.push(Isa::Avx2);
+            }
+            if std::is_x86_feature_detected!("avx512f") {
+                v.push(Isa::Avx512);
             }
         }
         v
@@ -67,6 +87,7 @@ impl Isa {
             Isa::Scalar => "scalar",
             Isa::Sse41 => "sse4.1",
             Isa::Avx2 => "avx2",
+            Isa::Avx512 => "avx512",
         }
     }
 }

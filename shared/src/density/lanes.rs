@@ -86,13 +86,26 @@ impl Field<'_> {
     /// constant there).
     #[inline(always)]
     pub(super) fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
-        self.noise.noise_lanes_on(isa, &p.x, &p.y, &p.z)
+        self.noise_lanes_live(p, isa, u32::MAX)
+    }
+
+    /// [`Field::noise_lanes`] at the lanes set in `live` (the others come
+    /// out as anything).
+    #[inline(always)]
+    pub(super) fn noise_lanes_live(&self, p: &Points, isa: Isa, live: u32) -> Lanes {
+        self.noise.noise_lanes_live(isa, live, &p.x, &p.y, &p.z)
     }
 
     /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
     #[inline(always)]
     pub(super) fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
-        self.noise_lanes(&x.map(|p| (p - self.offset) * frequency), isa)
+        self.noise_at_live(frequency, x, isa, u32::MAX)
+    }
+
+    /// [`Field::noise_at`] at the lanes set in `live`.
+    #[inline(always)]
+    pub(super) fn noise_at_live(&self, frequency: f32, x: &Points, isa: Isa, live: u32) -> Lanes {
+        self.noise_lanes_live(&x.map(|p| (p - self.offset) * frequency), isa, live)
     }
 }
 
@@ -138,6 +151,8 @@ impl Density {
             Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::eval_lanes_avx512(self, x, field) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => each(x, |p| self.eval(p, field)),
         }
@@ -228,6 +243,11 @@ impl Density {
 mod x86 {
     use super::*;
 
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn eval_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx512)
+    }
+
     #[target_feature(enable = "avx2")]
     pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
         d.eval_lanes_simd(x, field, Isa::Avx2)
@@ -257,12 +277,15 @@ impl Hypertexture {
         if kept.iter().all(|&k| k) {
             return d;
         }
+        // Only the other lanes' modulation is used (below): the noise
+        // kernels skip a register's worth of kept lanes.
+        let live = (0..LANES).fold(0u32, |m, l| m | (u32::from(!kept[l]) << l));
         let mut v = d;
         for m in &self.modulation {
             if v.iter().all(|&v| v == 0.0) {
                 break;
             }
-            let next = m.apply_lanes(&v, &p, &self.object, field, isa);
+            let next = m.apply_lanes(&v, &p, &self.object, field, isa, live);
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
         }

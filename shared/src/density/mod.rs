@@ -10,7 +10,7 @@
 //!   the scalar evaluation, the reference every other path reproduces.
 //! - [`dmf`]: the density modulation functions, one file each, with all their
 //!   forms (scalar, dual, lanes, bounds) side by side.
-//! - [`lanes`]: [`Points`] and [`Density::eval_lanes`], 8 points at once, with
+//! - [`lanes`]: [`Points`] and [`Density::eval_lanes`], [`crate::simd::LANES`] points at once, with
 //!   the one `#[target_feature]` copy per instruction set.
 //! - [`dual`]: [`Density::eval_dual`], the density with its gradient.
 //! - [`bounds`]: [`Aabb`], [`Support`], where the density can be non-zero.

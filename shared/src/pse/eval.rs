@@ -335,6 +335,8 @@ impl Program {
             Isa::Sse41 => unsafe { x86::run_sse41(self, x, d, field) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { x86::run_avx2(self, x, d, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::run_avx512(self, x, d, field) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => self.eval_lanes(x, d, field, Isa::Scalar),
         }
@@ -601,6 +603,11 @@ impl Program {
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn run_avx512(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
+        p.run_simd(x, d, field, Isa::Avx512)
+    }
 
     #[target_feature(enable = "avx2")]
     pub(super) fn run_avx2(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {

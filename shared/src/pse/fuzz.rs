@@ -80,7 +80,7 @@ pub fn compile_and_run(functions: &str, expression: &str) {
 
 /// Points of the sample grid the checks use: inside the sphere, in its soft
 /// shell, outside it.
-const POINTS: [Vec3; LANES] = [
+const POINTS: [Vec3; 8] = [
     Vec3::new(0.0, 0.0, 0.0),
     Vec3::new(0.3, -0.7, 0.2),
     Vec3::new(0.9, 0.1, 0.0),
@@ -91,19 +91,19 @@ const POINTS: [Vec3; LANES] = [
     Vec3::new(-2.0, 0.25, 7.0),
 ];
 
-/// The 8-lane register code gives each lane the bits of the point alone (lanes
+/// The lane register code gives each lane the bits of the point alone (lanes
 /// take different branches here), on every instruction set.
 fn lanes_agree(program: &super::Program, field: &Field) {
     let mut points = Points::default();
-    for (l, &p) in POINTS.iter().enumerate() {
-        points.set(l, p);
+    for l in 0..LANES {
+        points.set(l, POINTS[l % POINTS.len()]);
     }
     let d: Lanes = std::array::from_fn(|l| l as f32 / 7.0);
     let alone: Vec<[f32; 3]> = (0..LANES)
         .map(|l| {
             program.eval(
                 Inputs {
-                    x: POINTS[l],
+                    x: POINTS[l % POINTS.len()],
                     d: d[l],
                 },
                 field,

@@ -472,6 +472,11 @@ pub struct Scene {
     pub(crate) motion: Option<Motion>,
     /// The files the scene names (path as written, content hash), in path order.
     pub(crate) assets: Vec<(String, u64)>,
+    /// Whether the marcher's common case holds: no refraction, no motion,
+    /// no colour or normal expressions, no shadows and the density as the
+    /// colour key. It then runs a sample loop without
+    /// the rest (`march::trace_with_phase`).
+    pub(crate) common_case: bool,
 }
 
 impl Scene {
@@ -612,6 +617,12 @@ impl Scene {
         };
         // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
+        let common_case = desc.refraction.is_none()
+            && motion.is_none()
+            && expressions.colour.is_none()
+            && expressions.normal_perturbation.is_none()
+            && !desc.shading.shadows
+            && matches!(colour_index, ColourIndex::Density);
         Ok(Scene {
             width: desc.image.width,
             height: desc.image.height,
@@ -645,6 +656,7 @@ impl Scene {
             expressions,
             motion,
             assets: Vec::new(),
+            common_case,
         })
     }
 

@@ -36,6 +36,7 @@ impl ValueDmf for Bias {
         _object: &Density,
         _field: &Field,
         _isa: Isa,
+        _live: u32,
     ) -> Lanes {
         self.apply_simd(d)
     }

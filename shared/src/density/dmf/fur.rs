@@ -90,12 +90,13 @@ impl ValueDmf for Fur {
         object: &Density,
         field: &Field,
         isa: Isa,
+        live: u32,
     ) -> Lanes {
         let mut x = if self.curliness > 0.0 {
             let q = x.map(|x| x - field.offset);
-            let a = field.noise_lanes(&q.map(|q| q - VNOISE_OFFSET), isa);
-            let b = field.noise_lanes(&q, isa);
-            let c = field.noise_lanes(&q.map(|q| q + VNOISE_OFFSET), isa);
+            let a = field.noise_lanes_live(&q.map(|q| q - VNOISE_OFFSET), isa, live);
+            let b = field.noise_lanes_live(&q, isa, live);
+            let c = field.noise_lanes_live(&q.map(|q| q + VNOISE_OFFSET), isa, live);
             let curl = self.curl_gain.apply_simd(&d.map(|d| 1.0 - d));
             let mut out = Points::default();
             for l in 0..LANES {
@@ -108,7 +109,7 @@ impl ValueDmf for Fur {
         };
         object.project_lanes_in_place(&mut x);
         let s = field
-            .noise_at(self.frequency, &x, isa)
+            .noise_at_live(self.frequency, &x, isa, live)
             .map(|n| 0.5 * (1.0 + n));
         let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
         zip(&shaped, d, |f, d| f * d)

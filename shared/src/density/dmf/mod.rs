@@ -74,7 +74,9 @@ pub trait ValueDmf: Sized {
     fn apply_dual(&self, d: Dual, x: &DualPoint, object: &Density, field: &Field) -> Dual;
 
     /// f at each lane, inlined into a SIMD path's copy: implementations are
-    /// `#[inline(always)]`.
+    /// `#[inline(always)]`. Only the lanes whose bit is set in `live` are
+    /// used: the others may come out as anything (a noise kernel skips a
+    /// register's worth of them).
     fn apply_lanes(
         &self,
         d: &Lanes,
@@ -82,6 +84,7 @@ pub trait ValueDmf: Sized {
         object: &Density,
         field: &Field,
         isa: Isa,
+        live: u32,
     ) -> Lanes;
 }
 
@@ -193,9 +196,10 @@ macro_rules! modulations {
                 object: &Density,
                 field: &Field,
                 isa: Isa,
+                live: u32,
             ) -> Lanes {
                 match self {
-                    $(Modulation::$name(m) => <$ty as ValueDmf>::apply_lanes(m, d, x, object, field, isa),)*
+                    $(Modulation::$name(m) => <$ty as ValueDmf>::apply_lanes(m, d, x, object, field, isa, live),)*
                 }
             }
         }

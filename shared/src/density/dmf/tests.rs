@@ -1,4 +1,4 @@
-//! Every DMF on every path: the lanes of SSE4.1 and AVX2 give the scalar
+//! Every DMF on every path: the lanes of SSE4.1, AVX2 and AVX-512 give the scalar
 //! bits, and the dual path the scalar value with a finite gradient.
 
 use std::collections::BTreeSet;
