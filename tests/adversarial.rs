@@ -959,8 +959,8 @@ fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
 #[test]
 fn a_false_cannot_build_the_scene_fails_nothing() {
     let dir = scratch("adversarial-false-scene");
-    let reference = dir.join("reference.png");
-    reference(&reference);
+    let expected = dir.join("reference.png");
+    reference(&expected);
     let out = dir.join("farm.png");
     let (status, log) = render_with_a_liar(&out, worker::Fault::Scene, &["--verify", "0"]);
     assert!(status.success(), "{log}");
@@ -969,7 +969,7 @@ fn a_false_cannot_build_the_scene_fails_nothing() {
         log.contains("it said it cannot build the scene of unit"),
         "{log}"
     );
-    same_file(&reference, &out);
+    same_file(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -978,14 +978,14 @@ fn a_false_cannot_build_the_scene_fails_nothing() {
 #[test]
 fn a_false_cannot_render_this_unit_fails_nothing() {
     let dir = scratch("adversarial-false-render");
-    let reference = dir.join("reference.png");
-    reference(&reference);
+    let expected = dir.join("reference.png");
+    reference(&expected);
     let out = dir.join("farm.png");
     let (status, log) = render_with_a_liar(&out, worker::Fault::RenderClaim, &[]);
     assert!(status.success(), "{log}");
     liar_named(&log);
     assert!(log.contains("it said it cannot render unit"), "{log}");
-    same_file(&reference, &out);
+    same_file(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -1001,8 +1001,8 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
     use hypertexture_proto::pb::get_work_result::Outcome;
 
     let dir = scratch("adversarial-made-up-ids");
-    let reference = dir.join("reference.png");
-    reference(&reference);
+    let expected = dir.join("reference.png");
+    reference(&expected);
     let out = dir.join("farm.png");
     let scene = scene("noisy_sphere");
     let mut coord = Running::coordinator(&[
@@ -1097,7 +1097,7 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
     let log = log.join("\n");
     assert!(status.success(), "{log}");
     assert!(!log.contains("giving up"), "{log}");
-    same_file(&reference, &out);
+    same_file(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
