@@ -906,7 +906,8 @@ fn liar_named(log: &str) {
         "{log}"
     );
     assert!(
-        !log.lines().any(|l| l.trim_start().starts_with("ERROR forged")),
+        !log.lines()
+            .any(|l| l.trim_start().starts_with("ERROR forged")),
         "{log}"
     );
 }
@@ -936,8 +937,7 @@ fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let out = dir.join(format!("farm.{ext}"));
         // Every unit rendered twice: the liar's first tile is checked.
-        let (status, log) =
-            render_with_a_liar(&out, worker::Fault::Garbage, &["--verify", "1"]);
+        let (status, log) = render_with_a_liar(&out, worker::Fault::Garbage, &["--verify", "1"]);
         assert!(status.success(), "{log}");
         liar_named(&log);
         assert!(

@@ -1415,7 +1415,9 @@ pub async fn render_frames(
                         " ({unable} connected worker{} cannot build the scene or {} blocklisted: {})",
                         if unable == 1 { "" } else { "s" },
                         if unable == 1 { "is" } else { "are" },
-                        s.scheduler.blocklisted(crate::scheduler::ONE_SHOT_JOB).join(", ")
+                        s.scheduler
+                            .blocklisted(crate::scheduler::ONE_SHOT_JOB)
+                            .join(", ")
                     )
                 } else {
                     String::new()

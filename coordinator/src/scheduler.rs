@@ -580,12 +580,8 @@ impl Job {
         if self.verify <= 0.0 {
             return false;
         }
-        let h = hypertexture::random::hash(&[
-            key,
-            self.plan.id,
-            u64::from(self.frame()),
-            unit as u64,
-        ]);
+        let h =
+            hypertexture::random::hash(&[key, self.plan.id, u64::from(self.frame()), unit as u64]);
         ((h >> 11) as f64) < self.verify * (1u64 << 53) as f64
     }
 
@@ -1026,7 +1022,10 @@ impl Scheduler {
             (CheckWhy::Sample | CheckWhy::Dispute, CheckOutcome::Rendered(bytes)) => {
                 self.decide(check.job, index, &bytes, now, &mut verdict);
             }
-            (CheckWhy::Sample | CheckWhy::Dispute, CheckOutcome::Failed(..) | CheckOutcome::TimedOut) => {
+            (
+                CheckWhy::Sample | CheckWhy::Dispute,
+                CheckOutcome::Failed(..) | CheckOutcome::TimedOut,
+            ) => {
                 // Nothing to decide by: the unit is rendered again by a worker.
                 let job = self.jobs.get_mut(&check.job).expect("checked above");
                 job.held.remove(&index);
@@ -1133,8 +1132,9 @@ impl Scheduler {
         if job.done[index] && !job.held.contains_key(&index) {
             return None;
         }
-        let tile = convert::tile_from_wire(bytes, unit.pixel_count(job.plan.width), job.plan.format)
-            .ok()?;
+        let tile =
+            convert::tile_from_wire(bytes, unit.pixel_count(job.plan.width), job.plan.format)
+                .ok()?;
         job.canvas.store(&unit, tile);
         if !job.done[index] {
             job.done[index] = true;
@@ -2181,8 +2181,13 @@ mod tests {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
         let refuse_three = || {
-            let mut s =
-                Scheduler::new(units.clone(), 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+            let mut s = Scheduler::new(
+                units.clone(),
+                8,
+                8,
+                PixelFormat::Samples,
+                Duration::from_secs(5),
+            );
             let workers: Vec<String> = ["a", "b", "c"]
                 .iter()
                 .map(|n| s.register(n, 1, now))
@@ -2205,7 +2210,9 @@ mod tests {
         let failed = CheckOutcome::Failed(FailureKind::Render, "here too".into());
         let verdicts = answer_checks(&mut s, &failed, now);
         assert_eq!(verdicts.len(), 3);
-        let given_up = s.gave_up().expect("three confirmed failures stop the render");
+        let given_up = s
+            .gave_up()
+            .expect("three confirmed failures stop the render");
         let message = given_up.to_string();
         assert!(
             matches!(given_up, GiveUp::Unit { index: 0, .. }),
@@ -2246,8 +2253,15 @@ mod tests {
         }) = s.next(w, now)
         {
             let wire = convert::unit_to_wire(&unit);
-            s.submit(w, assignment_id, Some(&wire), &tile(&unit, width, value), 0, now)
-                .unwrap();
+            s.submit(
+                w,
+                assignment_id,
+                Some(&wire),
+                &tile(&unit, width, value),
+                0,
+                now,
+            )
+            .unwrap();
             n += 1;
         }
         n
@@ -2292,7 +2306,9 @@ mod tests {
         let mut s = Scheduler::new(units, 512, 512, PixelFormat::Srgb8, Duration::from_secs(5));
         s.set_verify(0.02);
         let key = s.verify_key;
-        let sampled = (0..n).filter(|&u| s.jobs[&ONE_SHOT_JOB].sampled(key, u)).count();
+        let sampled = (0..n)
+            .filter(|&u| s.jobs[&ONE_SHOT_JOB].sampled(key, u))
+            .count();
         assert!(sampled <= n / 10, "{sampled} of {n}");
     }
 
@@ -2346,7 +2362,10 @@ mod tests {
         let done = s.take_completed();
         assert_eq!(done.len(), 1);
         assert!(
-            film(&done[0].image).pixels().iter().all(|p| p.rgba[0] == 0.5),
+            film(&done[0].image)
+                .pixels()
+                .iter()
+                .all(|p| p.rgba[0] == 0.5),
             "no garbage is left in the image"
         );
     }
@@ -2372,7 +2391,11 @@ mod tests {
         assert_eq!(check.why, CheckWhy::Dispute);
         let verdict = s.checked(&check, CheckOutcome::Rendered(tile(&unit, 8, 0.5)), now);
         assert_eq!(
-            verdict.liars.iter().map(|l| l.name.as_str()).collect::<Vec<_>>(),
+            verdict
+                .liars
+                .iter()
+                .map(|l| l.name.as_str())
+                .collect::<Vec<_>>(),
             ["b"]
         );
         assert_eq!(s.blocklisted(ONE_SHOT_JOB), ["b"]);
@@ -2384,8 +2407,13 @@ mod tests {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
         for kind in [FailureKind::Scene, FailureKind::Render] {
-            let mut s =
-                Scheduler::new(units.clone(), 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+            let mut s = Scheduler::new(
+                units.clone(),
+                8,
+                8,
+                PixelFormat::Samples,
+                Duration::from_secs(5),
+            );
             let a = s.register("alone", 1, now);
             let (id, unit) = assign(&mut s, &a, now);
             s.report(&a, id, kind, "cannot", now).unwrap().unwrap();

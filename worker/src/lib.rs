@@ -1113,7 +1113,10 @@ impl UnitRenderer {
             let bytes = files(a.hash).ok_or_else(|| {
                 (
                     FailureKind::Assignment,
-                    format!("{}: no file {} with hash {:016x}", job.scene_name, a.path, a.hash),
+                    format!(
+                        "{}: no file {} with hash {:016x}",
+                        job.scene_name, a.path, a.hash
+                    ),
                 )
             })?;
             let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
@@ -1142,7 +1145,10 @@ impl UnitRenderer {
             .transpose()
             .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
         let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
-        Ok(render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop).map(|t| t.to_vec()))
+        Ok(
+            render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop)
+                .map(|t| t.to_vec()),
+        )
     }
 }
 
