@@ -1024,9 +1024,10 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
         .enable_all()
         .build()
         .unwrap();
-    runtime.block_on(async {
+    let liars = runtime.block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
         let mut ids = Vec::new();
+        let mut claimed = Vec::new();
         for name in ["alpha", "beta", "gamma"] {
             ids.push(register_raw(&mut client, name).await);
         }
@@ -1054,8 +1055,7 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
             let Some(Outcome::Assignment(a)) = work.outcome else {
                 panic!("expected an assignment")
             };
-            // The unit given back comes first, to a worker that has not failed it.
-            assert_eq!(*unit.get_or_insert(a.unit), a.unit);
+            unit.get_or_insert(a.unit);
             let number = id.split_once('-').unwrap().0;
             for forged in [
                 format!("{number}-0000000000000000"),
@@ -1086,10 +1086,20 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
                 .unwrap()
                 .into_inner()
                 .counted;
-            assert!(counted, "taken back, to be checked");
+            // Not counted when the coordinator has rendered the unit already
+            // (it checked an earlier claim): the assignment was taken back.
+            if counted {
+                claimed.push(["alpha", "beta", "gamma"][i]);
+            }
         }
+        claimed
     });
-    for name in ["alpha", "beta", "gamma"] {
+    assert_eq!(
+        liars.first(),
+        Some(&"alpha"),
+        "the first claim is taken back"
+    );
+    for name in liars {
         coord.wait_for(&format!("worker {name} lied about job 1"), 60);
     }
     let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
