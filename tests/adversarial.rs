@@ -96,7 +96,7 @@ fn network_strings_cannot_forge_log_lines() {
             refused.message()
         );
     });
-    coord.wait_for("could not render unit", 30);
+    coord.wait_for("says it cannot render unit", 30);
     let _worker = Running::worker(&["--coordinator", &url, "--threads", "2"]);
     let (status, log) = coord.finish(60);
     let text = log.join("\n");
@@ -855,4 +855,263 @@ fn random_requests_to_the_api_get_json_4xx_never_5xx() {
         panic!("{e}\nlog:\n{}", log.join("\n"));
     }
     std::fs::remove_dir_all(&data).unwrap();
+}
+
+/// A coordinator rendering `noisy_sphere` at 32² to `out` with no local
+/// workers and `extra` flags, a lying worker (`fault`, in this process,
+/// named with a forged log line) joined first, then a good worker; returns
+/// its exit status and log once it has exited.
+fn render_with_a_liar(
+    out: &Path,
+    fault: worker::Fault,
+    extra: &[&str],
+) -> (std::process::ExitStatus, String) {
+    let scene = scene("noisy_sphere");
+    let args = [
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "60",
+    ];
+    let mut coord = Running::coordinator(&[&args[..], extra].concat());
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (runtime, stop, task) = in_process_worker(&url, LIAR, Some(fault));
+    // The liar is caught before the good worker joins: its lie is in.
+    coord.wait_for("lied about job 1", 60);
+    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
+    let (status, log) = coord.finish(120);
+    stop.send(true).unwrap();
+    runtime.block_on(async {
+        let _ = tokio::time::timeout(Duration::from_secs(30), task).await;
+    });
+    (status, log.join("\n"))
+}
+
+/// The lying worker's name: it carries a forged log line.
+const LIAR: &str = "liar\nERROR forged by the liar";
+
+/// The liar is named in the log, escaped, as blocklisted; no line is forged.
+fn liar_named(log: &str) {
+    assert!(
+        log.contains("worker liar\\nERROR forged by the liar lied about job 1")
+            && log.contains("it is blocklisted for the job"),
+        "{log}"
+    );
+    assert!(
+        !log.lines()
+            .any(|l| l.trim_start().starts_with("ERROR forged")),
+        "{log}"
+    );
+}
+
+/// A worker that sends garbage tiles of the right size (1e38 floats in an
+/// EXR's samples, magenta in a PNG's bytes) is caught by the coordinator's
+/// second rendering: blocklisted and named, every unit it delivered
+/// rendered again by the good worker, the image byte-identical to the
+/// in-process one, exit status 0.
+#[test]
+fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
+    let dir = scratch("adversarial-garbage");
+    for ext in ["png", "exr"] {
+        let reference = dir.join(format!("reference.{ext}"));
+        let o = coordinator(&[
+            "--scene",
+            scene("noisy_sphere").to_str().unwrap(),
+            "--out",
+            reference.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--in-process",
+            "--quiet",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let out = dir.join(format!("farm.{ext}"));
+        // Every unit rendered twice: the liar's first tile is checked.
+        let (status, log) = render_with_a_liar(&out, worker::Fault::Garbage, &["--verify", "1"]);
+        assert!(status.success(), "{log}");
+        liar_named(&log);
+        assert!(
+            log.contains("differs from the coordinator's own rendering"),
+            "{log}"
+        );
+        assert!(
+            std::fs::read(&reference).unwrap() == std::fs::read(&out).unwrap(),
+            "{ext}: the farm's image differs from the in-process one\n{log}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A worker that says it cannot build the scene, which the coordinator
+/// builds, fails nothing: it is blocklisted and named, the good worker
+/// renders the frame, exact, exit status 0 (with verification off: claims
+/// are checked whatever the sampled fraction).
+#[test]
+fn a_false_cannot_build_the_scene_fails_nothing() {
+    let dir = scratch("adversarial-false-scene");
+    let expected = dir.join("reference.png");
+    reference(&expected);
+    let out = dir.join("farm.png");
+    let (status, log) = render_with_a_liar(&out, worker::Fault::Scene, &["--verify", "0"]);
+    assert!(status.success(), "{log}");
+    liar_named(&log);
+    assert!(
+        log.contains("it said it cannot build the scene of unit"),
+        "{log}"
+    );
+    same_file(&expected, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A worker that says it cannot render its units, which the coordinator
+/// renders, fails nothing: blocklisted and named, the image exact, exit 0.
+#[test]
+fn a_false_cannot_render_this_unit_fails_nothing() {
+    let dir = scratch("adversarial-false-render");
+    let expected = dir.join("reference.png");
+    reference(&expected);
+    let out = dir.join("farm.png");
+    let (status, log) = render_with_a_liar(&out, worker::Fault::RenderClaim, &[]);
+    assert!(status.success(), "{log}");
+    liar_named(&log);
+    assert!(log.contains("it said it cannot render unit"), "{log}");
+    same_file(&expected, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Failure reports under made-up worker ids (altered secrets, bare
+/// numbers, ids never handed out) are refused as from unknown workers and
+/// count for nothing; three registered workers that all say the same unit
+/// cannot be rendered are checked, found lying and blocklisted; the good
+/// worker renders the frame, exact, exit status 0.
+#[test]
+fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+
+    let dir = scratch("adversarial-made-up-ids");
+    let expected = dir.join("reference.png");
+    reference(&expected);
+    let out = dir.join("farm.png");
+    let scene = scene("noisy_sphere");
+    let mut coord = Running::coordinator(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--local-workers",
+        "0",
+        "--lease-timeout",
+        "60",
+    ]);
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let liars = runtime.block_on(async {
+        let mut client = FarmClient::connect(url.clone()).await.unwrap();
+        let mut ids = Vec::new();
+        let mut claimed = Vec::new();
+        for name in ["alpha", "beta", "gamma"] {
+            ids.push(register_raw(&mut client, name).await);
+        }
+        // A report must name a kind.
+        let refused = client
+            .report_failure(pb::ReportFailureParams {
+                worker_id: ids[0].clone(),
+                assignment_id: 1,
+                kind: 0,
+                reason: "?".into(),
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+        let mut unit = None;
+        for (i, id) in ids.iter().enumerate() {
+            let work = client
+                .get_work(pb::GetWorkParams {
+                    worker_id: id.clone(),
+                    known_scene_hash: 0,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            let Some(Outcome::Assignment(a)) = work.outcome else {
+                panic!("expected an assignment")
+            };
+            unit.get_or_insert(a.unit);
+            let number = id.split_once('-').unwrap().0;
+            for forged in [
+                format!("{number}-0000000000000000"),
+                format!("{number}-{}", "f".repeat(16)),
+                number.to_string(),
+                format!("w{}-0000000000000001", 100 + i),
+                "ghost".into(),
+            ] {
+                let refused = client
+                    .report_failure(pb::ReportFailureParams {
+                        worker_id: forged.clone(),
+                        assignment_id: a.assignment_id,
+                        kind: pb::FailureKind::Scene as i32,
+                        reason: "forged".into(),
+                    })
+                    .await
+                    .unwrap_err();
+                assert_eq!(refused.code(), tonic::Code::NotFound, "{forged}");
+            }
+            let counted = client
+                .report_failure(pb::ReportFailureParams {
+                    worker_id: id.clone(),
+                    assignment_id: a.assignment_id,
+                    kind: pb::FailureKind::Render as i32,
+                    reason: format!("out of memory on node {i}"),
+                })
+                .await
+                .unwrap()
+                .into_inner()
+                .counted;
+            // Not counted when the coordinator has rendered the unit already
+            // (it checked an earlier claim): the assignment was taken back.
+            if counted {
+                claimed.push(["alpha", "beta", "gamma"][i]);
+            }
+        }
+        claimed
+    });
+    assert_eq!(
+        liars.first(),
+        Some(&"alpha"),
+        "the first claim is taken back"
+    );
+    for name in liars {
+        coord.wait_for(&format!("worker {name} lied about job 1"), 60);
+    }
+    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
+    let (status, log) = coord.finish(120);
+    let log = log.join("\n");
+    assert!(status.success(), "{log}");
+    assert!(!log.contains("giving up"), "{log}");
+    same_file(&expected, &out);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn same_file(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
 }

@@ -344,11 +344,12 @@ fn a_cancelled_jobs_units_in_flight_are_dropped_by_their_worker() {
     );
 }
 
-/// A worker that fails 3 units of a job is blocklisted for it (and `status`
-/// shows it) while a good worker finishes the job; a job whose unit fails on
-/// 3 workers fails with their reasons, and other jobs go on.
+/// A worker whose renders panic, where the coordinator's own rendering of
+/// the unit does not, is blocklisted for the job (and `status` shows it)
+/// while a good worker finishes the job; three such workers on one job fail
+/// nothing: each is blocklisted, and a good worker finishes the job exactly.
 #[test]
-fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its_job() {
+fn a_failing_worker_is_blocklisted_and_failures_the_coordinator_refutes_fail_no_job() {
     let dir = scratch("service-failures");
     let data = dir.join("data");
     let expected = reference(
@@ -381,13 +382,13 @@ fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its
     }
     drop((good, bad));
 
-    // Failing workers, one after another: each fails 3 units and is
-    // blocklisted; the third failure of a unit, on a third worker, fails the
-    // job with every reason.
-    let doomed = submit(
+    // Failing workers, one after another: the coordinator renders what each
+    // says it cannot, so each is blocklisted as a liar and no failure counts
+    // towards failing the job, however many workers say it.
+    let doubted = submit(
         &url,
         "noisy_sphere",
-        &dir.join("never.png"),
+        &dir.join("doubted.png"),
         &["--width", "32", "--height", "32"],
     );
     let mut flaky = Vec::new();
@@ -397,32 +398,19 @@ fn a_failing_worker_is_blocklisted_and_a_unit_failing_on_three_workers_fails_its
             &format!("flaky{k}"),
             Some(worker::Fault::Panic),
         ));
-        poll_job(&url, doomed, 60, |j| {
+        poll_job(&url, doubted, 60, |j| {
             j["state"] == "failed" || j["blocklisted"].as_array().unwrap().len() >= k - 1
         });
     }
-    let (ok, _) = wait(&url, doomed);
-    assert!(!ok);
-    let j = job(&url, doomed);
-    assert_eq!(j["state"], "failed", "{j}");
-    let error = j["error"].as_str().unwrap();
-    assert!(
-        error.contains("failed 3 times") && error.contains("flaky2") && error.contains("flaky4"),
-        "{error}"
-    );
-    // Other jobs go on.
-    let after = submit(
-        &url,
-        "noisy_sphere",
-        &dir.join("after.png"),
-        &["--width", "32", "--height", "32"],
-    );
+    let j = job(&url, doubted);
+    assert_ne!(j["state"], "failed", "{j}");
+    assert_eq!(j["blocklisted"].as_array().unwrap().len(), 3, "{j}");
     for (_, stop, _) in &flaky {
         let _ = stop.send(true);
     }
     let _good = in_process_worker(&url, "good2", None);
-    assert!(wait(&url, after).0);
-    same_bytes(&dir.join("after.png"), &expected);
+    assert!(wait(&url, doubted).0);
+    same_bytes(&dir.join("doubted.png"), &expected);
 }
 
 /// SIGTERM drains: units in flight arrive, everything is stored, the process

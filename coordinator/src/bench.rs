@@ -283,6 +283,8 @@ fn farm_render(
         interleave: DEFAULT_INTERLEAVE,
         progress: false,
         gate: Default::default(),
+        // The farm's own costs, without second renderings.
+        verify: 0.0,
     };
     Ok(runtime.block_on(farm::render(job, farm_config))?)
 }

@@ -67,6 +67,12 @@ pub struct Cli {
     /// TLS private key (PEM); needs --tls-cert.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// Fraction of units rendered a second time (by another worker, or by the
+    /// coordinator) and compared byte for byte; a worker whose tile differs
+    /// from the coordinator's own rendering is blocklisted and its units
+    /// rendered again. 0 turns it off, 1 checks every unit.
+    #[arg(long, value_name = "FRACTION", default_value_t = crate::farm::DEFAULT_VERIFY, value_parser = fraction)]
+    pub verify: f64,
     /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
     #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
     pub interleave: u32,
@@ -197,6 +203,12 @@ pub struct ServeArgs {
     /// On SIGTERM or Ctrl-C: seconds that units in flight get to arrive.
     #[arg(long, value_name = "SECS", default_value_t = 30.0, value_parser = positive_seconds)]
     pub drain_timeout: f64,
+    /// Fraction of units rendered a second time (by another worker, or by the
+    /// coordinator) and compared byte for byte; a worker whose tile differs
+    /// from the coordinator's own rendering is blocklisted and its units
+    /// rendered again. 0 turns it off, 1 checks every unit.
+    #[arg(long, value_name = "FRACTION", default_value_t = crate::farm::DEFAULT_VERIFY, value_parser = fraction)]
+    pub verify: f64,
     /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
     #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
     pub interleave: u32,
@@ -430,6 +442,7 @@ impl BakeArgs {
                 preview_every: None,
                 tls: None,
                 interleave: 8,
+                verify: crate::farm::DEFAULT_VERIFY,
             }),
         }
     }
@@ -525,6 +538,7 @@ impl Cli {
             preview_every: self.preview_every.map(Duration::from_secs_f64),
             tls: self.tls_cert.zip(self.tls_key),
             interleave: self.interleave,
+            verify: self.verify,
         });
         Config {
             scene,
@@ -602,6 +616,16 @@ fn point(s: &str) -> Result<[f64; 3], String> {
     match v[..] {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
         _ => Err(format!("expected three finite numbers X,Y,Z, found {s:?}")),
+    }
+}
+
+/// A fraction from 0 to 1 (`--verify`).
+fn fraction(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(f) if (0.0..=1.0).contains(&f) => Ok(f),
+        _ => Err(format!(
+            "expected a fraction from 0 to 1 (0.02: one unit in 50), found {s:?}"
+        )),
     }
 }
 

@@ -59,7 +59,16 @@ pub struct FarmConfig {
     pub progress: bool,
     /// Unauthenticated connections: how many, for how long.
     pub gate: crate::gate::GateLimits,
+    /// The fraction of units rendered a second time and compared (verified
+    /// rendering, 0 to 1; 0: none).
+    pub verify: f64,
 }
+
+/// The fraction of units rendered twice unless `--verify` says otherwise.
+pub const DEFAULT_VERIFY: f64 = 0.02;
+
+/// How long the coordinator's own rendering of a unit (a check) may take.
+const CHECK_TIMEOUT: Duration = Duration::from_secs(120);
 
 /// Why the farm could not render.
 #[derive(Debug, thiserror::Error)]
@@ -321,6 +330,11 @@ pub struct FarmStats {
     pub refused_workers: u64,
     /// Calls refused for a missing or wrong token.
     pub unauthenticated: u64,
+    /// Units the coordinator rendered itself to check a sample, a dispute
+    /// or a failure claim.
+    pub checks: u64,
+    /// Workers caught lying (blocklisted for the job).
+    pub liars: u64,
 }
 
 impl FarmStats {
@@ -373,6 +387,10 @@ pub struct Shared {
     gate: Arc<crate::gate::Gate>,
     /// The files the jobs name, by content hash (`GetAsset`).
     assets: Mutex<HashMap<u64, Arc<Vec<u8>>>>,
+    /// The fraction of units of each job rendered twice ([`Shared::add_verified_job`]).
+    verify: f64,
+    /// Notified when the scheduler has a unit for the coordinator to check.
+    checks: tokio::sync::Notify,
 }
 
 impl Shared {
@@ -411,18 +429,42 @@ impl Shared {
         }
     }
 
-    /// Adds a job: its wire form and its plan; idle workers hear of it at once.
+    /// Adds a job whose units are not rendered twice (the studio's live
+    /// frames: their first coarse image waits for nothing): its wire form and
+    /// its plan; idle workers hear of it at once.
     pub fn add_job(
         &self,
         plan: crate::scheduler::JobPlan,
         resume: crate::scheduler::Resume,
         wire: WireJob,
     ) -> Result<(), hypertexture_proto::convert::WireError> {
+        self.add_job_verifying(plan, resume, wire, 0.0)
+    }
+
+    /// [`Shared::add_job`], with the farm's fraction of units rendered twice
+    /// and compared (verified rendering).
+    pub fn add_verified_job(
+        &self,
+        plan: crate::scheduler::JobPlan,
+        resume: crate::scheduler::Resume,
+        wire: WireJob,
+    ) -> Result<(), hypertexture_proto::convert::WireError> {
+        self.add_job_verifying(plan, resume, wire, self.verify)
+    }
+
+    fn add_job_verifying(
+        &self,
+        plan: crate::scheduler::JobPlan,
+        resume: crate::scheduler::Resume,
+        wire: WireJob,
+        verify: f64,
+    ) -> Result<(), hypertexture_proto::convert::WireError> {
         let id = plan.id;
         self.add_assets(&wire.assets);
         {
             let mut s = self.lock();
             s.scheduler.add_job(plan, resume)?;
+            s.scheduler.set_job_verify(id, verify);
             s.wire.insert(id, wire);
         }
         self.jobs_added.send_modify(|n| *n += 1);
@@ -546,9 +588,9 @@ impl Service {
                         "refused a tile from {}: {r}",
                         convert::name_from_wire(&p.worker_id)
                     );
-                    if state.scheduler.gave_up_jobs().next().is_some() {
-                        // Refusals count as failures: wake the supervisor.
-                        let _ = self.0.finished.send(true);
+                    if state.scheduler.has_checks() {
+                        // A refused tile is a claim that the unit cannot be rendered.
+                        self.0.checks.notify_one();
                     }
                     refusal(r)
                 })?;
@@ -560,6 +602,9 @@ impl Service {
             }
             if state.scheduler.has_completed() {
                 let _ = self.0.finished.send(true);
+            }
+            if state.scheduler.has_checks() {
+                self.0.checks.notify_one();
             }
             let next = if p.want_next {
                 Some(state.scheduler.next(&p.worker_id, now).map_err(refusal)?)
@@ -849,35 +894,42 @@ impl FarmRpc for Service {
         let mut state = self.state();
         let counted = state
             .scheduler
-            .fail(&p.worker_id, p.assignment_id, kind, &reason, Instant::now())
+            .report(&p.worker_id, p.assignment_id, kind, &reason, Instant::now())
             .map_err(refusal)?;
         if let Some(c) = &counted {
             state.stats.retries += 1;
-            if c.blocklisted {
-                state.stats.blocklisted += 1;
-                tracing::error!(
-                    "worker {} failed {} units of job {} and is blocklisted for it",
-                    c.worker,
-                    crate::scheduler::MAX_FAILURES,
-                    c.job
-                );
-            }
-            if kind == hypertexture_proto::FailureKind::Scene {
-                tracing::error!(
-                    "worker {} cannot build the scene of job {}, it gets no more of its units: {reason}",
-                    c.worker,
-                    c.job
-                );
-            } else {
+            if kind == hypertexture_proto::FailureKind::Assignment {
                 tracing::warn!(
-                    "worker {} could not render unit {} of job {} ({}), failure {} of at most {}: {kind}: {reason}",
+                    "worker {} could not use its assignment of unit {} of job {} ({}): {reason}",
                     c.worker,
                     c.index,
                     c.job,
                     crate::scheduler::describe(&c.unit),
-                    c.failures,
-                    crate::scheduler::MAX_FAILURES
                 );
+                if c.blocklisted {
+                    state.stats.blocklisted += 1;
+                    tracing::error!(
+                        "worker {} failed {} assignments of job {} and is blocklisted for it",
+                        c.worker,
+                        crate::scheduler::MAX_FAILURES,
+                        c.job
+                    );
+                }
+            } else {
+                // Counted only if the coordinator cannot render the unit either.
+                tracing::warn!(
+                    "worker {} says it cannot {} unit {} of job {} ({}): {kind}: {reason}; checking",
+                    c.worker,
+                    if kind == hypertexture_proto::FailureKind::Scene {
+                        "build the scene of"
+                    } else {
+                        "render"
+                    },
+                    c.index,
+                    c.job,
+                    crate::scheduler::describe(&c.unit),
+                );
+                self.0.checks.notify_one();
             }
         }
         if state.scheduler.gave_up_jobs().next().is_some() {
@@ -1017,6 +1069,8 @@ pub struct Farm {
     stop_server: tokio::sync::oneshot::Sender<()>,
     server_task: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
     locals: crate::local::LocalWorkers,
+    /// The coordinator's own renderings of units ([`run_checks`]).
+    checker: tokio::task::JoinHandle<()>,
 }
 
 impl Farm {
@@ -1070,7 +1124,10 @@ impl Farm {
             closing: watch::channel(false).0,
             gate: crate::gate::Gate::new(token.as_deref(), config.gate),
             assets: Mutex::new(HashMap::new()),
+            verify: config.verify,
+            checks: tokio::sync::Notify::new(),
         });
+        let checker = tokio::spawn(run_checks(Arc::clone(&shared)));
 
         // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
         // write for the worker and one wake-up here instead of two or three.
@@ -1147,6 +1204,7 @@ impl Farm {
             stop_server,
             server_task,
             locals,
+            checker,
         })
     }
 
@@ -1221,10 +1279,12 @@ impl Farm {
             stop_server,
             mut server_task,
             locals,
+            checker,
             ..
         } = self;
         locals.stop(grace, terminate).await;
         let _ = shared.closing.send(true);
+        checker.abort();
         let _ = stop_server.send(());
         // Graceful shutdown waits for open connections: daemon workers keep theirs
         // (they wait for the next frame), so give them a moment, then stop serving.
@@ -1267,8 +1327,10 @@ pub async fn render_frames(
     hypertexture::interleave::check_partition(&units, job.width, job.height)
         .map_err(FarmError::Units)?;
     let unit_count = units.len();
-    let scheduler = Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
-        .with_frames(job.frames.iter().map(|f| f.frame).collect());
+    let mut scheduler =
+        Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
+            .with_frames(job.frames.iter().map(|f| f.frame).collect());
+    scheduler.set_verify(config.verify);
     let wire = WireJob::of(&job);
     let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;
     farm.shared.add_assets(&wire.assets);
@@ -1363,8 +1425,12 @@ pub async fn render_frames(
                 let unable = s.scheduler.alive() - s.scheduler.able();
                 let unable = if unable > 0 {
                     format!(
-                        " ({unable} connected worker{} cannot build the scene)",
-                        if unable == 1 { "" } else { "s" }
+                        " ({unable} connected worker{} cannot build the scene or {} blocklisted: {})",
+                        if unable == 1 { "" } else { "s" },
+                        if unable == 1 { "is" } else { "are" },
+                        s.scheduler
+                            .blocklisted(crate::scheduler::ONE_SHOT_JOB)
+                            .join(", ")
                     )
                 } else {
                     String::new()
@@ -1403,6 +1469,213 @@ pub async fn render_frames(
         workers,
         tile_bytes,
     })
+}
+
+/// The coordinator's own renderings of units, one at a time, on a render
+/// thread of its own (verified rendering): failure claims and disputes
+/// first, then the sampled units whose second rendering no other worker
+/// has taken. Each result goes back to the scheduler ([`Scheduler::checked`]),
+/// and a worker caught lying is logged by its (escaped) name. Runs until
+/// the farm stops.
+async fn run_checks(shared: Arc<Shared>) {
+    // Named as a render thread: a panic in the renderer is the unit's
+    // failure, as on a worker, not the coordinator's.
+    let pool = match rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .thread_name(|_| "render-check".into())
+        .build()
+    {
+        Ok(pool) => Arc::new(pool),
+        Err(e) => {
+            tracing::error!("cannot start the thread that checks units: {e}; none is checked");
+            return;
+        }
+    };
+    let renderer = Arc::new(Mutex::new(worker::UnitRenderer::default()));
+    let mut closing = shared.closing.subscribe();
+    loop {
+        let next = {
+            let mut s = shared.lock();
+            let check = s.scheduler.take_check();
+            check.map(|c| {
+                let job = s.wire.get(&c.job).map(|w| pb::Job {
+                    frame: c.frame,
+                    ..w.with_text.clone()
+                });
+                (c, job)
+            })
+        };
+        let Some((check, job)) = next else {
+            tokio::select! {
+                () = shared.checks.notified() => {}
+                () = tokio::time::sleep(Duration::from_millis(250)) => {}
+                _ = closing.wait_for(|c| *c) => return,
+            }
+            continue;
+        };
+        let Some(job) = job else { continue };
+        let outcome = render_check(&shared, &pool, &renderer, &job, &check, &mut closing).await;
+        let now = Instant::now();
+        let mut guard = shared.lock();
+        let state = &mut *guard;
+        state.stats.checks += 1;
+        let verdict = state.scheduler.checked(&check, outcome.clone(), now);
+        report_verdict(state, &check, &outcome, &verdict);
+        if let (Some((accepted, pixels)), Some(sink)) = (&verdict.stored, &shared.sink) {
+            sink.tile(accepted, pixels);
+        }
+        if state.scheduler.has_completed() || state.scheduler.gave_up_jobs().next().is_some() {
+            let _ = shared.finished.send(true);
+        }
+    }
+}
+
+/// Renders the unit of a check on the check thread, within [`CHECK_TIMEOUT`]
+/// (a render still going then, or when the farm closes, stops before its
+/// next pixel).
+async fn render_check(
+    shared: &Arc<Shared>,
+    pool: &Arc<rayon::ThreadPool>,
+    renderer: &Arc<Mutex<worker::UnitRenderer>>,
+    job: &pb::Job,
+    check: &crate::scheduler::Check,
+    closing: &mut watch::Receiver<bool>,
+) -> crate::scheduler::CheckOutcome {
+    use crate::scheduler::CheckOutcome;
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (done, result) = tokio::sync::oneshot::channel();
+    {
+        let (shared, renderer, job, unit, stop) = (
+            Arc::clone(shared),
+            Arc::clone(renderer),
+            job.clone(),
+            check.unit,
+            Arc::clone(&stop),
+        );
+        pool.spawn(move || {
+            let files = |hash: u64| {
+                shared
+                    .assets
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get(&hash)
+                    .cloned()
+            };
+            let rendered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                renderer
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .render(&job, &unit, &files, &stop)
+            }));
+            let _ = done.send(rendered);
+        });
+    }
+    let outcome = tokio::select! {
+        r = tokio::time::timeout(CHECK_TIMEOUT, result) => r.ok(),
+        _ = closing.wait_for(|c| *c) => None,
+    };
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    match outcome {
+        Some(Ok(Ok(Ok(Some(tile))))) => CheckOutcome::Rendered(tile),
+        Some(Ok(Ok(Err((kind, reason))))) => CheckOutcome::Failed(kind, reason),
+        Some(Ok(Err(payload))) => CheckOutcome::Failed(
+            hypertexture_proto::FailureKind::Render,
+            format!("the render panicked: {}", panic_text(&*payload)),
+        ),
+        Some(Ok(Ok(Ok(None)))) | Some(Err(_)) | None => CheckOutcome::TimedOut,
+    }
+}
+
+/// The message a panic was raised with.
+fn panic_text(payload: &(dyn std::any::Any + Send)) -> &str {
+    payload
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}
+
+/// Logs what a check decided and counts it.
+fn report_verdict(
+    state: &mut FarmState,
+    check: &crate::scheduler::Check,
+    outcome: &crate::scheduler::CheckOutcome,
+    verdict: &crate::scheduler::Verdict,
+) {
+    use crate::scheduler::{CheckOutcome, CheckWhy};
+    for liar in &verdict.liars {
+        state.stats.liars += 1;
+        state.stats.blocklisted += 1;
+        let what = match &check.why {
+            CheckWhy::Sample | CheckWhy::Dispute => format!(
+                "its tile of unit {} of frame {} differs from the coordinator's own rendering",
+                check.index, check.frame
+            ),
+            CheckWhy::Claim { kind, .. } => format!(
+                "it said it cannot {} unit {} of frame {}, which the coordinator rendered",
+                if *kind == hypertexture_proto::FailureKind::Scene {
+                    "build the scene of"
+                } else {
+                    "render"
+                },
+                check.index,
+                check.frame
+            ),
+        };
+        let earlier = if liar.earlier_frames.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; frames already written that hold its tiles (their sampled units agreed): {:?}",
+                liar.earlier_frames
+            )
+        };
+        tracing::error!(
+            "worker {} lied about job {}: {what}; it is blocklisted for the job and its {} unit{} of this frame are rendered again{earlier}",
+            liar.name,
+            liar.job,
+            liar.redone,
+            if liar.redone == 1 { "" } else { "s" },
+        );
+    }
+    match (&check.why, outcome) {
+        (CheckWhy::Claim { name, .. }, CheckOutcome::Failed(kind, reason)) => tracing::warn!(
+            "the coordinator cannot render unit {} of job {} either ({kind}: {reason}): worker {name}'s failure counts",
+            check.index,
+            check.job
+        ),
+        (CheckWhy::Claim { name, .. }, CheckOutcome::TimedOut) => tracing::warn!(
+            "the coordinator's check of unit {} of job {} did not end within {} s: worker {name}'s failure counts",
+            check.index,
+            check.job,
+            CHECK_TIMEOUT.as_secs()
+        ),
+        (_, CheckOutcome::Failed(kind, reason)) => tracing::warn!(
+            "the coordinator cannot render unit {} of job {} to check it ({kind}: {reason}): it is rendered again",
+            check.index,
+            check.job
+        ),
+        _ => {}
+    }
+    if let Some(c) = &verdict.confirmed {
+        if c.blocklisted {
+            tracing::error!(
+                "worker {} failed {} units of job {} and is blocklisted for it",
+                c.worker,
+                crate::scheduler::MAX_FAILURES,
+                c.job
+            );
+        }
+        tracing::warn!(
+            "worker {} could not render unit {} of job {} ({}), failure {} of at most {}",
+            c.worker,
+            c.index,
+            c.job,
+            crate::scheduler::describe(&c.unit),
+            c.failures,
+            crate::scheduler::MAX_FAILURES
+        );
+    }
 }
 
 /// The `worker` binary beside this executable, if there is one.

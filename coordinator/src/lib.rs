@@ -79,6 +79,8 @@ pub struct FarmOptions {
     pub tls: Option<(PathBuf, PathBuf)>,
     /// The interleave B.
     pub interleave: u32,
+    /// The fraction of units rendered twice and compared (verified rendering).
+    pub verify: f64,
 }
 
 impl FarmOptions {
@@ -105,6 +107,7 @@ impl FarmOptions {
             interleave: self.interleave,
             progress,
             gate: Default::default(),
+            verify: self.verify,
         })
     }
 }

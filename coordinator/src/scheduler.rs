@@ -26,8 +26,23 @@
 //! job; and a job is given up ([`GiveUp`]) when one of its units has failed
 //! [`MAX_FAILURES`] times (on different workers when there are any) or, in a
 //! one-shot render, when no worker present can render it. Other jobs go on.
+//!
+//! Verified rendering: a pixel is a pure function of (scene, pixel, frame,
+//! sample) and every worker proved its arithmetic at registration, so two
+//! renderings of a unit are the same bytes. A job's `verify` fraction of
+//! units, chosen by a keyed hash no worker can predict, is rendered a second
+//! time once its tile is in: by another worker ([`Scheduler::next`]) or by
+//! the coordinator itself ([`Scheduler::take_check`]); the frame is complete
+//! only when each such unit's two renderings agree. When they differ, the
+//! coordinator's own rendering decides ([`Scheduler::checked`]): a worker
+//! whose bytes differ from it lied, is blocklisted for the job, and every
+//! unit of the frame rendering it delivered is rendered again. A worker's
+//! claim that the scene does not build or a unit does not render
+//! ([`Scheduler::report`]) is checked the same way before it counts towards
+//! failing the job: when the coordinator can render the unit, the claim was a
+//! lie.
 
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use hypertexture::PixelFormat;
@@ -302,6 +317,84 @@ struct Lease {
     unit: usize,
     worker: u64,
     issued: Instant,
+    /// A second rendering of a unit whose tile is in (verified rendering).
+    check: bool,
+}
+
+/// Why the coordinator renders a unit itself.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CheckWhy {
+    /// The unit is among those sampled for a second rendering.
+    Sample,
+    /// Two renderings of the unit differ.
+    Dispute,
+    /// A worker says it cannot build the scene or render the unit.
+    Claim {
+        /// The worker.
+        worker: u64,
+        /// Its name (escaped).
+        name: String,
+        /// What it claims.
+        kind: FailureKind,
+        /// What it said (escaped).
+        reason: String,
+    },
+}
+
+/// A unit the coordinator renders itself ([`Scheduler::take_check`]), and why.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Check {
+    /// The job.
+    pub job: JobId,
+    /// The index of the frame in the job's plan (a check of a frame already
+    /// complete is stale).
+    frame_index: usize,
+    /// The frame number.
+    pub frame: u32,
+    /// The unit's index.
+    pub index: usize,
+    /// The unit.
+    pub unit: WorkUnit,
+    /// Why.
+    pub why: CheckWhy,
+}
+
+/// What the coordinator's own rendering of a [`Check`] gave.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CheckOutcome {
+    /// The tile, encoded as workers send it.
+    Rendered(Vec<u8>),
+    /// The scene did not build or the unit did not render here either.
+    Failed(FailureKind, String),
+    /// The check did not end within its time.
+    TimedOut,
+}
+
+/// A worker caught lying about a job.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Liar {
+    /// The job.
+    pub job: JobId,
+    /// Its name (escaped).
+    pub name: String,
+    /// Units of the frame rendering it had delivered, now rendered again.
+    pub redone: usize,
+    /// Frames of the job already complete that hold its tiles (each of
+    /// them had its sample of units checked).
+    pub earlier_frames: Vec<u32>,
+}
+
+/// What a [`Check`] decided.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Verdict {
+    /// Workers found lying (blocklisted for the job).
+    pub liars: Vec<Liar>,
+    /// The coordinator's tile, stored as the unit's: for the service's store.
+    pub stored: Option<(Accepted, Vec<u8>)>,
+    /// A failure claim the coordinator confirmed, counted towards failing the job.
+    pub confirmed: Option<Counted>,
+    /// The unit's renderings agreed.
+    pub agreed: bool,
 }
 
 /// The number of a worker's id as views show it (`w7`), or as it was handed
@@ -378,6 +471,23 @@ struct Job {
     worker_failures: HashMap<u64, usize>,
     /// Workers whose scene for this job does not build, and what they said.
     cannot_build: HashMap<u64, String>,
+    /// The fraction of units rendered twice (0: none, 1: every one).
+    verify: f64,
+    /// Per unit of the frame rendering: the worker whose tile is in the
+    /// canvas (`None`: not in, stored before a restart, or the coordinator's).
+    delivered: Vec<Option<u64>>,
+    /// Units of the frame rendering sampled for a second rendering whose
+    /// tile is in and not yet confirmed: who delivered it, and its bytes.
+    held: BTreeMap<usize, (u64, Vec<u8>)>,
+    /// Held units waiting for their second rendering, oldest first.
+    to_check: VecDeque<usize>,
+    /// Second renderings that differ from a held tile, per unit, for the
+    /// coordinator to decide: who rendered it, and its bytes.
+    disputed: BTreeMap<usize, Vec<(u64, Vec<u8>)>>,
+    /// Workers caught lying about this job: blocklisted for it.
+    liars: HashSet<u64>,
+    /// Per worker: the frames already complete that hold its tiles.
+    frames_delivered: HashMap<u64, BTreeSet<u32>>,
     gave_up: Option<GiveUp>,
     /// Cancelled or given up: nothing more is handed out.
     ended: bool,
@@ -402,6 +512,13 @@ impl Job {
             failures: vec![Vec::new(); n],
             worker_failures: HashMap::new(),
             cannot_build: HashMap::new(),
+            verify: 0.0,
+            delivered: vec![None; n],
+            held: BTreeMap::new(),
+            to_check: VecDeque::new(),
+            disputed: BTreeMap::new(),
+            liars: HashSet::new(),
+            frames_delivered: HashMap::new(),
             gave_up: None,
             ended: false,
             started: resume.frames_done > 0 || !resume.tiles.is_empty(),
@@ -435,19 +552,43 @@ impl Job {
 
     fn finished(&self) -> bool {
         self.current >= self.plan.frames.len()
-            || (self.current + 1 == self.plan.frames.len() && self.remaining == 0)
+            || (self.current + 1 == self.plan.frames.len() && self.frame_settled())
+    }
+
+    /// Every unit of the frame rendering is in, and every sampled one confirmed.
+    fn frame_settled(&self) -> bool {
+        self.remaining == 0 && self.held.is_empty()
+    }
+
+    /// Units to hand out: waiting to be rendered, or to be rendered again.
+    fn has_work(&self) -> bool {
+        self.remaining > 0 || !self.to_check.is_empty()
     }
 
     fn blocklisted(&self, worker: u64) -> bool {
-        self.worker_failures
-            .get(&worker)
-            .is_some_and(|&n| n >= MAX_FAILURES)
+        self.liars.contains(&worker)
+            || self
+                .worker_failures
+                .get(&worker)
+                .is_some_and(|&n| n >= MAX_FAILURES)
+    }
+
+    /// Whether the unit's tile, just in, gets a second rendering: a keyed
+    /// hash of (job, frame, unit) below the job's fraction. The key is drawn
+    /// when the scheduler starts, so no worker can tell which units are checked.
+    fn sampled(&self, key: u64, unit: usize) -> bool {
+        if self.verify <= 0.0 {
+            return false;
+        }
+        let h =
+            hypertexture::random::hash(&[key, self.plan.id, u64::from(self.frame()), unit as u64]);
+        ((h >> 11) as f64) < self.verify * (1u64 << 53) as f64
     }
 
     /// Whether `worker` may be handed units of this job.
     fn open_to(&self, worker: u64, w: &WorkerState) -> bool {
         !self.ended
-            && self.remaining > 0
+            && self.has_work()
             && !self.cannot_build.contains_key(&worker)
             && !self.blocklisted(worker)
             && self.plan.require_tags.iter().all(|t| w.tags.contains(t))
@@ -482,6 +623,12 @@ pub struct Scheduler {
     withdrawn: Vec<(String, u64)>,
     /// Keys the secret half of the ids handed to workers at registration.
     id_keys: std::collections::hash_map::RandomState,
+    /// The fraction of units of jobs added from now on rendered twice.
+    verify: f64,
+    /// Keys the choice of units rendered twice.
+    verify_key: u64,
+    /// Claims and disputes for the coordinator to check, oldest first.
+    urgent: VecDeque<Check>,
 }
 
 impl Scheduler {
@@ -530,6 +677,37 @@ impl Scheduler {
             draining: false,
             withdrawn: Vec::new(),
             id_keys: std::collections::hash_map::RandomState::new(),
+            verify: 0.0,
+            verify_key: {
+                use std::hash::BuildHasher;
+                std::collections::hash_map::RandomState::new().hash_one(Instant::now())
+            },
+            urgent: VecDeque::new(),
+        }
+    }
+
+    /// Renders `fraction` (0 to 1) of the units of jobs added from now on,
+    /// and of the one-shot job, a second time (verified rendering).
+    pub fn set_verify(&mut self, fraction: f64) {
+        let fraction = if fraction.is_finite() {
+            fraction.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        self.verify = fraction;
+        if let Some(job) = self.jobs.get_mut(&ONE_SHOT_JOB) {
+            job.verify = fraction;
+        }
+    }
+
+    /// [`Scheduler::set_verify`] for one job.
+    pub fn set_job_verify(&mut self, job: JobId, fraction: f64) {
+        if let Some(job) = self.jobs.get_mut(&job) {
+            job.verify = if fraction.is_finite() {
+                fraction.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
         }
     }
 
@@ -547,7 +725,8 @@ impl Scheduler {
     /// tile does not fit the job.
     pub fn add_job(&mut self, plan: JobPlan, resume: Resume) -> Result<(), WireError> {
         let id = plan.id;
-        let job = Job::new(plan, resume)?;
+        let mut job = Job::new(plan, resume)?;
+        job.verify = self.verify;
         let complete = job.current < job.plan.frames.len() && job.remaining == 0;
         self.jobs.insert(id, job);
         if complete {
@@ -668,7 +847,7 @@ impl Scheduler {
         let mut ids: Vec<(i32, JobId)> = self
             .jobs
             .values()
-            .filter(|j| !j.ended && j.remaining > 0)
+            .filter(|j| !j.ended && j.has_work())
             .map(|j| (j.plan.priority, j.plan.id))
             .collect();
         ids.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
@@ -694,17 +873,22 @@ impl Scheduler {
         let mut chosen = None;
         for &id in &open {
             if let Some(unit) = self.pending_for(id, wid) {
-                chosen = Some((id, unit));
+                chosen = Some((id, unit, false));
                 break;
             }
         }
         if chosen.is_none() {
             chosen = open
                 .iter()
-                .find_map(|&id| self.speculative(id, wid).map(|u| (id, u)));
+                .find_map(|&id| self.check_for(id, wid).map(|u| (id, u, true)));
+        }
+        if chosen.is_none() {
+            chosen = open
+                .iter()
+                .find_map(|&id| self.speculative(id, wid).map(|u| (id, u, false)));
         }
         Ok(match chosen {
-            Some((job_id, unit)) => {
+            Some((job_id, unit, check)) => {
                 let assignment_id = self.next_assignment;
                 self.next_assignment += 1;
                 let job = self.jobs.get_mut(&job_id).expect("chosen above");
@@ -719,6 +903,7 @@ impl Scheduler {
                         unit,
                         worker: wid,
                         issued: now,
+                        check,
                     },
                 );
                 Next::Assign {
@@ -742,6 +927,245 @@ impl Scheduler {
             !job.failed_by(u, worker) || (self.one_shot && !self.another_could_take(job, u, worker))
         })?;
         self.jobs.get_mut(&job_id)?.pending.remove(position)
+    }
+
+    /// Takes a held unit of the job for its second rendering by `worker`,
+    /// which did not deliver it.
+    fn check_for(&mut self, job_id: JobId, worker: u64) -> Option<usize> {
+        let job = self.jobs.get_mut(&job_id)?;
+        let position = job
+            .to_check
+            .iter()
+            .position(|u| job.held.get(u).is_some_and(|(w, _)| *w != worker))?;
+        job.to_check.remove(position)
+    }
+
+    /// The next unit the coordinator renders itself: a failure claim or a
+    /// dispute first, then a sampled unit waiting for its second rendering
+    /// (the coordinator takes these while it has nothing else to check).
+    pub fn take_check(&mut self) -> Option<Check> {
+        while let Some(check) = self.urgent.pop_front() {
+            let Some(job) = self.jobs.get(&check.job) else {
+                continue;
+            };
+            if job.ended || job.current != check.frame_index {
+                continue;
+            }
+            if let CheckWhy::Claim { worker, .. } = &check.why
+                && job.liars.contains(worker)
+            {
+                // Already caught: its other claims need no rendering.
+                continue;
+            }
+            return Some(check);
+        }
+        let order = self.queue_order();
+        for id in order {
+            let job = self.jobs.get_mut(&id).expect("in the queue");
+            while let Some(index) = job.to_check.pop_front() {
+                if job.held.contains_key(&index) {
+                    return Some(Check {
+                        job: id,
+                        frame_index: job.current,
+                        frame: job.frame(),
+                        index,
+                        unit: job.plan.units[index],
+                        why: CheckWhy::Sample,
+                    });
+                }
+            }
+        }
+        None
+    }
+
+    /// Whether a claim or a dispute waits for the coordinator's check.
+    pub fn has_checks(&self) -> bool {
+        !self.urgent.is_empty() || self.jobs.values().any(|j| !j.to_check.is_empty())
+    }
+
+    /// Takes the coordinator's own rendering of a [`Check`] into account.
+    ///
+    /// A sampled unit: equal bytes confirm it; different bytes convict its
+    /// worker. A dispute: each worker whose bytes differ from the
+    /// coordinator's is convicted. A claim: when the coordinator rendered the
+    /// unit, the claim was a lie and its worker is convicted; when it could
+    /// not, the failure counts ([`Scheduler::fail`]'s rules). Wherever the
+    /// unit is not settled afterwards, the coordinator's tile is stored as
+    /// its own. A convicted worker is blocklisted for the job, and every unit
+    /// of the frame rendering it delivered is rendered again.
+    pub fn checked(&mut self, check: &Check, outcome: CheckOutcome, now: Instant) -> Verdict {
+        let mut verdict = Verdict::default();
+        let Some(job) = self.jobs.get(&check.job) else {
+            return verdict;
+        };
+        if job.ended || job.current != check.frame_index {
+            return verdict;
+        }
+        let index = check.index;
+        match (&check.why, outcome) {
+            (CheckWhy::Claim { worker, .. }, CheckOutcome::Rendered(bytes)) => {
+                verdict.liars.extend(self.convict(check.job, *worker));
+                self.decide(check.job, index, &bytes, now, &mut verdict);
+            }
+            (
+                CheckWhy::Claim {
+                    worker,
+                    name,
+                    kind,
+                    reason,
+                },
+                CheckOutcome::Failed(..) | CheckOutcome::TimedOut,
+            ) => {
+                verdict.confirmed =
+                    self.count_failure(check.job, index, *worker, name, *kind, reason, true);
+            }
+            (CheckWhy::Sample | CheckWhy::Dispute, CheckOutcome::Rendered(bytes)) => {
+                self.decide(check.job, index, &bytes, now, &mut verdict);
+            }
+            (
+                CheckWhy::Sample | CheckWhy::Dispute,
+                CheckOutcome::Failed(..) | CheckOutcome::TimedOut,
+            ) => {
+                // Nothing to decide by: the unit is rendered again by a worker.
+                let job = self.jobs.get_mut(&check.job).expect("checked above");
+                job.held.remove(&index);
+                job.disputed.remove(&index);
+                if job.done[index] {
+                    job.done[index] = false;
+                    job.delivered[index] = None;
+                    job.remaining += 1;
+                    job.pending.push_front(index);
+                }
+            }
+        }
+        verdict
+    }
+
+    /// Decides a unit by the coordinator's own tile `bytes`: every worker
+    /// whose rendering of it (held, or disputing) differs is convicted, and
+    /// the coordinator's tile is stored wherever the unit is not settled.
+    fn decide(
+        &mut self,
+        job_id: JobId,
+        index: usize,
+        bytes: &[u8],
+        now: Instant,
+        verdict: &mut Verdict,
+    ) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let mut renderings: Vec<(u64, Vec<u8>)> = job.disputed.remove(&index).unwrap_or_default();
+        let first = job.held.remove(&index);
+        verdict.agreed = first.as_ref().is_some_and(|(_, b)| b.as_slice() == bytes);
+        if let Some(first) = first {
+            job.held.insert(index, first.clone());
+            renderings.insert(0, first);
+        }
+        for (w, b) in renderings {
+            if b.as_slice() != bytes {
+                verdict.liars.extend(self.convict(job_id, w));
+            }
+        }
+        if let Some(job) = self.jobs.get_mut(&job_id) {
+            job.held.remove(&index);
+        }
+        verdict.stored = self.store_trusted(job_id, index, bytes, now);
+        self.settle(job_id, now);
+    }
+
+    /// Blocklists `worker` for a job it lied about, and hands every unit of
+    /// the frame rendering it delivered out again. `None` when it was caught before.
+    fn convict(&mut self, job_id: JobId, worker: u64) -> Option<Liar> {
+        let job = self.jobs.get_mut(&job_id)?;
+        if !job.liars.insert(worker) {
+            return None;
+        }
+        let mut redone = 0;
+        for unit in 0..job.plan.units.len() {
+            if job.delivered[unit] == Some(worker) && job.done[unit] {
+                job.done[unit] = false;
+                job.delivered[unit] = None;
+                job.remaining += 1;
+                job.held.remove(&unit);
+                if !job.pending.contains(&unit) {
+                    job.pending.push_front(unit);
+                }
+                redone += 1;
+            }
+        }
+        for renderings in job.disputed.values_mut() {
+            renderings.retain(|(w, _)| *w != worker);
+        }
+        let held = &job.held;
+        job.to_check.retain(|u| held.contains_key(u));
+        let earlier_frames = job
+            .frames_delivered
+            .get(&worker)
+            .map(|f| f.iter().copied().collect())
+            .unwrap_or_default();
+        let name = self
+            .workers
+            .get(&worker)
+            .map_or_else(|| format!("w{worker}"), |w| w.name.clone());
+        self.release(worker, Some(job_id));
+        Some(Liar {
+            job: job_id,
+            name,
+            redone,
+            earlier_frames,
+        })
+    }
+
+    /// Stores the coordinator's own tile of a unit of the frame rendering
+    /// that is not in (or whose tile was held for a check), and completes the
+    /// frame when it was the last.
+    fn store_trusted(
+        &mut self,
+        job_id: JobId,
+        index: usize,
+        bytes: &[u8],
+        now: Instant,
+    ) -> Option<(Accepted, Vec<u8>)> {
+        let job = self.jobs.get_mut(&job_id)?;
+        let unit = job.plan.units[index];
+        if job.done[index] && !job.held.contains_key(&index) {
+            return None;
+        }
+        let tile =
+            convert::tile_from_wire(bytes, unit.pixel_count(job.plan.width), job.plan.format)
+                .ok()?;
+        job.canvas.store(&unit, tile);
+        if !job.done[index] {
+            job.done[index] = true;
+            job.remaining -= 1;
+        }
+        job.delivered[index] = None;
+        job.held.remove(&index);
+        job.pending.retain(|&u| u != index);
+        let frame = job.frame();
+        self.leases
+            .retain(|_, l| l.job != job_id || l.unit != index);
+        let accepted = Accepted {
+            job: job_id,
+            frame,
+            unit: index,
+            worker: "the coordinator".into(),
+            latency: Duration::ZERO,
+        };
+        self.settle(job_id, now);
+        Some((accepted, bytes.to_vec()))
+    }
+
+    /// Completes the job's frame when every unit is in and confirmed.
+    fn settle(&mut self, job_id: JobId, now: Instant) {
+        if self
+            .jobs
+            .get(&job_id)
+            .is_some_and(|j| j.current < j.plan.frames.len() && j.frame_settled())
+        {
+            self.complete_frame(job_id, now);
+        }
     }
 
     /// Whether a worker other than `worker`, able to render the job, has not
@@ -869,8 +1293,9 @@ impl Scheduler {
             now,
         );
         if let Err(r @ (Refusal::Malformed { .. } | Refusal::WrongUnit(_))) = &accepted {
+            // Checked like any claim that the unit cannot be rendered.
             let reason = format!("tile refused: {r}");
-            let _ = self.fail(worker_id, assignment_id, FailureKind::Render, &reason, now);
+            let _ = self.report(worker_id, assignment_id, FailureKind::Render, &reason, now);
         }
         accepted
     }
@@ -914,14 +1339,55 @@ impl Scheduler {
                 id: assignment_id,
                 error,
             })?;
-        let issued_at = match self.leases.get(&assignment_id) {
-            Some(lease) if lease.worker == wid => lease.issued,
+        let (issued_at, check) = match self.leases.get(&assignment_id) {
+            Some(lease) if lease.worker == wid => (lease.issued, lease.check),
             _ if job.done[issued_unit] => return Ok(None),
             _ => return Err(Refusal::NotHeld(assignment_id)),
         };
+        if check {
+            self.leases.remove(&assignment_id);
+            let job = self.jobs.get_mut(&job_id).expect("checked above");
+            match job.held.get(&issued_unit) {
+                Some((_, first)) if first.as_slice() == values => {
+                    // The two renderings agree.
+                    job.held.remove(&issued_unit);
+                    self.settle(job_id, now);
+                    return Ok(None);
+                }
+                Some(_) => {
+                    // They differ: the coordinator's own rendering decides.
+                    let fresh = !job.disputed.contains_key(&issued_unit);
+                    job.disputed
+                        .entry(issued_unit)
+                        .or_default()
+                        .push((wid, values.to_vec()));
+                    if fresh {
+                        self.urgent.push_back(Check {
+                            job: job_id,
+                            frame_index: job.current,
+                            frame: job.frame(),
+                            index: issued_unit,
+                            unit: claimed,
+                            why: CheckWhy::Dispute,
+                        });
+                    }
+                    return Ok(None);
+                }
+                // Confirmed or decided meanwhile.
+                None if job.done[issued_unit] => return Ok(None),
+                // Its first tile was a liar's: this one is the unit's tile.
+                None => {}
+            }
+        }
+        let job = self.jobs.get_mut(&job_id).expect("checked above");
         // Checked (the whole tile, above): store it.
         job.canvas.store(&claimed, tile);
         job.done[issued_unit] = true;
+        job.delivered[issued_unit] = Some(wid);
+        if job.sampled(self.verify_key, issued_unit) {
+            job.held.insert(issued_unit, (wid, values.to_vec()));
+            job.to_check.push_back(issued_unit);
+        }
         job.remaining -= 1;
         job.unit_cpu[issued_unit] = render_cpu_micros;
         job.pending.retain(|&u| u != issued_unit);
@@ -941,9 +1407,7 @@ impl Scheduler {
         {
             w.recent.pop_front();
         }
-        if self.jobs[&job_id].remaining == 0 {
-            self.complete_frame(job_id, now);
-        }
+        self.settle(job_id, now);
         Ok(Some(Accepted {
             job: job_id,
             frame,
@@ -975,10 +1439,23 @@ impl Scheduler {
         });
         // Duplicates still out belong to the frame just completed.
         self.leases.retain(|_, l| l.job != job_id);
+        let frame = job.frame();
+        for w in std::mem::replace(&mut job.delivered, vec![None; n])
+            .into_iter()
+            .flatten()
+        {
+            job.frames_delivered.entry(w).or_default().insert(frame);
+        }
+        job.held.clear();
+        job.to_check.clear();
+        job.disputed.clear();
+        // Past the last frame, the job is finished: late tiles are unused.
+        job.current += 1;
         if last {
+            job.remaining = 0;
+            job.pending.clear();
             return;
         }
-        job.current += 1;
         job.pending = (0..n).collect();
         job.done = vec![false; n];
         job.remaining = n;
@@ -995,13 +1472,14 @@ impl Scheduler {
         std::mem::take(&mut self.completed)
     }
 
-    /// A worker gives back an assignment it could not render. The unit goes back
-    /// to the front of its job's queue; a worker whose scene does not build gives
-    /// back everything of that job it holds and gets nothing more of it.
-    /// `Ok(None)`: the assignment was no longer this worker's, nothing changed.
-    /// The job is given up ([`Scheduler::gave_up_jobs`]) when the unit has
-    /// failed [`MAX_FAILURES`] times or, in a one-shot render, no worker
-    /// present can render it.
+    /// A worker gives back an assignment it could not render, and its word is
+    /// taken: [`Scheduler::report`] with the claim confirmed at once. The unit
+    /// goes back to the front of its job's queue; a worker whose scene does
+    /// not build gives back everything of that job it holds and gets nothing
+    /// more of it. `Ok(None)`: the assignment was no longer this worker's,
+    /// nothing changed. The job is given up ([`Scheduler::gave_up_jobs`])
+    /// when the unit has failed [`MAX_FAILURES`] times or, in a one-shot
+    /// render, no worker present can render it.
     pub fn fail(
         &mut self,
         worker_id: &str,
@@ -1010,6 +1488,78 @@ impl Scheduler {
         reason: &str,
         now: Instant,
     ) -> Result<Option<Counted>, Refusal> {
+        let Some((job_id, _, unit, wid, name)) =
+            self.give_back(worker_id, assignment_id, kind, reason, now)?
+        else {
+            return Ok(None);
+        };
+        Ok(self.count_failure(job_id, unit, wid, &name, kind, reason, true))
+    }
+
+    /// A worker says it cannot render an assignment. What concerns the
+    /// worker alone happens at once (the unit goes back to the front of the
+    /// queue; a worker whose scene does not build gets nothing more of the
+    /// job); what could fail the job waits for the coordinator's check
+    /// ([`Scheduler::take_check`], [`Scheduler::checked`]): a claim that the
+    /// scene does not build or the unit does not render counts only when the
+    /// coordinator cannot render the unit either. A claim that the assignment
+    /// is unusable counts towards the worker's blocklist and never towards
+    /// failing the job. `Ok(None)`: the assignment was no longer this
+    /// worker's, nothing changed.
+    pub fn report(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        kind: FailureKind,
+        reason: &str,
+        now: Instant,
+    ) -> Result<Option<Counted>, Refusal> {
+        let Some((job_id, frame_index, unit, wid, name)) =
+            self.give_back(worker_id, assignment_id, kind, reason, now)?
+        else {
+            return Ok(None);
+        };
+        if kind == FailureKind::Assignment {
+            return Ok(self.count_failure(job_id, unit, wid, &name, kind, reason, false));
+        }
+        let job = &self.jobs[&job_id];
+        self.urgent.push_back(Check {
+            job: job_id,
+            frame_index,
+            frame: job.frame(),
+            index: unit,
+            unit: job.plan.units[unit],
+            why: CheckWhy::Claim {
+                worker: wid,
+                name: name.clone(),
+                kind,
+                reason: reason.to_string(),
+            },
+        });
+        Ok(Some(Counted {
+            job: job_id,
+            worker: name,
+            index: unit,
+            unit: job.plan.units[unit],
+            failures: job.failures[unit].len(),
+            blocklisted: false,
+        }))
+    }
+
+    /// Takes an assignment back from the worker that could not render it:
+    /// the unit goes back to the front of the queue (or, for a second
+    /// rendering, to the units waiting for one); a worker whose scene does
+    /// not build gives back everything of the job. `None` when the
+    /// assignment is no longer this worker's.
+    #[allow(clippy::type_complexity)]
+    fn give_back(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        kind: FailureKind,
+        reason: &str,
+        now: Instant,
+    ) -> Result<Option<(JobId, usize, usize, u64, String)>, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
         let name = w.name.clone();
@@ -1022,13 +1572,7 @@ impl Scheduler {
             (Some(lease), Some(job)) if lease.worker == wid && frame == job.current => {}
             _ => return Ok(None),
         }
-        let failure = UnitFailure {
-            worker: name.clone(),
-            kind,
-            reason: reason.to_string(),
-        };
         self.leases.remove(&assignment_id);
-        let mut blocklisted = false;
         if kind == FailureKind::Scene {
             // Deterministic on this worker: every unit of the job it holds would fail too.
             let job = self.jobs.get_mut(&job_id).expect("checked above");
@@ -1039,9 +1583,60 @@ impl Scheduler {
                 w.cannot_build = Some(reason.to_string());
             }
             self.release(wid, Some(job_id));
-        } else {
-            let job = self.jobs.get_mut(&job_id).expect("checked above");
-            job.failures[unit].push((wid, failure));
+        }
+        self.requeue(job_id, unit);
+        Ok(Some((job_id, frame, unit, wid, name)))
+    }
+
+    /// Puts a unit no longer held by anyone back in its job's queue: to be
+    /// rendered (at the front), or, when its tile is in and held for a
+    /// second rendering, with the units waiting for one.
+    fn requeue(&mut self, job_id: JobId, unit: usize) {
+        let held = self
+            .leases
+            .values()
+            .any(|l| l.job == job_id && l.unit == unit);
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        if held {
+            return;
+        }
+        if !job.done[unit] {
+            if !job.pending.contains(&unit) {
+                job.pending.push_front(unit);
+            }
+        } else if job.held.contains_key(&unit) && !job.to_check.contains(&unit) {
+            job.to_check.push_front(unit);
+        }
+    }
+
+    /// Counts a failure of a unit of the frame rendering: towards the
+    /// worker's blocklist, towards the unit's failures (when `of_unit`), and
+    /// gives the job up when the unit has failed [`MAX_FAILURES`] times or,
+    /// in a one-shot render, no worker present can render it.
+    #[allow(clippy::too_many_arguments)]
+    fn count_failure(
+        &mut self,
+        job_id: JobId,
+        unit: usize,
+        wid: u64,
+        name: &str,
+        kind: FailureKind,
+        reason: &str,
+        of_unit: bool,
+    ) -> Option<Counted> {
+        let failure = UnitFailure {
+            worker: name.to_string(),
+            kind,
+            reason: reason.to_string(),
+        };
+        let mut blocklisted = false;
+        if kind != FailureKind::Scene {
+            let job = self.jobs.get_mut(&job_id)?;
+            if of_unit {
+                job.failures[unit].push((wid, failure));
+            }
             let count = job.worker_failures.entry(wid).or_insert(0);
             *count += 1;
             if *count == MAX_FAILURES {
@@ -1049,16 +1644,9 @@ impl Scheduler {
                 self.release(wid, Some(job_id));
             }
         }
-        let held = self
-            .leases
-            .values()
-            .any(|l| l.job == job_id && l.unit == unit);
         let one_shot = self.one_shot;
         let able = self.able_for(job_id);
-        let job = self.jobs.get_mut(&job_id).expect("checked above");
-        if !job.done[unit] && !held && !job.pending.contains(&unit) {
-            job.pending.push_front(unit);
-        }
+        let job = self.jobs.get_mut(&job_id)?;
         if job.gave_up.is_none() {
             if job.failures[unit].len() >= MAX_FAILURES {
                 job.gave_up = Some(GiveUp::Unit {
@@ -1102,14 +1690,14 @@ impl Scheduler {
             }
         }
         let job = &self.jobs[&job_id];
-        Ok(Some(Counted {
+        Some(Counted {
             job: job_id,
-            worker: name,
+            worker: name.to_string(),
             index: unit,
             unit: job.plan.units[unit],
             failures: job.failures[unit].len(),
             blocklisted,
-        }))
+        })
     }
 
     /// Why the one-shot job cannot go on, once it cannot.
@@ -1175,17 +1763,7 @@ impl Scheduler {
         }
         // Back to the front, in their original order, unless someone else holds them.
         for &(_, job_id, unit) in freed.iter().rev() {
-            let held = self
-                .leases
-                .values()
-                .any(|l| l.job == job_id && l.unit == unit);
-            if let Some(job) = self.jobs.get_mut(&job_id)
-                && !job.done[unit]
-                && !held
-                && !job.pending.contains(&unit)
-            {
-                job.pending.push_front(unit);
-            }
+            self.requeue(job_id, unit);
         }
     }
 
@@ -1216,7 +1794,11 @@ impl Scheduler {
             .worker_failures
             .iter()
             .filter(|&(_, &n)| n >= MAX_FAILURES)
-            .filter_map(|(id, _)| self.workers.get(id).map(|w| w.name.clone()))
+            .map(|(id, _)| id)
+            .chain(job.liars.iter())
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .filter_map(|id| self.workers.get(id).map(|w| w.name.clone()))
             .collect();
         names.sort();
         names
@@ -1584,26 +2166,53 @@ mod tests {
         assert_eq!(s.submit(&b, again, Some(&wire), &good, 0, now), Ok(true));
     }
 
+    /// Takes every check waiting and answers it with `outcome`.
+    fn answer_checks(s: &mut Scheduler, outcome: &CheckOutcome, now: Instant) -> Vec<Verdict> {
+        let mut verdicts = Vec::new();
+        while let Some(check) = s.take_check() {
+            verdicts.push(s.checked(&check, outcome.clone(), now));
+        }
+        verdicts
+    }
+
     #[test]
-    fn a_unit_whose_tiles_are_refused_three_times_gives_the_job_up() {
+    fn a_unit_whose_tiles_are_refused_three_times_gives_the_job_up_only_if_the_coordinator_fails_too()
+     {
         let now = Instant::now();
         let units = work_units(8, 8, 8, 4096);
-        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
-        let workers: Vec<String> = ["a", "b", "c"]
-            .iter()
-            .map(|n| s.register(n, 1, now))
-            .collect();
-        for w in &workers {
-            let (id, unit) = assign(&mut s, w, now);
-            let wire = convert::unit_to_wire(&unit);
-            let mut short = tile(&unit, 8, 0.5);
-            short.truncate(short.len() - 4);
-            assert!(matches!(
-                s.submit(w, id, Some(&wire), &short, 0, now),
-                Err(Refusal::Malformed { .. })
-            ));
-        }
-        let given_up = s.gave_up().expect("three refusals stop the render");
+        let refuse_three = || {
+            let mut s = Scheduler::new(
+                units.clone(),
+                8,
+                8,
+                PixelFormat::Samples,
+                Duration::from_secs(5),
+            );
+            let workers: Vec<String> = ["a", "b", "c"]
+                .iter()
+                .map(|n| s.register(n, 1, now))
+                .collect();
+            for w in &workers {
+                let (id, unit) = assign(&mut s, w, now);
+                let wire = convert::unit_to_wire(&unit);
+                let mut short = tile(&unit, 8, 0.5);
+                short.truncate(short.len() - 4);
+                assert!(matches!(
+                    s.submit(w, id, Some(&wire), &short, 0, now),
+                    Err(Refusal::Malformed { .. })
+                ));
+            }
+            assert!(s.gave_up().is_none(), "claims count only once checked");
+            s
+        };
+        // The coordinator cannot render the unit either: the failures count.
+        let mut s = refuse_three();
+        let failed = CheckOutcome::Failed(FailureKind::Render, "here too".into());
+        let verdicts = answer_checks(&mut s, &failed, now);
+        assert_eq!(verdicts.len(), 3);
+        let given_up = s
+            .gave_up()
+            .expect("three confirmed failures stop the render");
         let message = given_up.to_string();
         assert!(
             matches!(given_up, GiveUp::Unit { index: 0, .. }),
@@ -1615,6 +2224,254 @@ mod tests {
         ] {
             assert!(message.contains(needle), "{needle}: {message}");
         }
+        // The coordinator renders it: each refused tile was a lie.
+        let mut s = refuse_three();
+        let good = CheckOutcome::Rendered(tile(&units[0], 8, 0.5));
+        let verdicts = answer_checks(&mut s, &good, now);
+        assert!(s.gave_up().is_none());
+        let liars: Vec<String> = verdicts
+            .iter()
+            .flat_map(|v| v.liars.iter().map(|l| l.name.clone()))
+            .collect();
+        assert_eq!(liars, ["a", "b", "c"]);
+        assert_eq!(s.blocklisted(ONE_SHOT_JOB), ["a", "b", "c"]);
+        assert_eq!(s.able(), 0);
+        assert!(
+            s.job_progress(ONE_SHOT_JOB).unwrap().units_done == 1,
+            "the coordinator's tile is the unit's"
+        );
+    }
+
+    /// Renders every unit of the one-shot job with `w` (each tile `value`),
+    /// as long as it is handed units; returns how many it rendered.
+    fn render_all(s: &mut Scheduler, w: &str, value: f32, width: u32, now: Instant) -> usize {
+        let mut n = 0;
+        while let Ok(Next::Assign {
+            assignment_id,
+            unit,
+            ..
+        }) = s.next(w, now)
+        {
+            let wire = convert::unit_to_wire(&unit);
+            s.submit(
+                w,
+                assignment_id,
+                Some(&wire),
+                &tile(&unit, width, value),
+                0,
+                now,
+            )
+            .unwrap();
+            n += 1;
+        }
+        n
+    }
+
+    #[test]
+    fn sampled_units_are_rendered_twice_and_the_frame_waits_for_them() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
+        s.set_verify(1.0);
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        for _ in 0..n {
+            let (id, unit) = assign(&mut s, &a, now);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&a, id, Some(&wire), &tile(&unit, 16, 0.5), 0, now),
+                Ok(true)
+            );
+        }
+        assert!(!s.finished(), "every unit waits for its second rendering");
+        assert!(s.take_completed().is_empty());
+        // a never checks its own units; b renders them again, with the same bytes.
+        assert_eq!(s.next(&a, now), Ok(Next::Wait));
+        for _ in 0..n {
+            let (id, unit) = assign(&mut s, &b, now);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&b, id, Some(&wire), &tile(&unit, 16, 0.5), 0, now),
+                Ok(false),
+                "a second rendering is compared, not stored"
+            );
+        }
+        assert!(s.finished());
+        assert_eq!(s.take_completed().len(), 1);
+        assert!(s.blocklisted(ONE_SHOT_JOB).is_empty());
+
+        // At 2%, about one unit in 50 is sampled, and which ones no worker can tell.
+        let units = work_units(512, 512, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 512, 512, PixelFormat::Srgb8, Duration::from_secs(5));
+        s.set_verify(0.02);
+        let key = s.verify_key;
+        let sampled = (0..n)
+            .filter(|&u| s.jobs[&ONE_SHOT_JOB].sampled(key, u))
+            .count();
+        assert!(sampled <= n / 10, "{sampled} of {n}");
+    }
+
+    #[test]
+    fn a_garbage_tile_convicts_its_worker_and_every_unit_it_delivered_is_rendered_again() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(
+            units.clone(),
+            16,
+            16,
+            PixelFormat::Samples,
+            Duration::from_secs(5),
+        );
+        s.set_verify(1.0);
+        let (liar, good) = (s.register("liar", 1, now), s.register("good", 1, now));
+        // The liar delivers half the frame, garbage of the right size.
+        for _ in 0..n / 2 {
+            let (id, unit) = assign(&mut s, &liar, now);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&liar, id, Some(&wire), &tile(&unit, 16, 1e38), 0, now),
+                Ok(true)
+            );
+        }
+        // The coordinator renders the first sampled unit itself: it differs.
+        let check = s.take_check().expect("a sampled unit");
+        assert_eq!(check.why, CheckWhy::Sample);
+        let verdict = s.checked(
+            &check,
+            CheckOutcome::Rendered(tile(&check.unit, 16, 0.5)),
+            now,
+        );
+        assert_eq!(verdict.liars.len(), 1);
+        assert_eq!(verdict.liars[0].name, "liar");
+        assert_eq!(verdict.liars[0].redone, n / 2);
+        assert!(verdict.stored.is_some(), "the coordinator's tile is kept");
+        assert_eq!(s.blocklisted(ONE_SHOT_JOB), ["liar"]);
+        assert_eq!(s.next(&liar, now), Ok(Next::Wait));
+        // The good worker renders the rest (and checks nothing of the liar's).
+        render_all(&mut s, &good, 0.5, 16, now);
+        while let Some(check) = s.take_check() {
+            let verdict = s.checked(
+                &check,
+                CheckOutcome::Rendered(tile(&check.unit, 16, 0.5)),
+                now,
+            );
+            assert!(verdict.agreed && verdict.liars.is_empty());
+        }
+        let done = s.take_completed();
+        assert_eq!(done.len(), 1);
+        assert!(
+            film(&done[0].image)
+                .pixels()
+                .iter()
+                .all(|p| p.rgba[0] == 0.5),
+            "no garbage is left in the image"
+        );
+    }
+
+    #[test]
+    fn two_renderings_that_differ_are_decided_by_the_coordinator() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        s.set_verify(1.0);
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let n = render_all(&mut s, &a, 0.5, 8, now);
+        let unit = s.jobs[&ONE_SHOT_JOB].plan.units[0];
+        let wire = convert::unit_to_wire(&unit);
+        // b checks the first, and lies.
+        let (id, again) = assign(&mut s, &b, now);
+        assert_eq!(again, unit);
+        assert_eq!(
+            s.submit(&b, id, Some(&wire), &tile(&unit, 8, 0.25), 0, now),
+            Ok(false)
+        );
+        let check = s.take_check().expect("a dispute");
+        assert_eq!(check.why, CheckWhy::Dispute);
+        let verdict = s.checked(&check, CheckOutcome::Rendered(tile(&unit, 8, 0.5)), now);
+        assert_eq!(
+            verdict
+                .liars
+                .iter()
+                .map(|l| l.name.as_str())
+                .collect::<Vec<_>>(),
+            ["b"]
+        );
+        assert_eq!(s.blocklisted(ONE_SHOT_JOB), ["b"]);
+        assert_eq!(s.progress().0, n);
+    }
+
+    #[test]
+    fn a_claim_counts_only_when_the_coordinator_cannot_render_the_unit_either() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        for kind in [FailureKind::Scene, FailureKind::Render] {
+            let mut s = Scheduler::new(
+                units.clone(),
+                8,
+                8,
+                PixelFormat::Samples,
+                Duration::from_secs(5),
+            );
+            let a = s.register("alone", 1, now);
+            let (id, unit) = assign(&mut s, &a, now);
+            s.report(&a, id, kind, "cannot", now).unwrap().unwrap();
+            assert!(s.gave_up().is_none(), "{kind}: not before the check");
+            let check = s.take_check().expect("the claim");
+            assert!(matches!(check.why, CheckWhy::Claim { .. }));
+            let verdict = s.checked(&check, CheckOutcome::Rendered(tile(&unit, 8, 0.5)), now);
+            assert_eq!(verdict.liars[0].name, "alone");
+            assert!(s.gave_up().is_none(), "{kind}: a lie fails nothing");
+            assert_eq!(s.progress().0, 1, "the coordinator's tile is the unit's");
+        }
+        // A scene the coordinator cannot build either: the lone worker's word stands.
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        let a = s.register("alone", 1, now);
+        let (id, _) = assign(&mut s, &a, now);
+        s.report(&a, id, FailureKind::Scene, "no memory", now)
+            .unwrap();
+        let failed = CheckOutcome::Failed(FailureKind::Scene, "no memory".into());
+        assert!(answer_checks(&mut s, &failed, now)[0].confirmed.is_some());
+        assert!(matches!(s.gave_up(), Some(GiveUp::Scene { .. })));
+    }
+
+    #[test]
+    fn failures_under_made_up_ids_count_for_nothing() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5));
+        let good = s.register("good", 1, now);
+        let (id, _) = assign(&mut s, &good, now);
+        let number = good.split_once('-').unwrap().0;
+        for forged in [
+            format!("{number}-0000000000000000"),
+            format!("{number}-{}", "f".repeat(16)),
+            number.to_string(),
+            "w99-0000000000000001".into(),
+            "not an id".into(),
+        ] {
+            for kind in [FailureKind::Render, FailureKind::Scene] {
+                assert!(
+                    matches!(
+                        s.report(&forged, id, kind, "forged", now),
+                        Err(Refusal::UnknownWorker(_))
+                    ),
+                    "{forged}"
+                );
+            }
+        }
+        assert!(s.take_check().is_none());
+        assert!(s.gave_up().is_none());
+        assert!(s.blocklisted(ONE_SHOT_JOB).is_empty());
+        assert_eq!(s.able(), 1);
+        let wire = convert::unit_to_wire(&s.jobs[&ONE_SHOT_JOB].plan.units[0]);
+        let unit = s.jobs[&ONE_SHOT_JOB].plan.units[0];
+        assert_eq!(
+            s.submit(&good, id, Some(&wire), &tile(&unit, 8, 0.5), 0, now),
+            Ok(true),
+            "the good worker still holds its unit"
+        );
     }
 
     #[test]

@@ -73,6 +73,21 @@ pub enum Fault {
     Panic,
     /// The known-answer probe's digest is one bit off, as another build's would be.
     Arithmetic,
+    /// Every tile is garbage of the right size: each float 1e38 in a tile of
+    /// samples, each pixel opaque magenta in an 8-bit tile (a lying worker).
+    Garbage,
+    /// Every unit is given back as one this worker cannot render, without
+    /// trying (a lying worker).
+    RenderClaim,
+}
+
+/// `tile` with every byte replaced by garbage of the same size ([`Fault::Garbage`]).
+fn garbage(tile: &[u8], format: hypertexture::PixelFormat) -> Vec<u8> {
+    let pattern: [u8; 4] = match format {
+        hypertexture::PixelFormat::Srgb8 => [255, 0, 255, 255],
+        hypertexture::PixelFormat::Samples => 1e38f32.to_le_bytes(),
+    };
+    pattern.iter().copied().cycle().take(tile.len()).collect()
 }
 
 /// Why a worker gave up. Network trouble is not here: it is retried forever.
@@ -986,6 +1001,12 @@ fn start_render(
         )),
         _ => scenes.get(job),
     }?;
+    if fault == Some(Fault::RenderClaim) {
+        return Err((
+            FailureKind::Render,
+            "this unit cannot be rendered here (fault injection)".into(),
+        ));
+    }
     let unit = assignment
         .unit
         .as_ref()
@@ -1033,17 +1054,10 @@ fn start_render(
                 }
             };
             let before = render_cpu();
-            let samples = match &bake {
-                Some(lattice) => hypertexture::bake::sample_pixels(
-                    &scene,
-                    lattice,
-                    frame,
-                    scene.width(),
-                    &pixels,
-                ),
-                None => hypertexture::render::render_pixels_until(&scene, frame, &pixels, &stop)?,
-            };
-            let tile = convert::tile_to_wire(&samples, format);
+            let mut tile = render_tile(&scene, &pixels, frame, format, bake.as_ref(), &stop)?;
+            if fault == Some(Fault::Garbage) {
+                tile = garbage(&tile, format).into();
+            }
             let cpu = render_cpu().saturating_sub(before);
             Some((unit, tile, cpu))
         };
@@ -1053,6 +1067,89 @@ fn start_render(
         let _ = done.send(tile);
     });
     Ok(result)
+}
+
+/// The tile of `pixels` encoded as the farm carries it: what a worker sends
+/// and what the coordinator's own check of a unit compares. `None`: stopped.
+fn render_tile(
+    scene: &Scene,
+    pixels: &[(u32, u32)],
+    frame: u32,
+    format: hypertexture::PixelFormat,
+    bake: Option<&hypertexture::bake::Lattice>,
+    stop: &AtomicBool,
+) -> Option<hypertexture_proto::Bytes> {
+    let samples = match bake {
+        Some(lattice) => {
+            hypertexture::bake::sample_pixels(scene, lattice, frame, scene.width(), pixels)
+        }
+        None => hypertexture::render::render_pixels_until(scene, frame, pixels, stop)?,
+    };
+    Some(convert::tile_to_wire(&samples, format))
+}
+
+/// Renders units exactly as a worker does, outside the farm: the
+/// coordinator's own check of a unit (verified rendering) builds the scene
+/// from the assignment's wire job with the worker's code and renders the
+/// tile with the worker's function, so the bytes are those every worker of
+/// this build must send. It renders on the caller's rayon pool.
+#[derive(Default)]
+pub struct UnitRenderer {
+    scenes: SceneCache,
+}
+
+impl UnitRenderer {
+    /// Builds the scene of `job` (which carries its text), with the files it
+    /// names from `files` (by content hash), as a worker would.
+    pub fn build(
+        &mut self,
+        job: &pb::Job,
+        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
+    ) -> Result<Arc<Scene>, (FailureKind, String)> {
+        for a in &job.assets {
+            if self.scenes.assets.contains_key(&a.hash) {
+                continue;
+            }
+            let bytes = files(a.hash).ok_or_else(|| {
+                (
+                    FailureKind::Assignment,
+                    format!(
+                        "{}: no file {} with hash {:016x}",
+                        job.scene_name, a.path, a.hash
+                    ),
+                )
+            })?;
+            let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
+                .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+            self.scenes.assets.insert(a.hash, Arc::new(mesh));
+        }
+        self.scenes.get(job)
+    }
+
+    /// The tile of `unit` of `job` (which carries its scene text and frame),
+    /// as a worker sends it; `None` when `stop` was set before the end.
+    pub fn render(
+        &mut self,
+        job: &pb::Job,
+        unit: &WorkUnit,
+        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
+        stop: &AtomicBool,
+    ) -> Result<Option<Vec<u8>>, (FailureKind, String)> {
+        let scene = self.build(job, files)?;
+        let format = convert::pixel_format_from_wire(job.pixel_format)
+            .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+        let bake = job
+            .bake
+            .as_ref()
+            .map(|l| convert::lattice_from_wire(l, scene.width(), scene.height()))
+            .transpose()
+            .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+        let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
+        Ok(
+            render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop)
+                .map(|t| t.to_vec()),
+        )
+    }
 }
 
 /// The message a panic was raised with.

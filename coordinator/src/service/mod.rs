@@ -329,7 +329,7 @@ impl Service {
         };
         let shared = self.farm().map_err(|e| e.to_string())?;
         shared
-            .add_job(plan, resume, WireJob::of(&frame_job))
+            .add_verified_job(plan, resume, WireJob::of(&frame_job))
             .map_err(|e| format!("a stored tile does not fit the job: {e}"))?;
         Ok(units_per_frame)
     }
@@ -765,6 +765,7 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
             interleave: args.interleave,
             progress: false,
             gate: Default::default(),
+            verify: args.verify,
         },
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
         studio_scene: None,
@@ -802,6 +803,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
             interleave: hypertexture::interleave::DEFAULT_INTERLEAVE,
             progress: false,
             gate: Default::default(),
+            verify: farm::DEFAULT_VERIFY,
         },
         drain_timeout: Duration::from_secs(5),
         studio_scene: Some(args.scene),
