@@ -47,9 +47,11 @@ const context = image.getContext('2d');
 const NONE = 255;
 let level = new Uint8Array(0);
 let shown = null;                      // ImageData drawn
-// While a frame refines, the canvas is drawn at most every DRAW_EVERY_MS; a
-// frame's first tile and its last are drawn at once.
-const DRAW_EVERY_MS = 100;
+// While a frame refines, the canvas is drawn at most every DRAW_EVERY_MS
+// (the browser shares the machine with the workers: a high-quality frame,
+// watched rather than steered, is drawn less often); a frame's first tile and
+// its last are drawn at once.
+const DRAW_EVERY_MS = { interactive: 100, high: 250 };
 let rafPending = false;
 let drawTimer = null;
 let lastDraw = -Infinity;
@@ -192,7 +194,7 @@ function schedule() {
     draw();
     return;
   }
-  const wait = lastDraw + DRAW_EVERY_MS - performance.now();
+  const wait = lastDraw + (DRAW_EVERY_MS[studio.quality] ?? 100) - performance.now();
   if (wait <= 0) {
     clearTimeout(drawTimer);
     drawTimer = null;
