@@ -773,6 +773,7 @@ impl FarmRpc for Service {
         // in a sleep of its own: a job added meanwhile starts at once. While
         // units are queued that it may not take yet, it looks again every 50 ms.
         let mut added = self.0.jobs_added.subscribe();
+        let mut finished = self.0.finished.subscribe();
         let deadline = Instant::now() + Duration::from_secs(1);
         loop {
             let queued = {
@@ -795,8 +796,17 @@ impl FarmRpc for Service {
             } else {
                 (deadline - now).min(Duration::from_millis(50))
             };
-            if let Ok(Err(_)) = tokio::time::timeout(wait, added.changed()).await {
-                // The farm is stopping: no job will be added.
+            // A job added, or a frame finished (a check settled it, so the
+            // worker may be told the render is done), ends the wait.
+            let woken = tokio::time::timeout(wait, async {
+                tokio::select! {
+                    r = added.changed() => r.is_ok(),
+                    r = finished.changed() => r.is_ok(),
+                }
+            })
+            .await;
+            if let Ok(false) = woken {
+                // The farm is stopping: nothing will change.
                 tokio::time::sleep(wait).await;
             }
         }
