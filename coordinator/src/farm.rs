@@ -303,8 +303,23 @@ impl WireJob {
 /// with the farm's state locked, before the tile is acknowledged, so a tile
 /// a worker was told is in is stored.
 pub trait TileSink: Send + Sync {
-    /// Keeps the pixels of an accepted unit.
+    /// Keeps the pixels of an accepted unit. A tile held for a second
+    /// rendering ([`Accepted::held`]) comes again, not held, once confirmed.
     fn tile(&self, accepted: &Accepted, pixels: &[u8]);
+
+    /// Frames of a job already complete that are rendered again, because a
+    /// worker caught lying delivered some of their tiles.
+    fn redo(&self, _job: JobId, _frames: &[u32]) {}
+}
+
+/// Hands the tiles the scheduler confirmed since the last call to `sink`.
+fn store_confirmed(scheduler: &mut Scheduler, sink: Option<&Arc<dyn TileSink>>) {
+    let confirmed = scheduler.take_confirmed();
+    if let Some(sink) = sink {
+        for (accepted, pixels) in &confirmed {
+            sink.tile(accepted, pixels);
+        }
+    }
 }
 
 /// The number of buckets of the unit latency histogram, and their upper
@@ -600,6 +615,7 @@ impl Service {
                     sink.tile(a, &p.pixels);
                 }
             }
+            store_confirmed(&mut state.scheduler, self.0.sink.as_ref());
             if state.scheduler.has_completed() {
                 let _ = self.0.finished.send(true);
             }
@@ -1531,9 +1547,19 @@ async fn run_checks(shared: Arc<Shared>) {
         state.stats.checks += 1;
         let verdict = state.scheduler.checked(&check, outcome.clone(), now);
         report_verdict(state, &check, &outcome, &verdict);
-        if let (Some((accepted, pixels)), Some(sink)) = (&verdict.stored, &shared.sink) {
-            sink.tile(accepted, pixels);
+        if let Some(sink) = &shared.sink {
+            if let Some((accepted, pixels)) = &verdict.stored {
+                sink.tile(accepted, pixels);
+            }
+            for liar in verdict
+                .liars
+                .iter()
+                .filter(|l| !l.earlier_frames.is_empty())
+            {
+                sink.redo(liar.job, &liar.earlier_frames);
+            }
         }
+        store_confirmed(&mut state.scheduler, shared.sink.as_ref());
         if state.scheduler.has_completed() || state.scheduler.gave_up_jobs().next().is_some() {
             let _ = shared.finished.send(true);
         }
@@ -1636,7 +1662,7 @@ fn report_verdict(
             String::new()
         } else {
             format!(
-                "; frames already written that hold its tiles (their sampled units agreed): {:?}",
+                "; the frames already complete that hold its tiles are rendered again, whole, and written again: {:?}",
                 liar.earlier_frames
             )
         };

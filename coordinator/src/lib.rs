@@ -397,6 +397,15 @@ pub fn render_on_farm(
         Ok::<_, CoordinatorError>((session?, written))
     });
     let (session, written) = session?;
+    // A frame rendered again (it held a liar's tiles) replaced its first file.
+    let mut summaries: Vec<Summary> = Vec::with_capacity(written.len());
+    for summary in written {
+        match summaries.iter_mut().find(|s| s.out == summary.out) {
+            Some(earlier) => *earlier = summary,
+            None => summaries.push(summary),
+        }
+    }
+    let written = summaries;
     for w in &session.workers {
         tracing::info!(
             "worker {}: {} units, {} pixels, render cpu {:.3} s{}",

@@ -228,6 +228,10 @@ pub struct Accepted {
     pub worker: String,
     /// From the unit's assignment to its tile.
     pub latency: Duration,
+    /// Sampled for a second rendering and not yet confirmed: the service
+    /// stores it once it is ([`Scheduler::take_confirmed`]), so a restart
+    /// never takes an unchecked tile for a checked one.
+    pub held: bool,
 }
 
 /// A frame whose every unit is in.
@@ -346,9 +350,9 @@ pub enum CheckWhy {
 pub struct Check {
     /// The job.
     pub job: JobId,
-    /// The index of the frame in the job's plan (a check of a frame already
-    /// complete is stale).
-    frame_index: usize,
+    /// The job's pass when the check was asked for (a check of a frame
+    /// already complete is stale).
+    pass: u64,
     /// The frame number.
     pub frame: u32,
     /// The unit's index.
@@ -379,8 +383,9 @@ pub struct Liar {
     pub name: String,
     /// Units of the frame rendering it had delivered, now rendered again.
     pub redone: usize,
-    /// Frames of the job already complete that hold its tiles (each of
-    /// them had its sample of units checked).
+    /// Frames of the job already complete that hold its tiles: each is
+    /// rendered again, whole, once the frame rendering is complete, and
+    /// handed out again ([`Scheduler::take_completed`]).
     pub earlier_frames: Vec<u32>,
 }
 
@@ -430,6 +435,9 @@ pub struct JobPlan {
 pub struct Resume {
     /// Frames already complete and written (the first ones of the plan).
     pub frames_done: usize,
+    /// Frames among those complete to render again (they hold a liar's
+    /// tiles), by frame number.
+    pub redo: Vec<u32>,
     /// Tiles of the next frame received before (unit index, tile bytes).
     pub tiles: Vec<(usize, Vec<u8>)>,
 }
@@ -455,6 +463,15 @@ struct Job {
     plan: JobPlan,
     /// Index in `plan.frames` of the frame rendering.
     current: usize,
+    /// Counts the frames completed in this scheduler: what an assignment or
+    /// a check was of, to tell it from the frame rendering now.
+    pass: u64,
+    /// While a complete frame is rendered again: the index in `plan.frames`
+    /// to go on with afterwards (the number of the plan's frames complete).
+    resume_at: Option<usize>,
+    /// Indices in `plan.frames` of complete frames to render again, whole,
+    /// because they hold a liar's tiles.
+    redo: BTreeSet<usize>,
     /// When the current frame's first unit went out.
     frame_started: Option<Instant>,
     pending: VecDeque<usize>,
@@ -486,8 +503,9 @@ struct Job {
     disputed: BTreeMap<usize, Vec<(u64, Vec<u8>)>>,
     /// Workers caught lying about this job: blocklisted for it.
     liars: HashSet<u64>,
-    /// Per worker: the frames already complete that hold its tiles.
-    frames_delivered: HashMap<u64, BTreeSet<u32>>,
+    /// Per worker: the frames already complete (indices in `plan.frames`)
+    /// that hold its tiles.
+    frames_delivered: HashMap<u64, BTreeSet<usize>>,
     gave_up: Option<GiveUp>,
     /// Cancelled or given up: nothing more is handed out.
     ended: bool,
@@ -502,6 +520,16 @@ impl Job {
         let interleave = plan.units.first().map_or(1, |u| u.set.interleave);
         let mut job = Job {
             current: resume.frames_done.min(plan.frames.len()),
+            pass: 0,
+            resume_at: None,
+            redo: plan
+                .frames
+                .iter()
+                .enumerate()
+                .take(resume.frames_done)
+                .filter(|(_, f)| resume.redo.contains(f))
+                .map(|(i, _)| i)
+                .collect(),
             frame_started: None,
             pending: (0..n).collect(),
             done: vec![false; n],
@@ -525,6 +553,12 @@ impl Job {
             plan,
         };
         if job.current == job.plan.frames.len() {
+            if let Some(first) = job.redo.pop_first() {
+                // Every frame is written, but some hold a liar's tiles.
+                job.resume_at = Some(job.current);
+                job.current = first;
+                return Ok(job);
+            }
             job.remaining = 0;
             job.pending.clear();
             return Ok(job);
@@ -551,8 +585,23 @@ impl Job {
     }
 
     fn finished(&self) -> bool {
-        self.current >= self.plan.frames.len()
-            || (self.current + 1 == self.plan.frames.len() && self.frame_settled())
+        if !self.redo.is_empty() {
+            return false;
+        }
+        match self.resume_at {
+            None if self.current >= self.plan.frames.len() => true,
+            next => {
+                next.unwrap_or(self.current + 1) >= self.plan.frames.len() && self.frame_settled()
+            }
+        }
+    }
+
+    /// The number of the plan's frames complete (frames rendered again
+    /// included).
+    fn frames_complete(&self) -> usize {
+        self.resume_at
+            .unwrap_or(self.current)
+            .min(self.plan.frames.len())
     }
 
     /// Every unit of the frame rendering is in, and every sampled one confirmed.
@@ -608,7 +657,7 @@ pub struct Scheduler {
     leases: HashMap<u64, Lease>,
     /// The job, frame index and unit of every assignment of a job that has
     /// not ended (to tell late duplicates from forgeries).
-    issued: HashMap<u64, (JobId, usize, usize)>,
+    issued: HashMap<u64, (JobId, u64, usize)>,
     next_assignment: u64,
     workers: HashMap<u64, WorkerState>,
     next_worker: u64,
@@ -629,6 +678,8 @@ pub struct Scheduler {
     verify_key: u64,
     /// Claims and disputes for the coordinator to check, oldest first.
     urgent: VecDeque<Check>,
+    /// Held tiles whose second rendering agreed, not yet taken for the store.
+    confirmed: Vec<(Accepted, Vec<u8>)>,
 }
 
 impl Scheduler {
@@ -683,6 +734,7 @@ impl Scheduler {
                 std::collections::hash_map::RandomState::new().hash_one(Instant::now())
             },
             urgent: VecDeque::new(),
+            confirmed: Vec::new(),
         }
     }
 
@@ -894,8 +946,7 @@ impl Scheduler {
                 let job = self.jobs.get_mut(&job_id).expect("chosen above");
                 job.started = true;
                 job.frame_started.get_or_insert(now);
-                self.issued
-                    .insert(assignment_id, (job_id, job.current, unit));
+                self.issued.insert(assignment_id, (job_id, job.pass, unit));
                 self.leases.insert(
                     assignment_id,
                     Lease {
@@ -948,7 +999,7 @@ impl Scheduler {
             let Some(job) = self.jobs.get(&check.job) else {
                 continue;
             };
-            if job.ended || job.current != check.frame_index {
+            if job.ended || job.pass != check.pass {
                 continue;
             }
             if let CheckWhy::Claim { worker, .. } = &check.why
@@ -966,7 +1017,7 @@ impl Scheduler {
                 if job.held.contains_key(&index) {
                     return Some(Check {
                         job: id,
-                        frame_index: job.current,
+                        pass: job.pass,
                         frame: job.frame(),
                         index,
                         unit: job.plan.units[index],
@@ -998,7 +1049,7 @@ impl Scheduler {
         let Some(job) = self.jobs.get(&check.job) else {
             return verdict;
         };
-        if job.ended || job.current != check.frame_index {
+        if job.ended || job.pass != check.pass {
             return verdict;
         }
         let index = check.index;
@@ -1099,11 +1150,16 @@ impl Scheduler {
         }
         let held = &job.held;
         job.to_check.retain(|u| held.contains_key(u));
-        let earlier_frames = job
+        let earlier: Vec<usize> = job
             .frames_delivered
-            .get(&worker)
-            .map(|f| f.iter().copied().collect())
+            .remove(&worker)
+            .map(|f| f.into_iter().collect())
             .unwrap_or_default();
+        // The frame rendering now replaces its own tiles (`redone`).
+        let current = job.current;
+        let earlier: Vec<usize> = earlier.into_iter().filter(|&i| i != current).collect();
+        job.redo.extend(earlier.iter().copied());
+        let earlier_frames = earlier.iter().map(|&i| job.plan.frames[i]).collect();
         let name = self
             .workers
             .get(&worker)
@@ -1152,6 +1208,7 @@ impl Scheduler {
             unit: index,
             worker: "the coordinator".into(),
             latency: Duration::ZERO,
+            held: false,
         };
         self.settle(job_id, now);
         Some((accepted, bytes.to_vec()))
@@ -1226,7 +1283,7 @@ impl Scheduler {
     /// The job, frame index and unit of an assignment of a job still in the
     /// scheduler; `Err(true)` when the id was issued for a job that has
     /// ended, `Err(false)` when it never was.
-    fn issued(&self, assignment_id: u64) -> Result<(JobId, usize, usize), bool> {
+    fn issued(&self, assignment_id: u64) -> Result<(JobId, u64, usize), bool> {
         match self.issued.get(&assignment_id) {
             Some(&i) => Ok(i),
             None => Err(assignment_id > 0 && assignment_id < self.next_assignment),
@@ -1239,7 +1296,7 @@ impl Scheduler {
     pub fn note_calls_cpu(&mut self, assignment_id: u64, calls_cpu_micros: u64) {
         if let Ok((job_id, frame, unit)) = self.issued(assignment_id)
             && let Some(job) = self.jobs.get_mut(&job_id)
-            && frame == job.current
+            && frame == job.pass
         {
             job.unit_calls[unit] = calls_cpu_micros;
         }
@@ -1311,7 +1368,7 @@ impl Scheduler {
     ) -> Result<Option<Accepted>, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
-        let (job_id, issued_frame, issued_unit) = match self.issued(assignment_id) {
+        let (job_id, issued_pass, issued_unit) = match self.issued(assignment_id) {
             Ok(i) => i,
             Err(true) => return Ok(None),
             Err(false) => return Err(Refusal::NeverAssigned(assignment_id)),
@@ -1319,7 +1376,7 @@ impl Scheduler {
         let Some(job) = self.jobs.get_mut(&job_id) else {
             return Ok(None);
         };
-        if issued_frame != job.current {
+        if issued_pass != job.pass {
             // A duplicate of a unit of a frame that is complete.
             return Ok(None);
         }
@@ -1349,8 +1406,24 @@ impl Scheduler {
             let job = self.jobs.get_mut(&job_id).expect("checked above");
             match job.held.get(&issued_unit) {
                 Some((_, first)) if first.as_slice() == values => {
-                    // The two renderings agree.
-                    job.held.remove(&issued_unit);
+                    // The two renderings agree: the tile is stored now.
+                    let (first_worker, bytes) =
+                        job.held.remove(&issued_unit).expect("matched above");
+                    let frame = job.frame();
+                    self.confirmed.push((
+                        Accepted {
+                            job: job_id,
+                            frame,
+                            unit: issued_unit,
+                            worker: self
+                                .workers
+                                .get(&first_worker)
+                                .map_or_else(String::new, |w| w.name.clone()),
+                            latency: Duration::ZERO,
+                            held: false,
+                        },
+                        bytes,
+                    ));
                     self.settle(job_id, now);
                     return Ok(None);
                 }
@@ -1364,7 +1437,7 @@ impl Scheduler {
                     if fresh {
                         self.urgent.push_back(Check {
                             job: job_id,
-                            frame_index: job.current,
+                            pass: job.pass,
                             frame: job.frame(),
                             index: issued_unit,
                             unit: claimed,
@@ -1384,7 +1457,8 @@ impl Scheduler {
         job.canvas.store(&claimed, tile);
         job.done[issued_unit] = true;
         job.delivered[issued_unit] = Some(wid);
-        if job.sampled(self.verify_key, issued_unit) {
+        let held = job.sampled(self.verify_key, issued_unit);
+        if held {
             job.held.insert(issued_unit, (wid, values.to_vec()));
             job.to_check.push_back(issued_unit);
         }
@@ -1414,16 +1488,17 @@ impl Scheduler {
             unit: issued_unit,
             worker: self.workers[&wid].name.clone(),
             latency: now.saturating_duration_since(issued_at),
+            held,
         }))
     }
 
-    /// Moves the job's complete frame's image out and starts its next frame, if any.
+    /// Moves the job's complete frame's image out and starts its next frame,
+    /// if any: a complete frame to render again first, then the plan's next.
     fn complete_frame(&mut self, job_id: JobId, now: Instant) {
         let Some(job) = self.jobs.get_mut(&job_id) else {
             return;
         };
         let n = job.plan.units.len();
-        let last = job.current + 1 == job.plan.frames.len();
         self.completed.push(CompletedFrame {
             job: job_id,
             frame: job.frame(),
@@ -1439,19 +1514,31 @@ impl Scheduler {
         });
         // Duplicates still out belong to the frame just completed.
         self.leases.retain(|_, l| l.job != job_id);
-        let frame = job.frame();
+        let index = job.current;
+        // A frame rendered again holds only the tiles of this rendering.
+        for frames in job.frames_delivered.values_mut() {
+            frames.remove(&index);
+        }
         for w in std::mem::replace(&mut job.delivered, vec![None; n])
             .into_iter()
             .flatten()
         {
-            job.frames_delivered.entry(w).or_default().insert(frame);
+            job.frames_delivered.entry(w).or_default().insert(index);
         }
         job.held.clear();
         job.to_check.clear();
         job.disputed.clear();
-        // Past the last frame, the job is finished: late tiles are unused.
-        job.current += 1;
-        if last {
+        job.pass += 1;
+        if let Some(again) = job.redo.pop_first() {
+            job.resume_at.get_or_insert(index + 1);
+            job.current = again;
+        } else if let Some(next) = job.resume_at.take() {
+            job.current = next;
+        } else {
+            job.current += 1;
+        }
+        if job.current >= job.plan.frames.len() {
+            // Past the last frame, the job is finished: late tiles are unused.
             job.remaining = 0;
             job.pending.clear();
             return;
@@ -1460,6 +1547,18 @@ impl Scheduler {
         job.done = vec![false; n];
         job.remaining = n;
         job.failures = vec![Vec::new(); n];
+    }
+
+    /// Whether the job has nothing left to render (true when unknown): every
+    /// frame of its plan complete, none waiting to be rendered again.
+    pub fn job_finished(&self, job: JobId) -> bool {
+        self.jobs.get(&job).is_none_or(Job::finished)
+    }
+
+    /// Tiles held for a second rendering that it confirmed since the last
+    /// call (with their bytes), for the service's store.
+    pub fn take_confirmed(&mut self) -> Vec<(Accepted, Vec<u8>)> {
+        std::mem::take(&mut self.confirmed)
     }
 
     /// Whether a frame is complete and not yet taken.
@@ -1514,7 +1613,7 @@ impl Scheduler {
         reason: &str,
         now: Instant,
     ) -> Result<Option<Counted>, Refusal> {
-        let Some((job_id, frame_index, unit, wid, name)) =
+        let Some((job_id, pass, unit, wid, name)) =
             self.give_back(worker_id, assignment_id, kind, reason, now)?
         else {
             return Ok(None);
@@ -1525,7 +1624,7 @@ impl Scheduler {
         let job = &self.jobs[&job_id];
         self.urgent.push_back(Check {
             job: job_id,
-            frame_index,
+            pass,
             frame: job.frame(),
             index: unit,
             unit: job.plan.units[unit],
@@ -1559,7 +1658,7 @@ impl Scheduler {
         kind: FailureKind,
         reason: &str,
         now: Instant,
-    ) -> Result<Option<(JobId, usize, usize, u64, String)>, Refusal> {
+    ) -> Result<Option<(JobId, u64, usize, u64, String)>, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
         let name = w.name.clone();
@@ -1569,7 +1668,7 @@ impl Scheduler {
             Err(false) => return Err(Refusal::NeverAssigned(assignment_id)),
         };
         match (self.leases.get(&assignment_id), self.jobs.get(&job_id)) {
-            (Some(lease), Some(job)) if lease.worker == wid && frame == job.current => {}
+            (Some(lease), Some(job)) if lease.worker == wid && frame == job.pass => {}
             _ => return Ok(None),
         }
         self.leases.remove(&assignment_id);
@@ -1897,15 +1996,16 @@ impl Scheduler {
 fn job_progress(j: &Job, leases: &HashMap<u64, Lease>) -> JobProgress {
     let n = j.plan.units.len() as u64;
     let frames = j.plan.frames.len() as u64;
-    let current = j.current as u64;
-    let done_now = if current >= frames {
+    let complete = j.frames_complete() as u64;
+    let done_now = if j.resume_at.is_some() || complete >= frames {
+        // A frame rendered again adds nothing to the plan's progress.
         0
     } else {
         n - j.remaining as u64
     };
-    let frames_complete = if j.finished() { frames } else { current };
+    let frames_complete = if j.finished() { frames } else { complete };
     JobProgress {
-        units_done: (current.min(frames) * n + done_now).min(frames * n),
+        units_done: (complete * n + done_now).min(frames * n),
         units_total: frames * n,
         frames_complete: frames_complete as u32,
         started: j.started,
@@ -2368,6 +2468,117 @@ mod tests {
                 .all(|p| p.rgba[0] == 0.5),
             "no garbage is left in the image"
         );
+    }
+
+    /// Renders units with `w` until it is told to wait, each tile `value`.
+    fn render_frame_part(s: &mut Scheduler, w: &str, value: f32, count: usize, now: Instant) {
+        for _ in 0..count {
+            let (id, unit) = assign(s, w, now);
+            let wire = convert::unit_to_wire(&unit);
+            s.submit(w, id, Some(&wire), &tile(&unit, 16, value), 0, now)
+                .unwrap();
+        }
+    }
+
+    #[test]
+    fn frames_already_complete_that_hold_a_liars_tiles_are_rendered_again() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let n = units.len();
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5))
+            .with_frames(vec![0, 1, 2]);
+        let (liar, good) = (s.register("liar", 1, now), s.register("good", 1, now));
+        // Frame 0: none of the liar's garbage is sampled, so it goes out.
+        render_frame_part(&mut s, &liar, 1e38, n / 2, now);
+        render_frame_part(&mut s, &good, 0.5, n - n / 2, now);
+        let first = s.take_completed();
+        assert_eq!(first.iter().map(|f| f.frame).collect::<Vec<_>>(), [0]);
+        // Frame 1: every unit is sampled, and the liar is caught.
+        s.set_verify(1.0);
+        render_frame_part(&mut s, &liar, 1e38, 2, now);
+        let check = s.take_check().expect("a sampled unit");
+        let verdict = s.checked(
+            &check,
+            CheckOutcome::Rendered(tile(&check.unit, 16, 0.5)),
+            now,
+        );
+        assert_eq!(verdict.liars.len(), 1);
+        assert_eq!(verdict.liars[0].earlier_frames, [0]);
+        assert_eq!(verdict.liars[0].redone, 2, "its units of frame 1");
+        assert_eq!(s.next(&liar, now), Ok(Next::Wait));
+        // The good worker renders (and checks) frame 1, then frame 0 again, then 2.
+        let mut frames = Vec::new();
+        let mut guard = 0;
+        while !s.finished() {
+            guard += 1;
+            assert!(guard < 100, "the job never finished");
+            render_all(&mut s, &good, 0.5, 16, now);
+            while let Some(check) = s.take_check() {
+                s.checked(
+                    &check,
+                    CheckOutcome::Rendered(tile(&check.unit, 16, 0.5)),
+                    now,
+                );
+            }
+            let progress = s.job_progress(ONE_SHOT_JOB).unwrap();
+            assert!(progress.units_done <= progress.units_total);
+            for done in s.take_completed() {
+                assert!(
+                    film(&done.image).pixels().iter().all(|p| p.rgba[0] == 0.5),
+                    "frame {}: no garbage",
+                    done.frame
+                );
+                frames.push(done.frame);
+            }
+        }
+        assert_eq!(frames, [1, 0, 2]);
+        assert_eq!(s.progress(), (3 * n, 3 * n));
+    }
+
+    #[test]
+    fn a_job_resumed_with_frames_to_render_again_renders_them() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let plan = |id| JobPlan {
+            id,
+            priority: 0,
+            units: units.clone(),
+            width: 16,
+            height: 16,
+            format: PixelFormat::Samples,
+            frames: vec![4, 5, 6],
+            require_tags: Vec::new(),
+        };
+        let mut s = Scheduler::service(Duration::from_secs(5));
+        let w = s.register("w", 1, now);
+        // Every frame written, frame 5 to render again; and one in the middle.
+        s.add_job(
+            plan(1),
+            Resume {
+                frames_done: 3,
+                tiles: Vec::new(),
+                redo: vec![5],
+            },
+        )
+        .unwrap();
+        s.add_job(
+            plan(2),
+            Resume {
+                frames_done: 2,
+                tiles: Vec::new(),
+                redo: vec![4, 6],
+            },
+        )
+        .unwrap();
+        assert!(!s.job_finished(1) && !s.job_finished(2));
+        let mut frames = Vec::new();
+        for _ in 0..10 {
+            render_all(&mut s, &w, 0.5, 16, now);
+            frames.extend(s.take_completed().iter().map(|f| (f.job, f.frame)));
+        }
+        // Job 2's frame 6 is not yet written: it is rendered once, then frame 4 again.
+        assert_eq!(frames, [(1, 5), (2, 6), (2, 4)]);
+        assert!(s.job_finished(1) && s.job_finished(2));
     }
 
     #[test]
@@ -2864,6 +3075,7 @@ mod tests {
             Resume {
                 frames_done: 0,
                 tiles: stored,
+                redo: Vec::new(),
             },
         )
         .unwrap();
@@ -2887,6 +3099,7 @@ mod tests {
             Resume {
                 frames_done: 0,
                 tiles: all,
+                redo: Vec::new(),
             },
         )
         .unwrap();

@@ -42,6 +42,9 @@
 //!   `id` is `AUTOINCREMENT`, so ids are never reused, even after deletes.
 //! - `outputs(job, frame, seq, path)`: the files written, `seq` giving their order.
 //! - `tiles(job, frame, unit, pixels)`: the units received of unfinished frames.
+//! - `redo(job, frame)`: finished frames to render again, because a worker
+//!   caught lying had delivered some of their tiles (version 2; a version 1
+//!   store gains the table when opened).
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
@@ -54,7 +57,7 @@ use rusqlite::{Connection, ErrorCode, OptionalExtension, params};
 use crate::jobs::JobState;
 
 /// The store version this build writes and the newest it reads.
-pub const STORE_VERSION: i64 = 1;
+pub const STORE_VERSION: i64 = 2;
 
 /// The database file's name inside the data directory.
 pub const DB_FILE: &str = "farm.sqlite";
@@ -93,11 +96,25 @@ CREATE TABLE tiles (
     pixels BLOB NOT NULL,
     PRIMARY KEY (job, frame, unit)
 );
+CREATE TABLE redo (
+    job INTEGER NOT NULL REFERENCES jobs(id) ON DELETE CASCADE,
+    frame INTEGER NOT NULL,
+    PRIMARY KEY (job, frame)
+) WITHOUT ROWID;
+";
+
+/// What version 2 added to version 1's schema.
+const SCHEMA_1_TO_2: &str = "
+CREATE TABLE redo (
+    job INTEGER NOT NULL REFERENCES jobs(id) ON DELETE CASCADE,
+    frame INTEGER NOT NULL,
+    PRIMARY KEY (job, frame)
+) WITHOUT ROWID;
 ";
 
 /// The tables of [`SCHEMA`] and their columns, in order: what [`Store::open`]
 /// checks an existing database against.
-const TABLES: [(&str, &[&str]); 3] = [
+const TABLES: [(&str, &[&str]); 4] = [
     (
         "jobs",
         &[
@@ -112,6 +129,7 @@ const TABLES: [(&str, &[&str]); 3] = [
     ),
     ("outputs", &["job", "frame", "seq", "path"]),
     ("tiles", &["job", "frame", "unit", "pixels"]),
+    ("redo", &["job", "frame"]),
 ];
 
 /// Why the store failed. Every message names the data directory or the
@@ -209,6 +227,8 @@ pub struct StoredJob {
     pub frames_done: u32,
     /// The files written, in the order they were finished.
     pub outputs: Vec<String>,
+    /// Finished frames to render again (they hold a liar's tiles).
+    pub redo: Vec<u32>,
     /// When it was submitted (milliseconds since the Unix epoch).
     pub submitted_unix_ms: u64,
 }
@@ -338,10 +358,27 @@ impl Store {
         Ok(())
     }
 
+    /// Records that finished frames of job `job` are to be rendered again
+    /// (a worker caught lying had delivered some of their tiles), until
+    /// [`Store::finish_frame`] records each of them again.
+    pub fn add_redo(&self, job: u64, frames: &[u32]) -> Result<(), StoreError> {
+        self.transaction(|conn| {
+            let mut insert = conn.prepare_cached(
+                "INSERT OR IGNORE INTO redo (job, frame) SELECT ?1, ?2 FROM jobs \
+                 WHERE id = ?1 AND state IN ('queued', 'running')",
+            )?;
+            for &frame in frames {
+                insert.execute(params![job, frame])?;
+            }
+            Ok(())
+        })
+    }
+
     /// Records frame `frame` of job `job` as written to `output`, in one
     /// transaction: deletes the frame's tiles, appends `output` to the job's
     /// outputs and counts the frame in `frames_done`. Finishing a frame already
-    /// finished only deletes its tiles (it is not counted twice).
+    /// finished deletes its tiles and its place among the frames to render
+    /// again (it is not counted twice).
     pub fn finish_frame(&self, job: u64, frame: u32, output: &str) -> Result<(), StoreError> {
         self.transaction(|conn| {
             let done: Option<u32> = conn
@@ -352,6 +389,8 @@ impl Store {
                 return Ok(Err(job));
             };
             conn.prepare_cached("DELETE FROM tiles WHERE job = ?1 AND frame = ?2")?
+                .execute(params![job, frame])?;
+            conn.prepare_cached("DELETE FROM redo WHERE job = ?1 AND frame = ?2")?
                 .execute(params![job, frame])?;
             let added = conn
                 .prepare_cached(
@@ -384,7 +423,7 @@ impl Store {
     pub fn jobs(&self) -> Result<Vec<StoredJob>, StoreError> {
         type Row = (u64, String, i32, String, Option<String>, u32, u64);
         // One read transaction: the rows and the outputs are of the same moment.
-        let (rows, outputs) = self.transaction(|conn| {
+        let (rows, outputs, redo) = self.transaction(|conn| {
             let rows: Vec<Row> = conn
                 .prepare_cached(
                     "SELECT id, spec_json, priority, state, error, frames_done, submitted_unix_ms \
@@ -406,7 +445,11 @@ impl Store {
                 .prepare_cached("SELECT job, path FROM outputs ORDER BY job, seq")?
                 .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
                 .collect::<rusqlite::Result<_>>()?;
-            Ok((rows, outputs))
+            let redo: Vec<(u64, u32)> = conn
+                .prepare_cached("SELECT job, frame FROM redo ORDER BY job, frame")?
+                .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+                .collect::<rusqlite::Result<_>>()?;
+            Ok((rows, outputs, redo))
         })?;
         let mut jobs = rows
             .into_iter()
@@ -423,6 +466,7 @@ impl Store {
                         error,
                         frames_done,
                         outputs: Vec::new(),
+                        redo: Vec::new(),
                         submitted_unix_ms: submitted,
                     })
                 },
@@ -432,6 +476,11 @@ impl Store {
             // Both lists are sorted by job; the foreign key guarantees the job.
             if let Ok(i) = jobs.binary_search_by_key(&job, |j| j.id) {
                 jobs[i].outputs.push(path);
+            }
+        }
+        for (job, frame) in redo {
+            if let Ok(i) = jobs.binary_search_by_key(&job, |j| j.id) {
+                jobs[i].redo.push(frame);
             }
         }
         Ok(jobs)
@@ -527,13 +576,27 @@ impl Store {
                 Ok(())
             })
         } else {
+            if version == 1 {
+                // Version 1's tables must be sound before they are extended.
+                self.check_tables(&TABLES[..3])?;
+                self.transaction(|conn| {
+                    conn.execute_batch(SCHEMA_1_TO_2)?;
+                    conn.pragma_update(None, "user_version", STORE_VERSION)?;
+                    Ok(())
+                })?;
+            }
             self.check_schema()
         }
     }
 
     /// Checks that every table of the schema is there with its columns.
     fn check_schema(&self) -> Result<(), StoreError> {
-        for (table, expected) in TABLES {
+        self.check_tables(&TABLES)
+    }
+
+    /// Checks that each of `tables` is there with its columns.
+    fn check_tables(&self, tables: &[(&str, &[&str])]) -> Result<(), StoreError> {
+        for &(table, expected) in tables {
             let columns: Vec<String> = self
                 .conn
                 .prepare("SELECT name FROM pragma_table_info(?1) ORDER BY cid")
@@ -709,6 +772,7 @@ mod tests {
                     error: None,
                     frames_done: 1,
                     outputs: vec!["a.png".into()],
+                    redo: Vec::new(),
                     submitted_unix_ms: 1_700_000_000_000,
                 },
                 StoredJob {
@@ -719,6 +783,7 @@ mod tests {
                     error: Some("the scene failed: x".into()),
                     frames_done: 2,
                     outputs: vec!["b_07.exr".into(), "b_05.exr".into()],
+                    redo: Vec::new(),
                     submitted_unix_ms: 1_700_000_000_001,
                 },
             ]
@@ -790,6 +855,64 @@ mod tests {
     }
 
     #[test]
+    fn frames_to_render_again_last_until_finished_again() -> Result<(), StoreError> {
+        let dir = TempDir::new("redo");
+        let store = open(&dir);
+        let a = store.insert_job("{}", 0, 0)?;
+        store.set_state(a, JobState::Running, None)?;
+        for f in 0..3 {
+            store.finish_frame(a, f, &format!("a{f}.png"))?;
+        }
+        store.add_redo(a, &[2, 0])?;
+        store.add_redo(a, &[0])?;
+        drop(store);
+        let store = open(&dir);
+        let job = &store.jobs()?[0];
+        assert_eq!(job.redo, vec![0, 2]);
+        assert_eq!(job.frames_done, 3);
+        // Finished again: no longer to render, and not counted twice.
+        store.finish_frame(a, 2, "a2.png")?;
+        let job = &store.jobs()?[0];
+        assert_eq!((job.redo.clone(), job.frames_done), (vec![0], 3));
+        assert_eq!(job.outputs, vec!["a0.png", "a1.png", "a2.png"]);
+        // An ended job takes none; deleting a job deletes its list.
+        store.set_state(a, JobState::Done, None)?;
+        store.add_redo(a, &[1])?;
+        assert_eq!(store.jobs()?[0].redo, vec![0]);
+        store.delete_job(a)?;
+        assert!(store.jobs()?.is_empty());
+        Ok(())
+    }
+
+    #[test]
+    fn a_version_1_store_gains_the_redo_table() -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("upgrade");
+        std::fs::create_dir_all(&dir.0)?;
+        let path = dir.0.join("farm.sqlite");
+        {
+            let conn = Connection::open(&path)?;
+            // Version 1's schema: the current one without `redo`.
+            let v1 = SCHEMA.split("CREATE TABLE redo").next().unwrap_or_default();
+            conn.execute_batch(v1)?;
+            conn.pragma_update(None, "user_version", 1)?;
+            conn.execute(
+                "INSERT INTO jobs (spec_json, priority, state, submitted_unix_ms) \
+                 VALUES ('{}', 0, 'running', 0)",
+                [],
+            )?;
+        }
+        let store = open(&dir);
+        let id = store.jobs()?[0].id;
+        store.add_redo(id, &[4])?;
+        assert_eq!(store.jobs()?[0].redo, vec![4]);
+        drop(store);
+        let version: i64 =
+            Connection::open(&path)?.pragma_query_value(None, "user_version", |r| r.get(0))?;
+        assert_eq!(version, STORE_VERSION);
+        Ok(())
+    }
+
+    #[test]
     fn committed_data_survives_a_drop_and_ids_keep_increasing() -> Result<(), StoreError> {
         let dir = TempDir::new("reopen");
         let (a, b) = {
@@ -831,13 +954,13 @@ mod tests {
         let path = dir.0.join("farm.sqlite");
         {
             let conn = Connection::open(&path)?;
-            conn.pragma_update(None, "user_version", 2)?;
+            conn.pragma_update(None, "user_version", 3)?;
         }
         let e = Store::open(&dir.0).map(|_| ()).map_err(|e| e.to_string());
         assert_eq!(
             e,
             Err(format!(
-                "{} was written by a newer coordinator (store version 2; this build reads up to 1)",
+                "{} was written by a newer coordinator (store version 3; this build reads up to 2)",
                 path.display()
             ))
         );

@@ -122,6 +122,11 @@ impl TileSink for StoreSink {
             self.1.tile(a, pixels);
             return;
         }
+        if a.held {
+            // Stored once its second rendering confirms it: a restart
+            // renders it again rather than trusting it unchecked.
+            return;
+        }
         let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
         if let Err(e) = store.put_tile(a.job, a.frame, a.unit as u32, pixels) {
             tracing::error!(
@@ -130,6 +135,13 @@ impl TileSink for StoreSink {
                 a.unit,
                 a.frame
             );
+        }
+    }
+
+    fn redo(&self, job: JobId, frames: &[u32]) {
+        let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
+        if let Err(e) = store.add_redo(job, frames) {
+            tracing::error!("job {job}: cannot record frames {frames:?} to render again: {e}");
         }
     }
 }
@@ -480,12 +492,19 @@ impl Service {
             done.frame,
             done.render_time.as_secs_f64()
         );
+        // A frame rendered again (it held a liar's tiles) replaced its file.
+        let rendering_again = self
+            .farm
+            .get()
+            .is_some_and(|farm| !farm.lock().scheduler.job_finished(id));
         let finished = {
             let mut jobs = self.jobs_lock();
             match jobs.get_mut(&id) {
                 Some(meta) => {
-                    meta.outputs.push(path);
-                    meta.outputs.len() == meta.frames.len()
+                    if !meta.outputs.contains(&path) {
+                        meta.outputs.push(path);
+                    }
+                    meta.outputs.len() == meta.frames.len() && !rendering_again
                 }
                 None => false,
             }
@@ -513,7 +532,8 @@ impl Service {
                 .map_err(|e| bad(format!("unreadable job: {e}")))?;
             let frames = frames_of(&stored.spec).map_err(bad)?;
             let mut state = job.state;
-            if !state.is_final() && job.frames_done as usize >= frames.len() {
+            if !state.is_final() && job.frames_done as usize >= frames.len() && job.redo.is_empty()
+            {
                 state = JobState::Done;
                 self.store().set_state(job.id, state, None)?;
             }
@@ -575,7 +595,11 @@ impl Service {
                     job.id,
                     &meta.stored,
                     &checked,
-                    Resume { frames_done, tiles },
+                    Resume {
+                        frames_done,
+                        tiles,
+                        redo: job.redo.clone(),
+                    },
                 )
                 .map_err(bad)?;
             meta.units_per_frame = units_per_frame;
