@@ -952,6 +952,71 @@ fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A worker that turns liar in the middle of a sequence (true tiles in
+/// frame 0, garbage from frame 1 on) is caught in frame 1; frame 0, already
+/// written, holds its tiles, so it is rendered again, whole, by the good
+/// worker and written again; every file ends byte-identical to the
+/// in-process render, exit status 0.
+#[test]
+fn frames_written_before_a_liar_is_caught_are_rendered_again() {
+    let dir = scratch("adversarial-earlier-frames");
+    let scene = scene("noisy_sphere");
+    let size = ["--width", "32", "--height", "32"];
+    let reference = dir.join("reference.png");
+    let o = coordinator(
+        &[
+            &["--scene", scene.to_str().unwrap(), "--out"][..],
+            &[
+                reference.to_str().unwrap(),
+                "--frames",
+                "0..3",
+                "--in-process",
+                "--quiet",
+            ],
+            &size,
+        ]
+        .concat(),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("farm.png");
+    let mut coord = Running::coordinator(
+        &[
+            &["--scene", scene.to_str().unwrap(), "--out"][..],
+            &[out.to_str().unwrap(), "--frames", "0..3", "--verify", "1"],
+            &["--local-workers", "0", "--lease-timeout", "60"],
+            &size,
+        ]
+        .concat(),
+    );
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    let (runtime, stop, task) = in_process_worker(&url, LIAR, Some(worker::Fault::GarbageFrom(1)));
+    // Alone, the liar renders frame 0 truly (the coordinator checks it) and
+    // is caught in frame 1; then the good worker joins.
+    coord.wait_for("lied about job 1", 120);
+    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
+    let (status, log) = coord.finish(120);
+    stop.send(true).unwrap();
+    runtime.block_on(async {
+        let _ = tokio::time::timeout(Duration::from_secs(30), task).await;
+    });
+    let log = log.join("\n");
+    assert!(status.success(), "{log}");
+    liar_named(&log);
+    assert!(
+        log.contains("the frames already complete that hold its tiles are rendered again, whole, and written again: [0]"),
+        "{log}"
+    );
+    assert!(
+        log.contains("3 frames on"),
+        "each frame counted once: {log}"
+    );
+    for frame in 0..3 {
+        let name = |stem: &str| dir.join(format!("{stem}_{frame:04}.png"));
+        same_file(&name("reference"), &name("farm"));
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A worker that says it cannot build the scene, which the coordinator
 /// builds, fails nothing: it is blocklisted and named, the good worker
 /// renders the frame, exact, exit status 0 (with verification off: claims

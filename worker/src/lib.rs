@@ -76,6 +76,9 @@ pub enum Fault {
     /// Every tile is garbage of the right size: each float 1e38 in a tile of
     /// samples, each pixel opaque magenta in an 8-bit tile (a lying worker).
     Garbage,
+    /// Tiles are true in frames before this one and garbage from it on (a
+    /// worker that turns liar in the middle of a sequence).
+    GarbageFrom(u32),
     /// Every unit is given back as one this worker cannot render, without
     /// trying (a lying worker).
     RenderClaim,
@@ -1055,7 +1058,12 @@ fn start_render(
             };
             let before = render_cpu();
             let mut tile = render_tile(&scene, &pixels, frame, format, bake.as_ref(), &stop)?;
-            if fault == Some(Fault::Garbage) {
+            let lies = match fault {
+                Some(Fault::Garbage) => true,
+                Some(Fault::GarbageFrom(first)) => frame >= first,
+                _ => false,
+            };
+            if lies {
                 tile = garbage(&tile, format).into();
             }
             let cpu = render_cpu().saturating_sub(before);
