@@ -122,6 +122,14 @@ impl Browser {
 
     /// Sends a command (to the page once attached) and waits for its answer.
     fn call(&mut self, method: &str, params: Value) -> Value {
+        match self.try_call(method, params) {
+            Ok(result) => result,
+            Err(reply) => panic!("{method}: {reply}"),
+        }
+    }
+
+    /// [`Browser::call`], its error answer as `Err`.
+    fn try_call(&mut self, method: &str, params: Value) -> Result<Value, Value> {
         let id = self.next_id;
         self.next_id += 1;
         let mut message = json!({ "id": id, "method": method, "params": params });
@@ -139,8 +147,10 @@ impl Browser {
                 .recv_timeout(left)
                 .unwrap_or_else(|_| panic!("no answer to {method} within 60 s"));
             if reply["id"] == json!(id) {
-                assert!(reply.get("error").is_none(), "{method}: {reply}");
-                return reply["result"].clone();
+                return match reply.get("error") {
+                    Some(error) => Err(error.clone()),
+                    None => Ok(reply["result"].clone()),
+                };
             }
         }
     }
@@ -164,13 +174,28 @@ impl Browser {
     fn wait_until(&mut self, expression: &str, secs: u64) {
         let deadline = Instant::now() + Duration::from_secs(secs);
         let guarded = format!("typeof studio !== 'undefined' && ({expression})");
-        while self.eval(&guarded) != json!(true) {
+        // Checked in the page every 20 ms for up to a second per call (no
+        // round trip through the protocol per check: the browser shares the
+        // cores with the workers being measured).
+        let waiting = format!(
+            "new Promise((done) => {{ const end = performance.now() + 1000; \
+             const check = () => {{ let ok = false; try {{ ok = {guarded}; }} catch (e) {{}} \
+             if (ok || performance.now() > end) done(ok === true); else setTimeout(check, 20); }}; check(); }})"
+        );
+        // A page replaced while the promise waits answers with an error: not yet.
+        let holds = |b: &mut Browser| {
+            b.try_call(
+                "Runtime.evaluate",
+                json!({ "expression": waiting, "returnByValue": true, "awaitPromise": true }),
+            )
+            .is_ok_and(|r| r["result"]["value"] == json!(true))
+        };
+        while !holds(self) {
             assert!(
                 Instant::now() < deadline,
                 "not true within {secs} s: {expression}; studio: {}",
                 self.eval("JSON.stringify({...studio, view: null})")
             );
-            std::thread::sleep(Duration::from_millis(20));
         }
     }
 
@@ -473,6 +498,48 @@ fn one_shot_seconds(scene: &Path, out: &Path) -> f64 {
         .unwrap_or_else(|| panic!("no frame time in {log}"))
 }
 
+/// CPU seconds (user and system) used so far by process `root` and, with
+/// `descendants`, by every process below it (read from `/proc`).
+fn cpu_seconds(root: u32, descendants: bool) -> f64 {
+    let ticks = 100.0; // USER_HZ on Linux
+    let mut parents = std::collections::HashMap::new();
+    let mut cpu = std::collections::HashMap::new();
+    for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
+            continue;
+        };
+        // After the command's closing parenthesis: state, ppid, … utime (14), stime (15).
+        let Some((_, rest)) = stat.rsplit_once(')') else {
+            continue;
+        };
+        let fields: Vec<&str> = rest.split_whitespace().collect();
+        let field = |i: usize| fields.get(i).and_then(|f| f.parse::<f64>().ok());
+        if let (Some(ppid), Some(u), Some(s)) = (field(1), field(11), field(12)) {
+            parents.insert(pid, ppid as u32);
+            cpu.insert(pid, (u + s) / ticks);
+        }
+    }
+    let below = |mut pid: u32| {
+        while let Some(&parent) = parents.get(&pid) {
+            if parent == root {
+                return true;
+            }
+            if parent <= 1 {
+                return false;
+            }
+            pid = parent;
+        }
+        false
+    };
+    cpu.iter()
+        .filter(|(pid, _)| **pid == root || (descendants && below(**pid)))
+        .map(|(_, c)| c)
+        .sum()
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -540,8 +607,29 @@ fn latency() {
     // of the same scene (the two taking turns on the machine).
     let (mut first, mut whole, mut high, mut one_shot) = (vec![], vec![], vec![], vec![]);
     let (mut answered, mut arrived) = (vec![], vec![]);
+    // CPU seconds per round (an interactive frame, the rest, a high one):
+    // the browser's, the studio's own process, its local workers'.
+    let (mut browser_cpu, mut server_cpu, mut workers_cpu) = (vec![], vec![], vec![]);
+    let studio_pid = studio.child.id();
+    let browser_pid = browser.child.id();
+    // Measuring (more than one round): a new browser profile's start-up
+    // work ends first, then the browser's CPU with the page open and nothing
+    // happening is read over 2 s.
+    let idle = if rounds > 1 {
+        std::thread::sleep(Duration::from_secs(10));
+        let before = cpu_seconds(browser_pid, true);
+        std::thread::sleep(Duration::from_secs(2));
+        (cpu_seconds(browser_pid, true) - before) / 2.0
+    } else {
+        f64::NAN
+    };
     for round in 0..rounds {
         let g = browser.eval("studio.generation").as_u64().unwrap();
+        let before = (
+            cpu_seconds(browser_pid, true),
+            cpu_seconds(studio_pid, false),
+            cpu_seconds(studio_pid, true),
+        );
         browser.eval(&format!(
             "(() => {{ const k = document.getElementById({SLIDER:?}); \
              k.value = {}; k.dispatchEvent(new Event('input')); }})()",
@@ -582,6 +670,14 @@ fn latency() {
         // (a slow machine) counts as not drawn.
         whole.push(parsed[0]["complete"].as_f64().unwrap_or(f64::INFINITY));
         high.push(browser.eval("studio.serverSeconds").as_f64().unwrap());
+        let (b, s, all) = (
+            cpu_seconds(browser_pid, true),
+            cpu_seconds(studio_pid, false),
+            cpu_seconds(studio_pid, true),
+        );
+        browser_cpu.push(b - before.0);
+        server_cpu.push(s - before.1);
+        workers_cpu.push((all - s) - (before.2 - before.1));
         one_shot.push(one_shot_seconds(&scene, &dir.join("one-shot.png")));
     }
 
@@ -612,6 +708,9 @@ fn latency() {
          high-quality frame, studio (server: frame asked → last tile): median {:.3} s {high:?}\n\
          high-quality frame, one-shot farm (first unit out → last tile): median {:.3} s {one_shot:?}\n\
          studio / one-shot, per round: median {:.3} {ratios:?}\n\
+         browser CPU with the page idle: {idle:.3} s a second\n\
+         CPU per round (interactive frame, rest, high frame): browser median {:.3} s {browser_cpu:?}, \
+         studio process {:.3} s {server_cpu:?}, workers {:.3} s {workers_cpu:?}\n\
          dragging {seconds} s at 60 Hz: {drawn_whole} interactive frames drawn whole ({:.1}/s), {seen} with an image ({:.1}/s)",
         median(answered.clone()),
         median(arrived.clone()),
@@ -620,6 +719,9 @@ fn latency() {
         median(high.clone()),
         median(one_shot.clone()),
         median(ratios.clone()),
+        median(browser_cpu.clone()),
+        median(server_cpu.clone()),
+        median(workers_cpu.clone()),
         drawn_whole as f64 / seconds,
         seen as f64 / seconds,
     );

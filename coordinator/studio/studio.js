@@ -5,8 +5,9 @@
 // (y mod B)·B + (x mod B); the unit holds set rows first_row + i·row_stride,
 // each row the set's columns left to right. Until a pixel's set has arrived it
 // shows the nearest stored pixel of a coarser lattice (spacing 2, 4, … 64),
-// as the coordinator's Canvas::preview does, so the first unit already shows
-// the whole frame at 1/B resolution.
+// as the coordinator's Canvas::preview does, or, before any of those, the
+// first pixel of its B×B block that arrived; so the first unit already shows
+// the whole frame at 1/B resolution, whichever set it is.
 'use strict';
 
 /** What the page knows, readable by tests and measurements. */
@@ -45,13 +46,21 @@ const context = image.getContext('2d');
 // 64). `level` holds, per pixel, log2 of the spacing of the pixel it shows
 // (0: its own); a tile updates only the pixels it improves.
 const NONE = 255;
+// A pixel of a B×B block none of whose lattice sources has arrived shows the
+// first pixel of the block that has: so the frame is whole from the first
+// tile whichever set it is.
+const FALLBACK = 7;
 let level = new Uint8Array(0);
+let blockFilled = new Uint8Array(0);   // per B×B block: FALLBACK filled
 let shown = null;                      // ImageData drawn
-// While a frame refines, the canvas is drawn at most every DRAW_EVERY_MS
-// (the browser shares the machine with the workers: a high-quality frame,
-// watched rather than steered, is drawn less often); a frame's first tile and
-// its last are drawn at once.
-const DRAW_EVERY_MS = { interactive: 100, high: 250 };
+// While a frame refines, the canvas is drawn at most every DRAW_EVERY_MS,
+// and the tiles received since the last drawing are placed then (the browser
+// shares the machine with the workers). An interactive frame's first tile is
+// drawn at once; a high-quality frame, watched rather than steered, keeps the
+// interactive image on the canvas until its first drawing, so the page works
+// little while the workers render it. A frame's last tile is drawn at once.
+const DRAW_EVERY_MS = { interactive: 100, high: 1000 };
+let backlog = [];                      // tiles received, not yet placed
 let rafPending = false;
 let drawTimer = null;
 let lastDraw = -Infinity;
@@ -113,10 +122,14 @@ function startFrame(f) {
     image.height = f.height;
     shown = null;
   }
-  lastDraw = -Infinity;
+  // A high-quality frame after an image of the same size: that image stays
+  // until the first drawing, DRAW_EVERY_MS from now.
+  lastDraw = f.quality === 'high' && shown && studio.framesDrawn > 0 ? performance.now() : -Infinity;
+  backlog = [];
   if (!shown) shown = context.createImageData(f.width, f.height);
   shown.data.fill(0);
   level = new Uint8Array(f.width * f.height).fill(NONE);
+  blockFilled = new Uint8Array(Math.ceil(f.width / f.interleave) * Math.ceil(f.height / f.interleave));
   setWorkers.length = 0;
   drawSets();
 }
@@ -151,6 +164,21 @@ function place(x, y, pixels, source) {
   while (top < 6 && x % (2 << top) === 0 && y % (2 << top) === 0) top++;
   const x1 = Math.min(w, x + (1 << top)), y1 = Math.min(h, y + (1 << top));
   const r = pixels[source], g = pixels[source + 1], bl = pixels[source + 2], a = pixels[source + 3];
+  const b = studio.interleave, across = Math.ceil(w / b);
+  const block = Math.floor(y / b) * across + Math.floor(x / b);
+  if (!blockFilled[block]) {
+    blockFilled[block] = 1;
+    const bx = x - (x % b), by = y - (y % b);
+    for (let qy = by; qy < Math.min(h, by + b); qy++) {
+      for (let qx = bx, q = qy * w + bx; qx < Math.min(w, bx + b); qx++, q++) {
+        if (level[q] === NONE) {
+          level[q] = FALLBACK;
+          const o = q * 4;
+          out[o] = r; out[o + 1] = g; out[o + 2] = bl; out[o + 3] = a;
+        }
+      }
+    }
+  }
   for (let qy = y; qy < y1; qy++) {
     const dy = qy - y;
     let q = qy * w + x;
@@ -172,6 +200,8 @@ function moment(generation) {
 
 function draw() {
   rafPending = false;
+  for (const t of backlog) placeTile(t);
+  backlog = [];
   lastDraw = performance.now();
   context.putImageData(shown, 0, 0);
   studio.drawn = studio.complete;
@@ -256,7 +286,7 @@ function listen() {
     moment(t.generation).arrived ??= performance.now();
     if (pending && pending.generation === t.generation) startFrame(pending);
     if (t.generation !== studio.generation) return;
-    placeTile(t);
+    backlog.push(t);
     studio.received++;
     if (studio.received === studio.units) studio.complete = true;
     schedule();
@@ -275,13 +305,23 @@ function listen() {
   source.addEventListener('status', (e) => showStatus(JSON.parse(e.data)));
 }
 
+/** Replaces the rows of `table` when they changed (a layout costs the
+ * workers' cores). */
+function setRows(table, html) {
+  const body = $(table).tBodies[0];
+  if (body.dataset.html !== html) {
+    body.dataset.html = html;
+    body.innerHTML = html;
+  }
+}
+
 function showStatus(s) {
-  $('workers').tBodies[0].innerHTML = s.workers.map((w) =>
+  setRows('workers', s.workers.map((w) =>
     `<tr><td><span style="color:${colour(w.name)}">■</span> ${escape(w.name)}</td><td class="num">${w.threads}</td>` +
-    `<td class="num">${Math.round(w.pixels_per_second).toLocaleString()}</td><td class="num">${w.units}</td></tr>`).join('');
-  $('jobs').tBodies[0].innerHTML = s.jobs.map((j) =>
+    `<td class="num">${Math.round(w.pixels_per_second).toLocaleString()}</td><td class="num">${w.units}</td></tr>`).join(''));
+  setRows('jobs', s.jobs.map((j) =>
     `<tr><td class="num">${j.id}</td><td class="state-${j.state}">${j.state}</td><td>${escape(j.scene_name)}</td>` +
-    `<td class="num">${j.units_done}/${j.units_total}</td><td>${escape(j.out)}</td></tr>`).join('');
+    `<td class="num">${j.units_done}/${j.units_total}</td><td>${escape(j.out)}</td></tr>`).join(''));
 }
 
 // ---- The scene: knobs, parameters, curves and text --------------------------
