@@ -20,11 +20,12 @@
 use glam::Vec3;
 
 use crate::curve::Curve;
-use crate::density::{Density, Field};
+use crate::density::{Density, Field, Points};
 use crate::scene::distortion::{
     DistortionDesc, GridDesc, Operator, TransferDesc, VectorFieldDesc, transfer_range,
 };
 use crate::shaping::clamp01;
+use crate::simd::{Isa, LANES};
 use crate::soft::boundary_point;
 
 /// Our gradient noise never leaves [−0.65, 0.65] and 99.8 % of it lies within
@@ -73,7 +74,7 @@ impl Transfer {
 
     /// T at noise index `t` and object density `o` (both in [0, 1]; `o` is
     /// ignored by a 1D function).
-    #[inline]
+    #[inline(always)]
     pub fn eval(&self, t: f32, o: f32) -> f32 {
         match self {
             Transfer::Curve(c) => clamp01(c.eval1(t)),
@@ -165,7 +166,7 @@ impl VectorField {
     }
 
     /// The (unnormalised) direction of the field at x.
-    #[inline]
+    #[inline(always)]
     fn direction(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
         match self {
             VectorField::Boundary => boundary_of(object, x) - x,
@@ -196,7 +197,7 @@ impl VectorField {
 
     /// V(x) for `object` (fields other than `Constant` were checked at load to
     /// have a primitive object).
-    #[inline]
+    #[inline(always)]
     pub fn at(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
         if let VectorField::Boundary = self {
             return match object {
@@ -266,7 +267,7 @@ fn exit_distance(object: &Density, x: Vec3, u: Vec3) -> Option<f32> {
 
 /// The nearest point of a primitive's outer (D = 0) surface; x itself for anything
 /// else (never reached: fields that need it are checked at load).
-#[inline]
+#[inline(always)]
 fn boundary_of(object: &Density, x: Vec3) -> Vec3 {
     match object {
         Density::Sphere(s) => boundary_point::sphere(s, x),
@@ -372,6 +373,61 @@ impl Distortion {
             return x;
         }
         x - v * (k / len2.sqrt())
+    }
+}
+
+impl Distortion {
+    /// [`Distortion::apply`] at [`LANES`] points on a SIMD path `isa`: V, O
+    /// and the transfer functions lane by lane, each term's noise a batch
+    /// at a time in the lane kernel (the bits of `noise`, at the lanes where
+    /// V ≠ 0 only). Inlined into the per-instruction-set copies of the
+    /// density's lane code.
+    #[inline(always)]
+    pub(crate) fn apply_lanes(
+        &self,
+        x: &Points,
+        object: &Density,
+        field: &Field,
+        isa: Isa,
+    ) -> Points {
+        let mut v = Points::default();
+        let mut len2 = [0.0f32; LANES];
+        let mut live = 0u32;
+        for l in 0..LANES {
+            let vl = self.field.at(x.get(l), object, field);
+            v.set(l, vl);
+            len2[l] = vl.length_squared();
+            // As `apply`: a lane goes on unless `len2 <= 1e-20`.
+            live |= u32::from(!(len2[l] <= 1e-20)) << l;
+        }
+        if live == 0 {
+            return *x;
+        }
+        let mut o = [0.0f32; LANES];
+        if self.needs_density {
+            for (l, o) in o.iter_mut().enumerate() {
+                if live & (1 << l) != 0 {
+                    *o = object.eval(x.get(l), field);
+                }
+            }
+        }
+        let mut k = [0.0f32; LANES];
+        for term in &self.terms {
+            let q = x.map_with(&v, |x, v| (x + v * term.shift - field.offset) * term.frequency);
+            let n = field.noise.noise_lanes_live(isa, live, &q.x, &q.y, &q.z);
+            for l in 0..LANES {
+                let t = clamp01(0.5 * (1.0 + NOISE_GAIN * n[l]));
+                let value = term.amplitude * term.transfer.eval(t, o[l]);
+                k[l] = combine(term.operator, k[l], value);
+            }
+        }
+        let mut out = *x;
+        for l in 0..LANES {
+            if live & (1 << l) != 0 && k[l] != 0.0 {
+                out.set(l, x.get(l) - v.get(l) * (k[l] / len2[l].sqrt()));
+            }
+        }
+        out
     }
 }
 

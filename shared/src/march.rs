@@ -425,7 +425,7 @@ fn march<const COMMON: bool>(
                     let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
-                Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
+                Gradient::Central => central_normal_lanes(scene, x, step, field),
                 Gradient::Dual => dual_normal(scene, x, field),
             };
         } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || first_normal.is_none()) {
@@ -594,6 +594,26 @@ fn gradient_normal(
 ) -> Option<Vec3> {
     let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
     let g = basis.du * (f - behind) + basis.dv * (fv - f) + basis.dw * (fw - f);
+    let len2 = g.length_squared();
+    (len2 > 1e-30).then(|| -g / len2.sqrt())
+}
+
+/// [`crate::lighting::central_normal`] of the scene's density, its six
+/// points evaluated together in one call of the lane code (the other lanes
+/// at a point outside the support): the same bits.
+#[inline]
+fn central_normal_lanes(scene: &Scene, x: Vec3, h: f32, field: &Field) -> Option<Vec3> {
+    let mut p = Points::default();
+    let spare = outside(field).unwrap_or(x);
+    for l in 6..LANES {
+        p.set(l, spare);
+    }
+    for (axis, e) in [Vec3::X, Vec3::Y, Vec3::Z].into_iter().enumerate() {
+        p.set(2 * axis, x + e * h);
+        p.set(2 * axis + 1, x - e * h);
+    }
+    let f = scene.density.eval_lanes(&p, field, scene.isa);
+    let g = Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]);
     let len2 = g.length_squared();
     (len2 > 1e-30).then(|| -g / len2.sqrt())
 }
