@@ -734,7 +734,10 @@ mod tests {
                     shaded += usize::from(passed.rgba[3] > 0.5);
                 }
             }
-            assert!(shaded > 100, "{gradient}: the sphere covers the image ({shaded})");
+            assert!(
+                shaded > 100,
+                "{gradient}: the sphere covers the image ({shaded})"
+            );
             assert!(
                 FALLBACKS.load(Ordering::Relaxed) > before,
                 "{gradient}: some normal fell back on passed samples"
