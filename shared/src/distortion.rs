@@ -393,12 +393,12 @@ impl Distortion {
         let mut v = Points::default();
         let mut len2 = [0.0f32; LANES];
         let mut live = 0u32;
-        for l in 0..LANES {
+        for (l, len2) in len2.iter_mut().enumerate() {
             let vl = self.field.at(x.get(l), object, field);
             v.set(l, vl);
-            len2[l] = vl.length_squared();
-            // As `apply`: a lane goes on unless `len2 <= 1e-20`.
-            live |= u32::from(!(len2[l] <= 1e-20)) << l;
+            *len2 = vl.length_squared();
+            // As `apply`: a lane goes on unless `len2 <= 1e-20` (NaN too).
+            live |= u32::from(*len2 > 1e-20 || len2.is_nan()) << l;
         }
         if live == 0 {
             return *x;

@@ -446,10 +446,10 @@ fn march<const COMMON: bool>(
                 if first_normal.is_none() {
                     first_normal = normal;
                 }
-            } else if let Some(range) = passed.take() {
-                if let Some(n) = latest_normal(scene, &basis, range, field) {
-                    last_normal = Some(n);
-                }
+            } else if let Some(range) = passed.take()
+                && let Some(n) = latest_normal(scene, &basis, range, field)
+            {
+                last_normal = Some(n);
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
             let (shading_normal, base) = if COMMON {
