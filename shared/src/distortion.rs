@@ -20,11 +20,12 @@
 use glam::Vec3;
 
 use crate::curve::Curve;
-use crate::density::{Density, Field};
+use crate::density::{Density, Field, Points};
 use crate::scene::distortion::{
     DistortionDesc, GridDesc, Operator, TransferDesc, VectorFieldDesc, transfer_range,
 };
 use crate::shaping::clamp01;
+use crate::simd::{Isa, LANES};
 use crate::soft::boundary_point;
 
 /// Our gradient noise never leaves [−0.65, 0.65] and 99.8 % of it lies within
@@ -73,7 +74,7 @@ impl Transfer {
 
     /// T at noise index `t` and object density `o` (both in [0, 1]; `o` is
     /// ignored by a 1D function).
-    #[inline]
+    #[inline(always)]
     pub fn eval(&self, t: f32, o: f32) -> f32 {
         match self {
             Transfer::Curve(c) => clamp01(c.eval1(t)),
@@ -165,7 +166,7 @@ impl VectorField {
     }
 
     /// The (unnormalised) direction of the field at x.
-    #[inline]
+    #[inline(always)]
     fn direction(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
         match self {
             VectorField::Boundary => boundary_of(object, x) - x,
@@ -196,7 +197,7 @@ impl VectorField {
 
     /// V(x) for `object` (fields other than `Constant` were checked at load to
     /// have a primitive object).
-    #[inline]
+    #[inline(always)]
     pub fn at(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
         if let VectorField::Boundary = self {
             return match object {
@@ -266,7 +267,7 @@ fn exit_distance(object: &Density, x: Vec3, u: Vec3) -> Option<f32> {
 
 /// The nearest point of a primitive's outer (D = 0) surface; x itself for anything
 /// else (never reached: fields that need it are checked at load).
-#[inline]
+#[inline(always)]
 fn boundary_of(object: &Density, x: Vec3) -> Vec3 {
     match object {
         Density::Sphere(s) => boundary_point::sphere(s, x),
@@ -372,6 +373,63 @@ impl Distortion {
             return x;
         }
         x - v * (k / len2.sqrt())
+    }
+}
+
+impl Distortion {
+    /// [`Distortion::apply`] at [`LANES`] points on a SIMD path `isa`: V, O
+    /// and the transfer functions lane by lane, each term's noise a batch
+    /// at a time in the lane kernel (the bits of `noise`, at the lanes where
+    /// V ≠ 0 only). Inlined into the per-instruction-set copies of the
+    /// density's lane code.
+    #[inline(always)]
+    pub(crate) fn apply_lanes(
+        &self,
+        x: &Points,
+        object: &Density,
+        field: &Field,
+        isa: Isa,
+    ) -> Points {
+        let mut v = Points::default();
+        let mut len2 = [0.0f32; LANES];
+        let mut live = 0u32;
+        for (l, len2) in len2.iter_mut().enumerate() {
+            let vl = self.field.at(x.get(l), object, field);
+            v.set(l, vl);
+            *len2 = vl.length_squared();
+            // As `apply`: a lane goes on unless `len2 <= 1e-20` (NaN too).
+            live |= u32::from(*len2 > 1e-20 || len2.is_nan()) << l;
+        }
+        if live == 0 {
+            return *x;
+        }
+        let mut o = [0.0f32; LANES];
+        if self.needs_density {
+            for (l, o) in o.iter_mut().enumerate() {
+                if live & (1 << l) != 0 {
+                    *o = object.eval(x.get(l), field);
+                }
+            }
+        }
+        let mut k = [0.0f32; LANES];
+        for term in &self.terms {
+            let q = x.map_with(&v, |x, v| {
+                (x + v * term.shift - field.offset) * term.frequency
+            });
+            let n = field.noise.noise_lanes_live(isa, live, &q.x, &q.y, &q.z);
+            for l in 0..LANES {
+                let t = clamp01(0.5 * (1.0 + NOISE_GAIN * n[l]));
+                let value = term.amplitude * term.transfer.eval(t, o[l]);
+                k[l] = combine(term.operator, k[l], value);
+            }
+        }
+        let mut out = *x;
+        for l in 0..LANES {
+            if live & (1 << l) != 0 && k[l] != 0.0 {
+                out.set(l, x.get(l) - v.get(l) * (k[l] / len2[l].sqrt()));
+            }
+        }
+        out
     }
 }
 
@@ -677,6 +735,113 @@ mod tests {
               camera: (eye: (0.0, 0.0, 5.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 30.0)),
               march: (bounds: (min: (-2.0, -2.0, -2.0), max: (2.0, 2.0, 2.0)), step: Diagonal(200), opacity: 20.0),
               object: Union([Sphere(radius: 0.5, softness: 0.2), Sphere(centre: (0.5, 0.0, 0.0), radius: 0.5, softness: 0.2)]),
+              distortion: {distortion})"
+        );
+        Scene::from_text(&text, "test", Overrides::default()).unwrap()
+    }
+
+    #[test]
+    fn the_lane_paths_give_the_scalar_bits() {
+        // Every vector field, a 1D and a 2D transfer function, both
+        // operators; on a sphere, a box, a torus and (a constant field) a union.
+        let grid = "Grid(rows: [[0.0, 1.0, 0.2], [0.6, 0.0, 1.0]])";
+        let cases = [
+            "Boundary".to_string(),
+            "Radial(centre: (0.1, 0.0, 0.0))".to_string(),
+            "Constant(0.0, 0.3, 0.0)".to_string(),
+            "Curl(axis: (0.0, 1.0, 0.0), twist: 3.0)".to_string(),
+            "Perturbed(field: Boundary, amplitude: 1.0, frequency: 2.0)".to_string(),
+        ];
+        let objects = [
+            "Sphere(radius: 0.5, softness: 1.0)",
+            "Box(half_size: (0.6, 0.4, 0.5), softness: 0.5)",
+            "Torus(major_radius: 0.8, minor_radius: 0.3, softness: 0.4)",
+        ];
+        let terms = format!(
+            "[(amplitude: 0.4, frequency: 4.0, shift: 0.5, transfer: {HOLES_RON}),
+              (amplitude: 0.3, frequency: 9.0, shift: 1.0, transfer: {grid}, operator: Blend)]"
+        );
+        let mut scenes = Vec::new();
+        for object in objects {
+            for field in &cases {
+                scenes.push(object_scene(
+                    object,
+                    &format!("(field: {field}, terms: {terms})"),
+                ));
+            }
+        }
+        scenes.push(union_scene(&format!(
+            "(field: Constant(0.0, 0.3, 0.0), terms: {terms})"
+        )));
+        let points: Vec<Vec3> = probes().take(LANES * 64).collect();
+        for scene in &scenes {
+            let field = scene.field(0);
+            let Density::Hypertexture(h) = &scene.density else {
+                panic!("a distorted object is a hypertexture")
+            };
+            let d = h.distortion().expect("the scene has a distortion");
+            let mut moved = 0;
+            for chunk in points.chunks(LANES) {
+                let mut x = Points::default();
+                for (l, &p) in chunk.iter().enumerate() {
+                    x.set(l, p);
+                }
+                let scalar = x.map(|p| d.apply(p, h.object(), &field));
+                moved += (0..LANES).filter(|&l| scalar.get(l) != x.get(l)).count();
+                for isa in Isa::available().into_iter().filter(|&i| i != Isa::Scalar) {
+                    let lanes = lanes_on(d, &x, h.object(), &field, isa);
+                    for l in 0..LANES {
+                        assert_eq!(
+                            lanes.get(l).to_array().map(f32::to_bits),
+                            scalar.get(l).to_array().map(f32::to_bits),
+                            "{} at {:?}",
+                            isa.name(),
+                            x.get(l)
+                        );
+                    }
+                }
+            }
+            assert!(moved > 20, "the distortion moves points ({moved})");
+        }
+    }
+
+    /// [`Distortion::apply_lanes`] compiled for `isa`, as the density's
+    /// lane code inlines it.
+    fn lanes_on(d: &Distortion, x: &Points, object: &Density, field: &Field, isa: Isa) -> Points {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx512f")]
+            fn avx512(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
+                d.apply_lanes(x, o, f, Isa::Avx512)
+            }
+            #[target_feature(enable = "avx2")]
+            fn avx2(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
+                d.apply_lanes(x, o, f, Isa::Avx2)
+            }
+            #[target_feature(enable = "sse4.1")]
+            fn sse41(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
+                d.apply_lanes(x, o, f, Isa::Sse41)
+            }
+            // SAFETY: `isa` is one `Isa::available` reported.
+            unsafe {
+                match isa {
+                    Isa::Avx512 => avx512(d, x, object, field),
+                    Isa::Avx2 => avx2(d, x, object, field),
+                    Isa::Sse41 => sse41(d, x, object, field),
+                    Isa::Scalar => unreachable!("the lane paths only"),
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        unreachable!("no lane path on {isa:?}")
+    }
+
+    fn object_scene(object: &str, distortion: &str) -> Scene {
+        let text = format!(
+            "Scene(image: (width: 8, height: 8),
+              camera: (eye: (0.0, 0.0, 5.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 30.0)),
+              march: (bounds: (min: (-2.0, -2.0, -2.0), max: (2.0, 2.0, 2.0)), step: Diagonal(200), opacity: 20.0),
+              object: {object},
               distortion: {distortion})"
         );
         Scene::from_text(&text, "test", Overrides::default()).unwrap()

@@ -5,9 +5,10 @@
 use glam::Vec3;
 
 use crate::camera::{Ray, slab};
-use crate::density::Field;
+use crate::density::{Field, Points};
 use crate::scene::Scene;
 use crate::shaping::clamp01;
+use crate::simd::LANES;
 
 /// The unit outward normal at x from central differences of the density along x,
 /// y and z with spacing `h` on either side (six evaluations), or `None` where the
@@ -57,22 +58,37 @@ pub fn transmittance(
     let end = exit.min(distance);
     let floor = 1.0 - scene.threshold;
     let mut through = 1.0f32;
+    // The samples are evaluated [`LANES`] at a time in the lane code (the
+    // scalar bits); those past the end at a point outside the support.
+    let spare = field.support.map(|s| s.aabb.1 + Vec3::ONE);
     let mut k: u32 = 1;
     loop {
-        let t = k as f32 * scene.step;
-        if t > end {
-            break;
+        let mut x = Points::default();
+        for l in 0..LANES {
+            let t = (k + l as u32) as f32 * scene.step;
+            x.set(
+                l,
+                match spare {
+                    Some(o) if t > end => o,
+                    _ => ray.at(t),
+                },
+            );
         }
-        let f = scene.density.eval(ray.at(t), field);
-        if f > 0.0 {
-            through *= 1.0 - step_opacity(scene, f);
-            if through <= floor {
-                break;
+        let f = scene.density.eval_lanes(&x, field, scene.isa);
+        for f in f {
+            let t = k as f32 * scene.step;
+            if t > end {
+                return through;
             }
+            if f > 0.0 {
+                through *= 1.0 - step_opacity(scene, f);
+                if through <= floor {
+                    return through;
+                }
+            }
+            k += 1;
         }
-        k += 1;
     }
-    through
 }
 
 #[cfg(test)]

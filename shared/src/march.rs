@@ -323,9 +323,9 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 /// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
 pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
     if scene.common_case {
-        march::<true>(scene, ray, field, phase)
+        march::<true>(scene, ray, field, phase, true)
     } else {
-        march::<false>(scene, ray, field, phase)
+        march::<false>(scene, ray, field, phase, true)
     }
 }
 
@@ -335,7 +335,15 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
 /// copy of the loop leaves those out (the object point is the world point,
 /// the colour the colour map at f, the normal unperturbed, a ray never
 /// bends), computing what the general copy computes in that case.
-fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
+/// `pass_transparent` lets it pass transparent samples without their
+/// normals (the same result; off only to test that).
+fn march<const COMMON: bool>(
+    scene: &Scene,
+    ray: Ray,
+    field: &Field,
+    phase: f32,
+    pass_transparent: bool,
+) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
@@ -370,6 +378,17 @@ fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32)
     let mut budget = (4.0 * diagonal / step) as u64 + 64;
     let mut k: u32 = 0;
     let lit = !scene.lights.is_empty();
+    // A transparent sample (α_k = 0, where an alpha map gives its density no
+    // opacity) adds nothing to the colour. Where its normal is a function of
+    // its point alone (central differences, dual numbers) and no ray bends,
+    // such a soft sample after the first normal is passed without its normal
+    // or shading: `passed` holds the first and last of them since the last
+    // normal, whose normals are found only where a later sample's normal
+    // vanishes and falls back on the last one ([`latest_normal`]).
+    let lazy = pass_transparent
+        && scene.refraction.is_none()
+        && matches!(scene.gradient, Gradient::Central | Gradient::Dual);
+    let mut passed: Option<(u32, u32)> = None;
 
     loop {
         if k < basis.first {
@@ -392,15 +411,21 @@ fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32)
         let (f, alpha_k) = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
+        let soft = f > 0.0 && f < 1.0;
+        let pass = lazy && soft && alpha_k == 0.0 && first_normal.is_some();
         // Without lights the shading ignores the normal: only the first one is
         // recorded (the normal AOV), and refraction asks for its own below.
-        if f > 0.0 && f < 1.0 && (lit || first_normal.is_none()) {
+        if pass {
+            if lit {
+                passed = Some((passed.map_or(k, |(a, _)| a), k));
+            }
+        } else if soft && (lit || first_normal.is_none()) {
             normal = match scene.gradient {
                 Gradient::Forward => {
                     let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
-                Gradient::Central => crate::lighting::central_normal(&f_at, x, step),
+                Gradient::Central => central_normal_lanes(scene, x, step, field),
                 Gradient::Dual => dual_normal(scene, x, field),
             };
         } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || first_normal.is_none()) {
@@ -411,15 +436,20 @@ fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32)
             normal = crate::lighting::central_normal(&d_at, x, 2.0 * step);
         }
 
-        if f > 0.0 {
-            if depth == 0.0 {
-                depth = path + t;
-            }
+        if f > 0.0 && depth == 0.0 {
+            depth = path + t;
+        }
+        if f > 0.0 && !pass {
             if normal.is_some() {
                 last_normal = normal;
+                passed = None;
                 if first_normal.is_none() {
                     first_normal = normal;
                 }
+            } else if let Some(range) = passed.take()
+                && let Some(n) = latest_normal(scene, &basis, range, field)
+            {
+                last_normal = Some(n);
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
             let (shading_normal, base) = if COMMON {
@@ -518,6 +548,35 @@ fn march<const COMMON: bool>(scene: &Scene, ray: Ray, field: &Field, phase: f32)
     }
 }
 
+/// The normal of the latest soft sample in `first ..= last` of `basis` whose
+/// normal does not vanish: what the marcher would have recorded as its last
+/// normal had it not passed those samples (central differences or dual
+/// numbers, functions of the point alone; f again from the scalar path, the
+/// bits of the lanes).
+#[cold]
+fn latest_normal(
+    scene: &Scene,
+    basis: &Basis,
+    (first, last): (u32, u32),
+    field: &Field,
+) -> Option<Vec3> {
+    #[cfg(test)]
+    tests::FALLBACKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let f_at = |x: Vec3| scene.density.eval(x, field);
+    (first..=last).rev().find_map(|k| {
+        let x = basis.ray.at(basis.t(k, scene.step));
+        let f = f_at(x);
+        if !(f > 0.0 && f < 1.0) {
+            return None;
+        }
+        match scene.gradient {
+            Gradient::Central => crate::lighting::central_normal(&f_at, x, scene.step),
+            Gradient::Dual => dual_normal(scene, x, field),
+            Gradient::Forward => None,
+        }
+    })
+}
+
 /// The unit outward normal at x from the paper's finite differences
 /// `[f(x) - f(x - Δx_μ), f(x + Δx_ν) - f(x), f(x + Δx_ω) - f(x)]`, converted to
 /// xyz by the matrix whose rows are the ray basis, negated (density grows inwards).
@@ -535,6 +594,26 @@ fn gradient_normal(
 ) -> Option<Vec3> {
     let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
     let g = basis.du * (f - behind) + basis.dv * (fv - f) + basis.dw * (fw - f);
+    let len2 = g.length_squared();
+    (len2 > 1e-30).then(|| -g / len2.sqrt())
+}
+
+/// [`crate::lighting::central_normal`] of the scene's density, its six
+/// points evaluated together in one call of the lane code (the other lanes
+/// at a point outside the support): the same bits.
+#[inline]
+fn central_normal_lanes(scene: &Scene, x: Vec3, h: f32, field: &Field) -> Option<Vec3> {
+    let mut p = Points::default();
+    let spare = outside(field).unwrap_or(x);
+    for l in 6..LANES {
+        p.set(l, spare);
+    }
+    for (axis, e) in [Vec3::X, Vec3::Y, Vec3::Z].into_iter().enumerate() {
+        p.set(2 * axis, x + e * h);
+        p.set(2 * axis + 1, x - e * h);
+    }
+    let f = scene.density.eval_lanes(&p, field, scene.isa);
+    let g = Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]);
     let len2 = g.length_squared();
     (len2 > 1e-30).then(|| -g / len2.sqrt())
 }
@@ -615,6 +694,56 @@ fn refract(d: Vec3, n: Vec3, eta: f32) -> Vec3 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    /// How often a vanishing normal fell back on samples passed without one.
+    pub(super) static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+
+    #[test]
+    fn passing_transparent_samples_changes_no_pixel() {
+        // Terraces of constant density (normals vanish inside each), the
+        // lowest transparent: a sample entering the next plateau whose
+        // stencil stays on it falls back on the normals of samples passed
+        // without one. Seen along the diagonal the terraces' normal is
+        // diagonal too, so that stencil reaches only h/√3 across the step.
+        for gradient in ["Central", "Dual"] {
+            let text = format!(
+                "Scene(image: (width: 24, height: 24),
+                  camera: (eye: (2.5, 2.5, 2.5), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 8.0)),
+                  lights: (sources: [Directional(direction: (-0.5, 0.7, 0.6), colour: (1.0, 1.0, 1.0))]),
+                  march: (bounds: (min: (-1.3, -1.3, -1.3), max: (1.3, 1.3, 1.3)), step: Diagonal(120), opacity: 8.0),
+                  object: Sphere(radius: 0.6, softness: 1.2),
+                  density: \"floor(D(x) * 4) / 4\",
+                  alpha_map: (interpolation: Step, points: [(0.0, 0.0), (0.4, 1.0)]),
+                  shading: (gradient: {gradient}, specular: 0.3))"
+            );
+            let scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
+            let field = scene.field(0);
+            let before = FALLBACKS.load(Ordering::Relaxed);
+            let mut shaded = 0;
+            for y in 0..24 {
+                for x in 0..24 {
+                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
+                    let passed = march::<false>(&scene, ray, &field, 0.25, true);
+                    let every = march::<false>(&scene, ray, &field, 0.25, false);
+                    assert_eq!(
+                        passed.to_array().map(f32::to_bits),
+                        every.to_array().map(f32::to_bits),
+                        "{gradient}: pixel ({x}, {y})"
+                    );
+                    shaded += usize::from(passed.rgba[3] > 0.5);
+                }
+            }
+            assert!(
+                shaded > 100,
+                "{gradient}: the sphere covers the image ({shaded})"
+            );
+            assert!(
+                FALLBACKS.load(Ordering::Relaxed) > before,
+                "{gradient}: some normal fell back on passed samples"
+            );
+        }
+    }
 
     #[test]
     fn snell() {

@@ -58,6 +58,16 @@ impl Points {
         }
         out
     }
+
+    /// The points `f(point, other point)`, lane by lane.
+    #[inline(always)]
+    pub(crate) fn map_with(&self, other: &Points, f: impl Fn(Vec3, Vec3) -> Vec3) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, f(self.get(l), other.get(l)));
+        }
+        out
+    }
 }
 
 /// `f(point)` lane by lane.
@@ -269,7 +279,7 @@ impl Hypertexture {
             p = w.apply_lanes(&p, field, isa);
         }
         if let Some(d) = &self.distortion {
-            p = p.map(|q| d.apply(q, &self.object, field));
+            p = d.apply_lanes(&p, &self.object, field, isa);
         }
         let d = self.object.eval_child(&p, field, isa);
         // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
