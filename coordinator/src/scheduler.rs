@@ -2481,6 +2481,54 @@ mod tests {
     }
 
     #[test]
+    fn a_held_tile_is_handed_for_storing_only_once_confirmed() {
+        let now = Instant::now();
+        let units = work_units(16, 16, 8, 4096);
+        let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5));
+        s.set_verify(1.0);
+        let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
+        let (id, unit) = assign(&mut s, &a, now);
+        let wire = convert::unit_to_wire(&unit);
+        let bytes = tile(&unit, 16, 0.5);
+        let accepted = s
+            .accept(&a, id, Some(&wire), &bytes, 0, now)
+            .unwrap()
+            .expect("accepted");
+        assert!(accepted.held, "sampled: not to be stored yet");
+        assert!(s.take_confirmed().is_empty());
+        // b renders it again, the same bytes: now it is stored, as a's.
+        let (again, same) = loop {
+            match assign(&mut s, &b, now) {
+                (i, u) if u == unit => break (i, u),
+                (i, u) => {
+                    let w = convert::unit_to_wire(&u);
+                    s.submit(&b, i, Some(&w), &tile(&u, 16, 0.5), 0, now)
+                        .unwrap();
+                }
+            }
+        };
+        assert_eq!(
+            s.submit(
+                &b,
+                again,
+                Some(&convert::unit_to_wire(&same)),
+                &bytes,
+                0,
+                now
+            ),
+            Ok(false)
+        );
+        let confirmed = s.take_confirmed();
+        assert_eq!(confirmed.len(), 1);
+        assert_eq!(
+            (confirmed[0].0.unit, confirmed[0].0.worker.as_str()),
+            (accepted.unit, "a")
+        );
+        assert!(!confirmed[0].0.held);
+        assert_eq!(confirmed[0].1, bytes);
+    }
+
+    #[test]
     fn frames_already_complete_that_hold_a_liars_tiles_are_rendered_again() {
         let now = Instant::now();
         let units = work_units(16, 16, 8, 4096);
