@@ -979,27 +979,13 @@ fn frames_written_before_a_liar_is_caught_are_rendered_again() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = dir.join("farm.png");
-    let mut coord = Running::coordinator(
-        &[
-            &["--scene", scene.to_str().unwrap(), "--out"][..],
-            &[out.to_str().unwrap(), "--frames", "0..3", "--verify", "1"],
-            &["--local-workers", "0", "--lease-timeout", "60"],
-            &size,
-        ]
-        .concat(),
-    );
-    let url = format!("http://127.0.0.1:{}", coord.port());
-    let (runtime, stop, task) = in_process_worker(&url, LIAR, Some(worker::Fault::GarbageFrom(1)));
     // Alone, the liar renders frame 0 truly (the coordinator checks it) and
     // is caught in frame 1; then the good worker joins.
-    coord.wait_for("lied about job 1", 120);
-    let _good = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "good"]);
-    let (status, log) = coord.finish(120);
-    stop.send(true).unwrap();
-    runtime.block_on(async {
-        let _ = tokio::time::timeout(Duration::from_secs(30), task).await;
-    });
-    let log = log.join("\n");
+    let (status, log) = render_with_a_liar(
+        &out,
+        worker::Fault::GarbageFrom(1),
+        &["--frames", "0..3", "--verify", "1"],
+    );
     assert!(status.success(), "{log}");
     liar_named(&log);
     assert!(
