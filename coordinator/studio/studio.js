@@ -1,5 +1,6 @@
 // The live studio: draws the frame as its units arrive (Server-Sent Events
-// from /studio/events), one slider per knob, the scene's text editable.
+// from /studio/events; a high-quality frame's pixels fetched from
+// /studio/tiles when drawn), one slider per knob, the scene's text editable.
 //
 // A tile is one unit of an interleaved pixel set: pixel (x, y) belongs to set
 // (y mod B)·B + (x mod B); the unit holds set rows first_row + i·row_stride,
@@ -61,6 +62,7 @@ let shown = null;                      // ImageData drawn
 // little while the workers render it. A frame's last tile is drawn at once.
 const DRAW_EVERY_MS = { interactive: 100, high: 1000 };
 let backlog = [];                      // tiles received, not yet placed
+let fetching = false;                  // pixels of backlog tiles on their way
 let rafPending = false;
 let drawTimer = null;
 let lastDraw = -Infinity;
@@ -145,7 +147,7 @@ function placeTile(t) {
   const w = studio.width, h = studio.height, b = studio.interleave;
   const ox = t.set % b, oy = Math.floor(t.set / b);
   const columns = ox >= w ? 0 : Math.ceil((w - ox) / b);
-  const pixels = decode(t.pixels);
+  const pixels = typeof t.pixels === 'string' ? decode(t.pixels) : t.pixels;
   let source = 0;
   for (let i = 0; i < t.row_count; i++) {
     const y = oy + (t.first_row + i * t.row_stride) * b;
@@ -198,8 +200,48 @@ function moment(generation) {
   return studio.moments[generation] ??= {};
 }
 
+/** Fetches the pixels of the backlog's tiles that came without them (a
+ * high-quality frame's), in one request: tiles `from` up to `to` of the
+ * frame, in the order recorded, which the backlog holds from its first such
+ * tile on. */
+async function fetchPixels(need) {
+  const g = studio.generation;
+  const from = need[0].index, to = need[need.length - 1].index + 1;
+  const query = `generation=${g}&from=${from}&to=${to}` + (token ? '&token=' + encodeURIComponent(token) : '');
+  const response = await fetch('/studio/tiles?' + query, { headers: headers(false) });
+  if (!response.ok) throw new Error(`tiles ${from}..${to}: ${response.status}`);
+  const bytes = new Uint8Array(await response.arrayBuffer());
+  if (g !== studio.generation) return;
+  const range = backlog.filter((t) => t.index >= from && t.index < to);
+  const total = range.reduce((n, t) => n + t.bytes, 0);
+  if (range.length !== to - from || total !== bytes.length) {
+    throw new Error(`tiles ${from}..${to}: ${bytes.length} bytes for ${range.length} tiles of ${total}`);
+  }
+  let offset = 0;
+  for (const t of range) {
+    t.pixels = bytes.subarray(offset, offset + t.bytes);
+    offset += t.bytes;
+  }
+}
+
 function draw() {
   rafPending = false;
+  if (fetching) return;   // drawn again once the pixels are here
+  const need = backlog.filter((t) => t.pixels === undefined);
+  if (need.length) {
+    fetching = true;
+    fetchPixels(need)
+      .catch((e) => {
+        // A superseded frame's tiles are gone; those of this one are dropped.
+        console.warn(e);
+        backlog = backlog.filter((t) => t.pixels !== undefined);
+      })
+      .finally(() => {
+        fetching = false;
+        if (backlog.length) draw();
+      });
+    return;
+  }
   for (const t of backlog) placeTile(t);
   backlog = [];
   lastDraw = performance.now();

@@ -11,9 +11,12 @@
 //! Tiles reach the page by Server-Sent Events (`/studio/events`): the farm's
 //! [`TileSink`](crate::farm::TileSink) hands each accepted tile of a live
 //! frame to an unbounded channel (it runs with the farm's state locked, so it
-//! only copies); the recorder task encodes it once (base64 of the 8-bit sRGB
-//! tile, with its unit), keeps it for browsers that connect later, and
-//! broadcasts it. A browser that falls behind the broadcast is disconnected
+//! only copies); the recorder task makes its event once (its unit, its place
+//! in the frame's order and, for an interactive frame, its 8-bit sRGB pixels
+//! in base64), keeps it for browsers that connect later, and broadcasts it.
+//! A high-quality frame's events carry no pixels: the page fetches those of
+//! the tiles it has not drawn, in one request, when it draws, so that while
+//! the workers render the frame the browser does almost nothing. A browser that falls behind the broadcast is disconnected
 //! (its `EventSource` reconnects and is sent the frame again); a closed tab's
 //! receiver is dropped with its stream.
 //!
@@ -27,6 +30,7 @@
 //! | `POST /studio/scene`     | new text and/or knob values and a quality: a new frame     |
 //! | `POST /studio/save`      | writes the text back to SCENE, the old file to SCENE.bak  |
 //! | `GET /studio/events`     | Server-Sent Events: `frame`, `tile`, `done`, `status`, `error` |
+//! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
 //! the service) need `Authorization: Bearer <token>` or `?token=<token>` (an
@@ -90,9 +94,14 @@ struct LiveFrame {
     recorded: Vec<bool>,
     remaining: usize,
     started: Instant,
+    /// Interactive or high.
+    quality: QualitySpec,
     /// The frame event and every tile event so far (for browsers that
     /// connect later).
     events: Vec<Arc<Event>>,
+    /// The tiles' pixels in the order recorded (a tile event's `index`):
+    /// what `GET /studio/tiles` serves.
+    pixels: Vec<Arc<Vec<u8>>>,
 }
 
 /// What the studio shows.
@@ -440,16 +449,27 @@ impl Studio {
             let unit = frame.units[raw.unit];
             frame.recorded[raw.unit] = true;
             frame.remaining -= 1;
-            let data = serde_json::json!({
+            let mut data = serde_json::json!({
                 "generation": frame.generation,
                 "unit": raw.unit,
+                "index": frame.pixels.len(),
+                "bytes": raw.pixels.len(),
                 "set": unit.set.index,
                 "first_row": unit.first_row,
                 "row_count": unit.row_count,
                 "row_stride": unit.row_stride,
                 "worker": raw.worker,
-                "pixels": base64::engine::general_purpose::STANDARD.encode(&raw.pixels),
             });
+            // An interactive frame is steered: its tiles carry their pixels,
+            // drawn as they come. A high-quality one is watched while the
+            // workers take the machine: its events are small, and the page
+            // fetches the pixels when it draws (`GET /studio/tiles`).
+            if frame.quality == QualitySpec::Interactive {
+                data["pixels"] = base64::engine::general_purpose::STANDARD
+                    .encode(&raw.pixels)
+                    .into();
+            }
+            frame.pixels.push(Arc::new(raw.pixels));
             let event = self.send(Event {
                 name: "tile",
                 data: data.to_string(),
@@ -560,7 +580,9 @@ impl Studio {
                 remaining: units.len(),
                 units,
                 started: Instant::now(),
+                quality: change.quality,
                 events: vec![event],
+                pixels: Vec::new(),
             });
             shared
                 .add_job(plan, Resume::default(), WireJob::of(&frame_job))
@@ -645,6 +667,42 @@ impl Studio {
 
     /// The events of the frame so far, and a receiver of those to come (taken
     /// under one lock: none is missed or sent twice).
+    /// The pixels of the tiles of `range`, one after another: 410 when its
+    /// frame is no longer the current one, 400 past the tiles recorded.
+    fn tile_pixels(&self, range: &TileRange) -> Result<Vec<u8>, Refused> {
+        let parts: Vec<Arc<Vec<u8>>> = {
+            let live = self.live();
+            let frame = live
+                .frame
+                .as_ref()
+                .filter(|f| f.generation == range.generation)
+                .ok_or_else(|| {
+                    Refused(
+                        StatusCode::GONE,
+                        format!("frame {} is no longer the current one", range.generation),
+                    )
+                })?;
+            if range.from > range.to || range.to > frame.pixels.len() {
+                return Err(Refused(
+                    StatusCode::BAD_REQUEST,
+                    format!(
+                        "tiles {}..{}: frame {} has {} tiles so far",
+                        range.from,
+                        range.to,
+                        range.generation,
+                        frame.pixels.len()
+                    ),
+                ));
+            }
+            frame.pixels[range.from..range.to].to_vec()
+        };
+        let mut body = Vec::with_capacity(parts.iter().map(|p| p.len()).sum());
+        for p in &parts {
+            body.extend_from_slice(p);
+        }
+        Ok(body)
+    }
+
     fn subscribe(&self) -> (Vec<Arc<Event>>, broadcast::Receiver<Arc<Event>>) {
         let live = self.live();
         let rx = self.events.subscribe();
@@ -675,6 +733,7 @@ pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
         )
         .route("/studio/save", axum::routing::post(save))
         .route("/studio/events", axum::routing::get(events))
+        .route("/studio/tiles", axum::routing::get(tiles))
         .layer(middleware::from_fn_with_state(ctx.clone(), check_token));
     Router::new()
         .route("/", axum::routing::get(page))
@@ -796,6 +855,43 @@ async fn save(State(ctx): State<Ctx>) -> Response {
     }
 }
 
+/// Which tiles `GET /studio/tiles` sends: those recorded `from` up to
+/// (not including) `to`, of frame `generation`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TileRange {
+    generation: u64,
+    from: usize,
+    to: usize,
+    /// The token, read by [`check_token`].
+    #[serde(default)]
+    #[allow(dead_code)]
+    token: Option<String>,
+}
+
+/// The pixels of a range of the current frame's tiles, one after another
+/// (each tile's 8-bit sRGB RGBA, as many bytes as its event's `bytes`).
+async fn tiles(
+    State(ctx): State<Ctx>,
+    range: Result<axum::extract::Query<TileRange>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let range = match range {
+        Ok(axum::extract::Query(r)) => r,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match ctx.studio.tile_pixels(&range) {
+        Ok(body) => (
+            [
+                (header::CONTENT_TYPE, "application/octet-stream"),
+                (header::CACHE_CONTROL, "no-store"),
+            ],
+            body,
+        )
+            .into_response(),
+        Err(refused) => refused.into_response(),
+    }
+}
+
 /// What each browser's event stream holds.
 struct Stream {
     backlog: VecDeque<Arc<Event>>,
@@ -866,6 +962,57 @@ mod tests {
         assert_eq!(desc.knobs["length"].default, 0.5);
         assert_eq!(desc.knobs["fineness"].default, 40.0);
         assert_eq!(shown.len(), text.len());
+    }
+
+    #[test]
+    fn a_high_quality_frames_pixels_are_fetched_by_range_of_the_current_frame() {
+        let dir = std::env::temp_dir().join(format!("studio-tiles-{}", std::process::id()));
+        let studio = Studio::new(None, &dir, None).unwrap();
+        studio.live().frame = Some(LiveFrame {
+            job: LIVE_JOBS,
+            generation: 3,
+            units: Vec::new(),
+            recorded: Vec::new(),
+            remaining: 0,
+            started: Instant::now(),
+            quality: QualitySpec::High,
+            events: Vec::new(),
+            pixels: vec![
+                Arc::new(vec![1, 2, 3, 4]),
+                Arc::new(vec![5; 8]),
+                Arc::new(vec![9; 4]),
+            ],
+        });
+        let range = |generation, from, to| TileRange {
+            generation,
+            from,
+            to,
+            token: None,
+        };
+        assert_eq!(
+            studio.tile_pixels(&range(3, 1, 3)).ok(),
+            Some(vec![5, 5, 5, 5, 5, 5, 5, 5, 9, 9, 9, 9])
+        );
+        assert_eq!(
+            studio.tile_pixels(&range(3, 0, 1)).ok(),
+            Some(vec![1, 2, 3, 4])
+        );
+        assert_eq!(studio.tile_pixels(&range(3, 2, 2)).ok(), Some(vec![]));
+        let Err(Refused(code, why)) = studio.tile_pixels(&range(2, 0, 1)) else {
+            panic!("a superseded frame's tiles are gone");
+        };
+        assert_eq!(code, StatusCode::GONE);
+        assert_eq!(why, "frame 2 is no longer the current one");
+        for (from, to) in [(0, 4), (2, 1)] {
+            let Err(Refused(code, why)) = studio.tile_pixels(&range(3, from, to)) else {
+                panic!("tiles {from}..{to} are refused");
+            };
+            assert_eq!(code, StatusCode::BAD_REQUEST);
+            assert_eq!(
+                why,
+                format!("tiles {from}..{to}: frame 3 has 3 tiles so far")
+            );
+        }
     }
 
     #[test]
