@@ -63,6 +63,7 @@ let shown = null;                      // ImageData drawn
 const DRAW_EVERY_MS = { interactive: 100, high: 1000 };
 let backlog = [];                      // tiles received, not yet placed
 let fetching = false;                  // pixels of backlog tiles on their way
+let fresh = false;                     // a new frame, its image not cleared yet
 let rafPending = false;
 let drawTimer = null;
 let lastDraw = -Infinity;
@@ -128,12 +129,22 @@ function startFrame(f) {
   // until the first drawing, DRAW_EVERY_MS from now.
   lastDraw = f.quality === 'high' && shown && studio.framesDrawn > 0 ? performance.now() : -Infinity;
   backlog = [];
-  if (!shown) shown = context.createImageData(f.width, f.height);
-  shown.data.fill(0);
-  level = new Uint8Array(f.width * f.height).fill(NONE);
-  blockFilled = new Uint8Array(Math.ceil(f.width / f.interleave) * Math.ceil(f.height / f.interleave));
   setWorkers.length = 0;
-  drawSets();
+  fresh = true;
+}
+
+/** Clears the image for a new frame: at its first drawing, so that a
+ * high-quality frame costs the page nothing until then. */
+function clearImage() {
+  fresh = false;
+  const w = studio.width, h = studio.height, b = studio.interleave;
+  if (!shown) shown = context.createImageData(w, h);
+  shown.data.fill(0);
+  if (level.length !== w * h) level = new Uint8Array(w * h);
+  level.fill(NONE);
+  const blocks = Math.ceil(w / b) * Math.ceil(h / b);
+  if (blockFilled.length !== blocks) blockFilled = new Uint8Array(blocks);
+  blockFilled.fill(0);
 }
 
 function decode(base64) {
@@ -242,9 +253,11 @@ function draw() {
       });
     return;
   }
+  if (fresh) clearImage();
   for (const t of backlog) placeTile(t);
   backlog = [];
   lastDraw = performance.now();
+  showStatusNow();
   context.putImageData(shown, 0, 0);
   studio.drawn = studio.complete;
   studio.framesDrawn++;
@@ -323,8 +336,12 @@ function listen() {
     // The picture shown stays until the new frame's first tile.
     pending = JSON.parse(e.data);
   });
-  source.addEventListener('tile', (e) => {
-    const t = JSON.parse(e.data);
+  source.addEventListener('tile', (e) => receive(JSON.parse(e.data)));
+  // A high-quality frame's tiles, several at once, without their pixels.
+  source.addEventListener('tiles', (e) => {
+    for (const t of JSON.parse(e.data).tiles) receive(t);
+  });
+  function receive(t) {
     moment(t.generation).arrived ??= performance.now();
     if (pending && pending.generation === t.generation) startFrame(pending);
     if (t.generation !== studio.generation) return;
@@ -333,7 +350,7 @@ function listen() {
     if (studio.received === studio.units) studio.complete = true;
     schedule();
     frameProgress();
-  });
+  }
   source.addEventListener('done', (e) => {
     const d = JSON.parse(e.data);
     if (d.generation === studio.generation) {
@@ -344,7 +361,24 @@ function listen() {
   source.addEventListener('error', (e) => {
     if (e.data) $('error').textContent = JSON.parse(e.data).error;
   });
-  source.addEventListener('status', (e) => showStatus(JSON.parse(e.data)));
+  source.addEventListener('status', (e) => {
+    latestStatus = e.data;
+    // While a high-quality frame renders, the tables wait for its drawing
+    // (or STATUS_WAIT_MS): a layout costs the workers' cores.
+    const waiting = studio.quality === 'high' && !studio.complete;
+    if (!waiting || performance.now() - statusShown >= STATUS_WAIT_MS) showStatusNow();
+  });
+}
+
+const STATUS_WAIT_MS = 2000;
+let latestStatus = null;               // the last status event's data, not shown yet
+let statusShown = -Infinity;
+
+function showStatusNow() {
+  if (latestStatus === null) return;
+  showStatus(JSON.parse(latestStatus));
+  latestStatus = null;
+  statusShown = performance.now();
 }
 
 /** Replaces the rows of `table` when they changed (a layout costs the

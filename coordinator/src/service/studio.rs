@@ -14,9 +14,10 @@
 //! only copies); the recorder task makes its event once (its unit, its place
 //! in the frame's order and, for an interactive frame, its 8-bit sRGB pixels
 //! in base64), keeps it for browsers that connect later, and broadcasts it.
-//! A high-quality frame's events carry no pixels: the page fetches those of
-//! the tiles it has not drawn, in one request, when it draws, so that while
-//! the workers render the frame the browser does almost nothing. A browser that falls behind the broadcast is disconnected
+//! A high-quality frame's tiles go out together, at most every 100 ms, in
+//! one `tiles` event without pixels: the page fetches those of the tiles it
+//! has not drawn, in one request, when it draws, so that while the workers
+//! render the frame the browser does almost nothing. A browser that falls behind the broadcast is disconnected
 //! (its `EventSource` reconnects and is sent the frame again); a closed tab's
 //! receiver is dropped with its stream.
 //!
@@ -29,7 +30,7 @@
 //! | `GET /studio/scene`      | the scene: its text for the current knob values, the knobs |
 //! | `POST /studio/scene`     | new text and/or knob values and a quality: a new frame     |
 //! | `POST /studio/save`      | writes the text back to SCENE, the old file to SCENE.bak  |
-//! | `GET /studio/events`     | Server-Sent Events: `frame`, `tile`, `done`, `status`, `error` |
+//! | `GET /studio/events`     | Server-Sent Events: `frame`, `tile`, `tiles`, `done`, `status`, `error` |
 //! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
@@ -67,6 +68,9 @@ pub const LIVE_JOBS: JobId = 1 << 48;
 /// Events a browser may fall behind by before it is disconnected.
 const BROADCAST_CAPACITY: usize = 4096;
 
+/// How long a high-quality frame's tile waits for others to go out with it.
+const BATCH_EVERY: Duration = Duration::from_millis(100);
+
 /// How often each browser is sent the workers and the job queue.
 const STATUS_EVERY: Duration = Duration::from_millis(500);
 
@@ -102,6 +106,9 @@ struct LiveFrame {
     /// The tiles' pixels in the order recorded (a tile event's `index`):
     /// what `GET /studio/tiles` serves.
     pixels: Vec<Arc<Vec<u8>>>,
+    /// A high-quality frame's tile events not sent yet, and when they go.
+    batch: Vec<serde_json::Value>,
+    flush_at: Option<Instant>,
 }
 
 /// What the studio shows.
@@ -435,10 +442,28 @@ impl Studio {
         event
     }
 
-    /// Records tiles as they come: encodes each once, keeps it for browsers
-    /// that connect later and broadcasts it.
+    /// Records tiles as they come: makes each one's event once, keeps it for
+    /// browsers that connect later and broadcasts it. A high-quality frame's
+    /// tiles go out together, at most [`BATCH_EVERY`] after the first of them
+    /// (one `tiles` event), and at once with its last tile.
     async fn record(self: Arc<Self>, mut rx: mpsc::UnboundedReceiver<RawTile>) {
-        while let Some(raw) = rx.recv().await {
+        loop {
+            let due = self.live().frame.as_ref().and_then(|f| f.flush_at);
+            let raw = match due {
+                Some(at) => tokio::select! {
+                    raw = rx.recv() => raw,
+                    () = tokio::time::sleep_until(at.into()) => {
+                        if let Some(frame) = self.live().frame.as_mut() {
+                            self.flush(frame);
+                        }
+                        continue;
+                    }
+                },
+                None => rx.recv().await,
+            };
+            let Some(raw) = raw else {
+                return;
+            };
             let mut live = self.live();
             let Some(frame) = live.frame.as_mut() else {
                 continue;
@@ -468,14 +493,21 @@ impl Studio {
                 data["pixels"] = base64::engine::general_purpose::STANDARD
                     .encode(&raw.pixels)
                     .into();
+                frame.pixels.push(Arc::new(raw.pixels));
+                let event = self.send(Event {
+                    name: "tile",
+                    data: data.to_string(),
+                });
+                frame.events.push(event);
+            } else {
+                frame.pixels.push(Arc::new(raw.pixels));
+                frame.batch.push(data);
+                frame
+                    .flush_at
+                    .get_or_insert_with(|| Instant::now() + BATCH_EVERY);
             }
-            frame.pixels.push(Arc::new(raw.pixels));
-            let event = self.send(Event {
-                name: "tile",
-                data: data.to_string(),
-            });
-            frame.events.push(event);
             if frame.remaining == 0 {
+                self.flush(frame);
                 let data = serde_json::json!({
                     "generation": frame.generation,
                     "seconds": frame.started.elapsed().as_secs_f64(),
@@ -487,6 +519,23 @@ impl Studio {
                 frame.events.push(event);
             }
         }
+    }
+
+    /// Sends the frame's tiles waiting in its batch as one `tiles` event.
+    fn flush(&self, frame: &mut LiveFrame) {
+        frame.flush_at = None;
+        if frame.batch.is_empty() {
+            return;
+        }
+        let data = serde_json::json!({
+            "generation": frame.generation,
+            "tiles": std::mem::take(&mut frame.batch),
+        });
+        let event = self.send(Event {
+            name: "tiles",
+            data: data.to_string(),
+        });
+        frame.events.push(event);
     }
 
     /// Applies a change from the page: the text is parsed and built; when it
@@ -583,6 +632,8 @@ impl Studio {
                 quality: change.quality,
                 events: vec![event],
                 pixels: Vec::new(),
+                batch: Vec::new(),
+                flush_at: None,
             });
             shared
                 .add_job(plan, Resume::default(), WireJob::of(&frame_job))
@@ -982,6 +1033,8 @@ mod tests {
                 Arc::new(vec![5; 8]),
                 Arc::new(vec![9; 4]),
             ],
+            batch: Vec::new(),
+            flush_at: None,
         });
         let range = |generation, from, to| TileRange {
             generation,
