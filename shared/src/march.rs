@@ -425,15 +425,18 @@ fn march<const COMMON: bool>(
                     let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
-                Gradient::Central => central_normal_lanes(scene, x, step, field),
+                Gradient::Central => central_normal_lanes(x, step, field, |p| {
+                    scene.density.eval_lanes(p, field, scene.isa)
+                }),
                 Gradient::Dual => dual_normal(scene, x, field),
             };
         } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || first_normal.is_none()) {
             // The ray reaches a hard region, where f = 1 and ∇f = 0: the
             // object's own D gives the normal, over a stencil wide enough to
             // reach the soft region from a sample up to a step inside.
-            let d_at = |p: Vec3| scene.object.eval_object(p, field);
-            normal = crate::lighting::central_normal(&d_at, x, 2.0 * step);
+            normal = central_normal_lanes(x, 2.0 * step, field, |p| {
+                scene.object.eval_object_lanes(p, field, scene.isa)
+            });
         }
 
         if f > 0.0 && depth == 0.0 {
@@ -598,11 +601,17 @@ fn gradient_normal(
     (len2 > 1e-30).then(|| -g / len2.sqrt())
 }
 
-/// [`crate::lighting::central_normal`] of the scene's density, its six
-/// points evaluated together in one call of the lane code (the other lanes
-/// at a point outside the support): the same bits.
+/// [`crate::lighting::central_normal`] of a field evaluated `LANES` points
+/// at a time (the scene's density, or the objects' own D), its six points
+/// evaluated together in one call of the lane code (the other lanes at a
+/// point outside the support): the same bits.
 #[inline]
-fn central_normal_lanes(scene: &Scene, x: Vec3, h: f32, field: &Field) -> Option<Vec3> {
+fn central_normal_lanes(
+    x: Vec3,
+    h: f32,
+    field: &Field,
+    eval: impl Fn(&Points) -> Lanes,
+) -> Option<Vec3> {
     let mut p = Points::default();
     let spare = outside(field).unwrap_or(x);
     for l in 6..LANES {
@@ -612,7 +621,7 @@ fn central_normal_lanes(scene: &Scene, x: Vec3, h: f32, field: &Field) -> Option
         p.set(2 * axis, x + e * h);
         p.set(2 * axis + 1, x - e * h);
     }
-    let f = scene.density.eval_lanes(&p, field, scene.isa);
+    let f = eval(&p);
     let g = Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]);
     let len2 = g.length_squared();
     (len2 > 1e-30).then(|| -g / len2.sqrt())

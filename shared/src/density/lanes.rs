@@ -168,6 +168,52 @@ impl Density {
         }
     }
 
+    /// [`Density::eval_object`] (D without the value DMFs) at [`LANES`]
+    /// points: the same bits lane by lane. A hypertexture's warps and
+    /// distortion and a primitive run on `isa`'s lanes; the other nodes (the
+    /// booleans, motion) point by point.
+    #[inline]
+    pub fn eval_object_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let lanes = matches!(
+            self,
+            Density::Hypertexture(_)
+                | Density::Sphere(_)
+                | Density::Box(_)
+                | Density::Torus(_)
+                | Density::Mesh(_)
+                | Density::Expression(_)
+        );
+        match isa {
+            // SAFETY: as in `eval_lanes`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 if lanes => unsafe { x86::eval_object_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 if lanes => unsafe { x86::eval_object_lanes_avx2(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 if lanes => unsafe { x86::eval_object_lanes_avx512(self, x, field) },
+            _ => each(x, |p| self.eval_object(p, field)),
+        }
+    }
+
+    /// [`Density::eval_object_lanes`] on a SIMD path, for a hypertexture or a
+    /// primitive (whose D is its density).
+    #[inline(always)]
+    fn eval_object_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Hypertexture(h) => {
+                let mut p = *x;
+                for w in &h.warps {
+                    p = w.apply_lanes(&p, field, isa);
+                }
+                if let Some(d) = &h.distortion {
+                    p = d.apply_lanes(&p, &h.object, field, isa);
+                }
+                h.object.eval_object_lanes(&p, field, isa)
+            }
+            _ => self.eval_lanes_simd(x, field, isa),
+        }
+    }
+
     /// [`Density::eval_lanes`] on a SIMD path: written once, inlined into a
     /// copy per instruction set (`x86` below) together with everything it
     /// calls but its children, so the lanes stay in that set's registers
@@ -266,6 +312,21 @@ mod x86 {
     #[target_feature(enable = "sse4.1")]
     pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
         d.eval_lanes_simd(x, field, Isa::Sse41)
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn eval_object_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Avx512)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_object_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_object_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Sse41)
     }
 }
 

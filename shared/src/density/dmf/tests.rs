@@ -1,5 +1,6 @@
 //! Every DMF on every path: the lanes of SSE4.1, AVX2 and AVX-512 give the scalar
-//! bits, and the dual path the scalar value with a finite gradient.
+//! bits (of f and of the object's own D), and the dual path the scalar value
+//! with a finite gradient.
 
 use std::collections::BTreeSet;
 
@@ -171,6 +172,16 @@ fn every_dmf_gives_the_same_bits_on_every_path() {
                     lanes.map(f32::to_bits),
                     scalar.map(f32::to_bits),
                     "{dmfs} on {object} ({hard_core:?}), {isa:?} at {points:?}"
+                );
+                // The object's own D, which gives a hard region its normal.
+                let own: [f32; LANES] =
+                    std::array::from_fn(|l| density.eval_object(points.get(l), &field));
+                assert_eq!(
+                    density
+                        .eval_object_lanes(&points, &field, isa)
+                        .map(f32::to_bits),
+                    own.map(f32::to_bits),
+                    "D of {object} under {dmfs}, {isa:?} at {points:?}"
                 );
             }
             for (l, &v) in scalar.iter().enumerate() {
