@@ -154,12 +154,18 @@ impl Chunk {
 
     /// f and α_k at sample k of `basis`, evaluating the next [`LANES`] samples
     /// when k is not held.
-    #[inline]
+    #[inline(always)]
     fn density(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
         let held = k.wrapping_sub(self.start);
         if self.full && (held as usize) < LANES {
             return (self.f[held as usize], self.alpha[held as usize]);
         }
+        self.fill(k, basis, scene, field)
+    }
+
+    /// Evaluates samples k .. k + [`LANES`]; f and α_k at k.
+    #[inline(never)]
+    fn fill(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
         self.full = true;
         self.start = k;
         self.x = sample_points(scene, basis, k, field);
@@ -184,41 +190,71 @@ impl Chunk {
 
     /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and the held
     /// samples after it in the soft region, [`LANES`] / 2 at most, evaluated
-    /// together, at the offsets of the chunk's own points.
-    #[inline]
-    fn neighbours(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
+    /// together, at the offsets of the chunk's own points. `alpha` is the
+    /// opacity gathered before sample k (or less): the samples after the one
+    /// where the held α_k take it to the scene's threshold, which the marcher
+    /// never reaches, are left out.
+    #[inline(always)]
+    fn neighbours(
+        &mut self,
+        k: u32,
+        basis: &Basis,
+        scene: &Scene,
+        field: &Field,
+        alpha: f32,
+    ) -> (f32, f32) {
         let j = (k - self.start) as usize;
         if self.has_gradient & (1 << j) == 0 {
-            let mut x = Points::default();
-            let mut which = [usize::MAX; LANES / 2];
-            let mut n = 0;
-            for l in j..LANES {
-                if n == LANES / 2 {
-                    break;
-                }
-                let f = self.f[l];
-                if l == j || (f > 0.0 && f < 1.0) {
-                    // A sample read or in the soft region is before the
-                    // ray's end: its point is its own.
-                    let p = self.x.get(l);
-                    x.set(2 * n, p + basis.dv);
-                    x.set(2 * n + 1, p + basis.dw);
-                    which[n] = l;
-                    n += 1;
-                }
-            }
-            // Unused lanes (discarded) take a point outside the support, where
-            // the modulation is skipped, or else repeat the first point.
-            for l in 2 * n..LANES {
-                x.set(l, outside(field).unwrap_or(x.get(l % 2)));
-            }
-            let v = scene.density.eval_lanes(&x, field, scene.isa);
-            for (i, &l) in which[..n].iter().enumerate() {
-                self.neighbours[l] = (v[2 * i], v[2 * i + 1]);
-                self.has_gradient |= 1 << l;
-            }
+            self.evaluate_neighbours(j, basis, scene, field, alpha);
         }
         self.neighbours[j]
+    }
+
+    /// The neighbours of held sample j and of the soft samples after it.
+    #[inline(never)]
+    fn evaluate_neighbours(
+        &mut self,
+        j: usize,
+        basis: &Basis,
+        scene: &Scene,
+        field: &Field,
+        alpha: f32,
+    ) {
+        let mut x = Points::default();
+        let mut which = [usize::MAX; LANES / 2];
+        let mut n = 0;
+        let mut gathered = alpha;
+        for l in j..LANES {
+            if n == LANES / 2 || gathered >= scene.threshold {
+                break;
+            }
+            let f = self.f[l];
+            if l == j || (f > 0.0 && f < 1.0) {
+                // A sample read or in the soft region is before the
+                // ray's end: its point is its own.
+                let p = self.x.get(l);
+                x.set(2 * n, p + basis.dv);
+                x.set(2 * n + 1, p + basis.dw);
+                which[n] = l;
+                n += 1;
+            }
+            // The marcher's compositing: opacity only grows, so a sample
+            // left out here is one it stops before (or, should it read it
+            // after all, one evaluated then).
+            if f > 0.0 {
+                gathered += self.alpha[l] * (1.0 - gathered);
+            }
+        }
+        // Unused lanes (discarded) take a point outside the support, where
+        // the modulation is skipped, or else repeat the first point.
+        for l in 2 * n..LANES {
+            x.set(l, outside(field).unwrap_or(x.get(l % 2)));
+        }
+        let v = scene.density.eval_lanes(&x, field, scene.isa);
+        for (i, &l) in which[..n].iter().enumerate() {
+            self.neighbours[l] = (v[2 * i], v[2 * i + 1]);
+            self.has_gradient |= 1 << l;
+        }
     }
 }
 
@@ -422,7 +458,7 @@ fn march<const COMMON: bool>(
         } else if soft && (lit || first_normal.is_none()) {
             normal = match scene.gradient {
                 Gradient::Forward => {
-                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field, alpha);
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
                 Gradient::Central => central_normal_lanes(x, step, field, |p| {
@@ -496,7 +532,7 @@ fn march<const COMMON: bool>(
                 let n = normal.or_else(|| match scene.gradient {
                     Gradient::Dual => dual_normal(scene, x, field),
                     _ => {
-                        let (fv, fw) = chunk.neighbours(k, &basis, scene, field);
+                        let (fv, fw) = chunk.neighbours(k, &basis, scene, field, 0.0);
                         gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                     }
                 });
