@@ -545,6 +545,9 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The slider the latency test moves: the fur's frequency (40 in the scene).
+const SLIDER: &str = "param-modulation[0].Fur.frequency";
+
 /// Latency of the studio on `scenes/fur.ron` with 2 local workers, its fur's
 /// frequency slider moved (a parameter: the text changes), measured in the
 /// page (`performance.now()` from the slider's input event to the canvas
@@ -552,10 +555,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// step gives an interactive frame then a high-quality one, each drawn first
 /// coarse and then whole, and that dragging shows frames; the figures at the
 /// scene's own 512² come from
-/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=7 cargo test --release -p coordinator --test studio -- --nocapture latency`.
-/// The slider the latency test moves: the fur's frequency (40 in the scene).
-const SLIDER: &str = "param-modulation[0].Fur.frequency";
-
+/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test studio -- --nocapture latency`.
 #[test]
 fn latency() {
     let Some(chromium) = chromium() else {
