@@ -545,6 +545,36 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// A scene that does not parse still opens a studio (its text is edited in
+/// the page), and the terminal says what is wrong and where, as the CLI would.
+#[test]
+fn a_broken_scene_opens_with_its_error_on_the_terminal() {
+    let dir = scratch("studio-broken");
+    let scene = dir.join("broken.ron");
+    std::fs::write(
+        &scene,
+        "Scene(image: (width: 64, height: 64),\n  camera: oops,\n)\n",
+    )
+    .unwrap();
+    let data = dir.join("data");
+    let mut studio = Running::coordinator(&[
+        "studio",
+        scene.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        "0",
+        "--data",
+        data.to_str().unwrap(),
+    ]);
+    let line = studio.wait_for("expected camera", 30);
+    assert!(
+        line.contains("broken.ron:2:11: expected camera, found `oops`"),
+        "{line}"
+    );
+    studio.wait_for("serving on", 30);
+}
+
 /// The slider the latency test moves: the fur's frequency (40 in the scene).
 const SLIDER: &str = "param-modulation[0].Fur.frequency";
 

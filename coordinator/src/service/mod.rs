@@ -893,6 +893,10 @@ pub async fn serve(
             at.set_ip(std::net::Ipv4Addr::LOCALHOST.into());
         }
         println!("studio: {}://{at}/", farm.scheme());
+        if let Some(error) = studio.error() {
+            // The studio opens all the same: the text is edited in the page.
+            eprintln!("studio: {error} (fix it in the page or in the file)");
+        }
     }
     tracing::info!(
         "serving on {}://{} (API at /api/v1, metrics at /metrics); {resumed} jobs resumed in {:.3} s",

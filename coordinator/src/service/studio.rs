@@ -377,6 +377,12 @@ impl Studio {
         })
     }
 
+    /// The message of the current text's error, if it has one (the same the
+    /// page shows at its line and column).
+    pub fn error(&self) -> Option<String> {
+        self.live().error.clone()
+    }
+
     fn live(&self) -> std::sync::MutexGuard<'_, Live> {
         self.live.lock().unwrap_or_else(|p| p.into_inner())
     }
