@@ -54,6 +54,20 @@ impl Falloff {
         }
     }
 
+    /// Whether D at the squared distance `d2·s²` is the same for every s in
+    /// `[lo, hi]`: 0 (outside the outer radius for the smallest |s|), or 1
+    /// when `hard` counts (inside the inner radius for the largest |s|). The
+    /// radii are narrowed by 0.1% and s kept ≥ 0.01, far more than the
+    /// rounding of the scaled point's squared distance, so a settled D is
+    /// also the D of the point computed with any such s.
+    #[inline(always)]
+    pub fn settled(&self, d2: f32, lo: f32, hi: f32, hard: bool) -> bool {
+        let outside = (lo >= 0.01) & (d2 * (lo * lo) >= self.outer2 * 1.001);
+        let inner2 = self.inner2 * 0.999;
+        let inside = hard & (d2 * (lo * lo) <= inner2) & (d2 * (hi * hi) <= inner2);
+        outside | inside
+    }
+
     /// [`Falloff::density`] as selects rather than branches, so that lane loops
     /// vectorise; the same value for every input, NaN included.
     #[inline(always)]
@@ -591,6 +605,36 @@ mod tests {
         assert!((d - (1.5625 - 1.0) / (1.5625 - 0.5625)).abs() < 1e-6);
         let p = s.project(Vec3::new(0.0, 2.0, 0.0));
         assert!((p - Vec3::new(0.0, 0.75, 0.0)).length() < 1e-6);
+    }
+
+    #[test]
+    fn a_settled_density_is_the_same_over_the_whole_range() {
+        let falloff = Falloff::new(1.0, 0.3);
+        let mut r = crate::random::SplitMix64::new(7);
+        let (mut outside, mut inside) = (0, 0);
+        for _ in 0..20_000 {
+            let d2 = 4.0 * r.next_f32();
+            let lo = 2.0 * r.next_f32() - 0.5;
+            let hi = lo + 0.5 * r.next_f32();
+            for hard in [false, true] {
+                if !falloff.settled(d2, lo, hi, hard) {
+                    continue;
+                }
+                let at = |s: f32| falloff.density(d2 * (s * s));
+                let d = at(lo);
+                assert!(d == 0.0 || (hard && d == 1.0), "{d} at {d2}, [{lo}, {hi}]");
+                for k in 1..=16 {
+                    let s = lo + (hi - lo) * k as f32 / 16.0;
+                    assert_eq!(at(s), d, "{d2} at s = {s} of [{lo}, {hi}]");
+                }
+                outside += usize::from(d == 0.0);
+                inside += usize::from(d == 1.0);
+            }
+        }
+        assert!(
+            outside > 1000 && inside > 1000,
+            "{outside} outside, {inside} inside"
+        );
     }
 
     #[test]

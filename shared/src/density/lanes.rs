@@ -8,9 +8,10 @@
 
 use glam::Vec3;
 
+use super::dmf::Settling;
 use super::{Density, Field, Hypertexture};
 use crate::simd::{Isa, LANES, Lanes};
-use crate::soft::boolean;
+use crate::soft::{Falloff, boolean};
 
 /// [`LANES`] points, one coordinate per array: the batch the vectorised paths
 /// evaluate (several samples along a ray, or the gradient's neighbours).
@@ -174,31 +175,24 @@ impl Density {
     /// booleans, motion) point by point.
     #[inline]
     pub fn eval_object_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        let lanes = matches!(
-            self,
-            Density::Hypertexture(_)
-                | Density::Sphere(_)
-                | Density::Box(_)
-                | Density::Torus(_)
-                | Density::Mesh(_)
-                | Density::Expression(_)
-        );
         match isa {
             // SAFETY: as in `eval_lanes`.
             #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 if lanes => unsafe { x86::eval_object_lanes_sse41(self, x, field) },
+            Isa::Sse41 => unsafe { x86::eval_object_lanes_sse41(self, x, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 if lanes => unsafe { x86::eval_object_lanes_avx2(self, x, field) },
+            Isa::Avx2 => unsafe { x86::eval_object_lanes_avx2(self, x, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 if lanes => unsafe { x86::eval_object_lanes_avx512(self, x, field) },
+            Isa::Avx512 => unsafe { x86::eval_object_lanes_avx512(self, x, field) },
             _ => each(x, |p| self.eval_object(p, field)),
         }
     }
 
-    /// [`Density::eval_object_lanes`] on a SIMD path, for a hypertexture or a
-    /// primitive (whose D is its density).
+    /// [`Density::eval_object_lanes`] on a SIMD path: a hypertexture's warps
+    /// and distortion, then its object's D; a boolean of its children's D
+    /// (every child, as `eval_object` folds them); a primitive's density.
     #[inline(always)]
     fn eval_object_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let child = |d: &Density| d.eval_object_lanes(x, field, isa);
         match self {
             Density::Hypertexture(h) => {
                 let mut p = *x;
@@ -210,6 +204,24 @@ impl Density {
                 }
                 h.object.eval_object_lanes(&p, field, isa)
             }
+            Density::Union(v) => v
+                .iter()
+                .fold([0.0; LANES], |a, d| zip(&a, &child(d), boolean::union)),
+            Density::Intersection(v) => v.iter().fold([1.0; LANES], |a, d| {
+                zip(&a, &child(d), boolean::intersection)
+            }),
+            Density::Difference(a, b) => zip(&child(a), &child(b), boolean::difference),
+            Density::Complement(a) => child(a).map(boolean::complement),
+            Density::Max(v) => v
+                .iter()
+                .fold([0.0; LANES], |a, d| zip(&a, &child(d), f32::max)),
+            Density::Min(v) => v
+                .iter()
+                .fold([1.0; LANES], |a, d| zip(&a, &child(d), f32::min)),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_object_lanes(&pose.to_object_lanes(x), field, isa),
+                None => child(d),
+            },
             _ => self.eval_lanes_simd(x, field, isa),
         }
     }
@@ -330,11 +342,49 @@ mod x86 {
     }
 }
 
-impl Hypertexture {
-    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
-    /// [`Density::eval_lanes_simd`]).
+/// A soft sphere's D at `c + (x − c)·s`, settled when the squared distances
+/// `d2 = |x − c|²` scaled by every s of the range give one value.
+struct SettlingSphere<'a> {
+    d2: Lanes,
+    falloff: &'a Falloff,
+    /// Whether D = 1 counts as settled (the hard region is solid).
+    hard: bool,
+}
+
+impl Settling for SettlingSphere<'_> {
     #[inline(always)]
-    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+    fn settled(&self, lo: &Lanes, hi: &Lanes) -> u32 {
+        // Each lane's bit, then their union: both loops vectorise.
+        let mut bits = [0u32; LANES];
+        for (l, bit) in bits.iter_mut().enumerate() {
+            let settled = self.falloff.settled(self.d2[l], lo[l], hi[l], self.hard);
+            *bit = if settled { 1 << l } else { 0 };
+        }
+        bits.iter().fold(0, |m, b| m | b)
+    }
+}
+
+impl Hypertexture {
+    /// The points where D is evaluated: x under the warps and the distortion.
+    /// A sphere under one warp that scales about its centre (the noisy,
+    /// fractal and fiery spheres) lets the warp's octaves stop at the lanes
+    /// whose D is settled: 0 whatever the octaves left add, or 1 in a solid
+    /// hard region (H keeps both), so such a lane's point may differ from
+    /// `eval`'s but never its D nor H.
+    #[inline(always)]
+    fn warped_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        if let ([w], None, Density::Sphere(sphere)) =
+            (self.warps.as_slice(), &self.distortion, &self.object)
+            && w.scale_range().is_some_and(|(c, _, _)| c == sphere.centre)
+        {
+            let c = sphere.centre;
+            let settling = SettlingSphere {
+                d2: std::array::from_fn(|l| (x.get(l) - c).length_squared()),
+                falloff: &sphere.falloff,
+                hard: self.solid_core,
+            };
+            return w.apply_lanes_settling(x, field, isa, &settling);
+        }
         let mut p = *x;
         for w in &self.warps {
             p = w.apply_lanes(&p, field, isa);
@@ -342,6 +392,14 @@ impl Hypertexture {
         if let Some(d) = &self.distortion {
             p = d.apply_lanes(&p, &self.object, field, isa);
         }
+        p
+    }
+
+    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
+    /// [`Density::eval_lanes_simd`]).
+    #[inline(always)]
+    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let p = self.warped_lanes(x, field, isa);
         let d = self.object.eval_child(&p, field, isa);
         // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
         let kept = d.map(|d| self.keeps(d));

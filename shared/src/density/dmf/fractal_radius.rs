@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::WarpDmf;
+use super::{Settling, Unsettled, WarpDmf, octaves_bound};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::{Points, zip};
@@ -66,14 +66,34 @@ impl WarpDmf for FractalRadius {
 
     #[inline(always)]
     fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        self.apply_lanes_settling(x, field, isa, &Unsettled)
+    }
+
+    #[inline(always)]
+    fn apply_lanes_settling(
+        &self,
+        x: &Points,
+        field: &Field,
+        isa: Isa,
+        settled: &impl Settling,
+    ) -> Points {
+        let a = self.amplitude;
         let mut sum = [0.0; LANES];
         let mut f = self.frequency;
-        for _ in 0..self.octaves {
-            let n = field.noise_at(f, x, isa);
+        let mut live = u32::MAX;
+        for octave in 0..self.octaves {
+            // s = 1 + a·Σ ends within |a|·(the octaves left) of today's.
+            let rest = a.abs() * octaves_bound(f, self.octaves - octave);
+            let s = sum.map(|s| 1.0 + a * s);
+            live &= !settled.settled(&s.map(|s| s - rest), &s.map(|s| s + rest));
+            if live == 0 {
+                break;
+            }
+            let n = field.noise_at_live(f, x, isa, live);
             sum = zip(&sum, &n, |s, n| s + n / f);
             f *= 2.0;
         }
-        x.scale_about(self.centre, &sum.map(|s| 1.0 + self.amplitude * s))
+        x.scale_about(self.centre, &sum.map(|s| 1.0 + a * s))
     }
 
     fn scale_range(&self) -> Option<(Vec3, f32, f32)> {

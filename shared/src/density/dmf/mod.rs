@@ -11,7 +11,7 @@
 
 use glam::Vec3;
 
-use super::bounds::{Aabb, unscale};
+use super::bounds::{Aabb, NOISE_BOUND, unscale};
 use super::lanes::Points;
 use super::{Density, Field};
 use crate::dual::{Dual, DualPoint};
@@ -48,6 +48,25 @@ pub trait WarpDmf: Sized {
     /// w at each point, inlined into a SIMD path's copy (`isa` is a
     /// constant there): implementations are `#[inline(always)]`.
     fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points;
+
+    /// [`WarpDmf::apply_lanes`] for a caller that needs w(x) only where D
+    /// is not yet settled. A warp summing octaves into the factor s of
+    /// [`WarpDmf::scale_range`] gives `settled(lo, hi)`, after each octave,
+    /// the range `[lo, hi]` where each lane's s must end, and the octaves
+    /// left skip a register's worth of the lanes it returns (a bit mask);
+    /// such a lane comes out as another point of that range, with the same
+    /// D. The other warps ignore `settled`.
+    #[inline(always)]
+    fn apply_lanes_settling(
+        &self,
+        x: &Points,
+        field: &Field,
+        isa: Isa,
+        settled: &impl Settling,
+    ) -> Points {
+        let _ = settled;
+        self.apply_lanes(x, field, isa)
+    }
 
     /// For the warps `c + (x − c)·s` that scale about a centre c: c and the
     /// range `[lo, hi]` of the factor s.
@@ -86,6 +105,34 @@ pub trait ValueDmf: Sized {
         isa: Isa,
         live: u32,
     ) -> Lanes;
+}
+
+/// Which lanes' D is settled, for [`WarpDmf::apply_lanes_settling`].
+pub trait Settling {
+    /// The lanes (a bit mask) whose D is the same for every scale factor s
+    /// in `[lo, hi]`, lane by lane.
+    fn settled(&self, lo: &Lanes, hi: &Lanes) -> u32;
+}
+
+/// No lane is ever settled: the plain [`WarpDmf::apply_lanes`].
+pub struct Unsettled;
+
+impl Settling for Unsettled {
+    #[inline(always)]
+    fn settled(&self, _: &Lanes, _: &Lanes) -> u32 {
+        0
+    }
+}
+
+/// A bound on |Σ noise(·)/w_j| over `count` octaves of weights w, 2w, 4w, …:
+/// [`NOISE_BOUND`] per octave, widened by 0.1% for the sum's rounding.
+pub(super) fn octaves_bound(w: f32, count: u32) -> f32 {
+    let (mut bound, mut w) = (0.0, w);
+    for _ in 0..count {
+        bound += NOISE_BOUND / w;
+        w *= 2.0;
+    }
+    bound * 1.001
 }
 
 /// The registry of warps: `Variant(Type)`, one line each. Builds the enum
@@ -127,6 +174,20 @@ macro_rules! warps {
             pub(crate) fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
                 match self {
                     $(Warp::$name(w) => <$ty as WarpDmf>::apply_lanes(w, x, field, isa),)*
+                }
+            }
+
+            /// [`WarpDmf::apply_lanes_settling`].
+            #[inline(always)]
+            pub(crate) fn apply_lanes_settling(
+                &self,
+                x: &Points,
+                field: &Field,
+                isa: Isa,
+                settled: &impl Settling,
+            ) -> Points {
+                match self {
+                    $(Warp::$name(w) => <$ty as WarpDmf>::apply_lanes_settling(w, x, field, isa, settled),)*
                 }
             }
 

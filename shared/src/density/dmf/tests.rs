@@ -206,3 +206,68 @@ fn every_dmf_gives_the_same_bits_on_every_path() {
     }
     assert_eq!(seen.len(), EVERY_DMF, "DMFs tested: {seen:?}");
 }
+
+/// The radial warps summing octaves stop at the lanes whose D is settled
+/// (`WarpDmf::apply_lanes_settling`). Lanes along a ray, like the marcher's,
+/// settle a register at a time: from outside the shell to the hard region
+/// they still give the scalar bits on every path.
+#[test]
+fn warps_that_settle_give_the_same_bits_along_rays() {
+    let noise = Noise::new(1989);
+    let field = field(&noise);
+    let cases = [
+        (
+            "Sphere(radius: 1.0, softness: 0.2)",
+            "FractalRadius(frequency: 2.0, octaves: 8)",
+        ),
+        (
+            "Sphere(radius: 1.2, softness: 0.15, centre: (0.1, 0.0, 0.0))",
+            "FractalRadius(frequency: 2.5, octaves: 8, amplitude: 1.6, centre: (0.1, 0.0, 0.0))",
+        ),
+        (
+            "Sphere(radius: 0.9, softness: 1.2)",
+            "TurbulentRadius(frequency: 2.0, amplitude: 1.0, octaves: 7)",
+        ),
+        (
+            "Sphere(radius: 0.9, softness: 0.4)",
+            "TurbulentRadius(frequency: 2.0, amplitude: 0.3, octaves: 6)",
+        ),
+    ];
+    let mut r = SplitMix64::new(41);
+    let mut unit = || Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 2.0 - 1.0;
+    for (object, dmfs) in cases {
+        for hard_core in [HardCore::Solid, HardCore::Shaped] {
+            let (density, _) = case(object, dmfs, hard_core);
+            let (mut zero, mut one, mut soft) = (0, 0, 0);
+            for _ in 0..300 {
+                // 16 samples 0.02 apart on a ray from outside towards the centre.
+                let from = unit().normalize_or(Vec3::X) * 2.2;
+                let dir = (unit() * 0.3 - from).normalize_or(Vec3::X);
+                let start = 0.02 * LANES as f32 * (unit().x + 1.0) * 4.0;
+                let mut points = Points::default();
+                for l in 0..LANES {
+                    points.set(l, from + dir * (start + 0.02 * l as f32));
+                }
+                let scalar: [f32; LANES] =
+                    std::array::from_fn(|l| density.eval(points.get(l), &field));
+                for v in scalar {
+                    zero += usize::from(v == 0.0);
+                    one += usize::from(v == 1.0);
+                    soft += usize::from(v > 0.0 && v < 1.0);
+                }
+                for isa in Isa::available() {
+                    let lanes = density.eval_lanes(&points, &field, isa);
+                    assert_eq!(
+                        lanes.map(f32::to_bits),
+                        scalar.map(f32::to_bits),
+                        "{dmfs} on {object} ({hard_core:?}), {isa:?} at {points:?}"
+                    );
+                }
+            }
+            assert!(
+                zero > 200 && one > 200 && soft > 200,
+                "{dmfs} on {object}: {zero} at 0, {one} at 1, {soft} between"
+            );
+        }
+    }
+}

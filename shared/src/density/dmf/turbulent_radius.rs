@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::WarpDmf;
+use super::{Settling, Unsettled, WarpDmf, octaves_bound};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::{Points, zip};
@@ -62,15 +62,37 @@ impl WarpDmf for TurbulentRadius {
 
     #[inline(always)]
     fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        self.apply_lanes_settling(x, field, isa, &Unsettled)
+    }
+
+    #[inline(always)]
+    fn apply_lanes_settling(
+        &self,
+        x: &Points,
+        field: &Field,
+        isa: Isa,
+        settled: &impl Settling,
+    ) -> Points {
+        let a = self.amplitude;
         let q = x.map(|p| (p - field.offset) * self.frequency);
         let mut sum = [0.0; LANES];
         let mut scale = 1.0f32;
-        for _ in 0..self.octaves {
-            let n = field.noise_lanes(&q.map(|p| p * scale), isa);
+        let mut live = u32::MAX;
+        for octave in 0..self.octaves {
+            // Every octave adds |noise| ≥ 0: s = 1 + a·Σ moves from today's
+            // only towards the sign of a, by at most a·(the octaves left).
+            let rest = a * octaves_bound(scale, self.octaves - octave);
+            let s = sum.map(|s| 1.0 + a * s);
+            let (lo, hi) = (rest.min(0.0), rest.max(0.0));
+            live &= !settled.settled(&s.map(|s| s + lo), &s.map(|s| s + hi));
+            if live == 0 {
+                break;
+            }
+            let n = field.noise_lanes_live(&q.map(|p| p * scale), isa, live);
             sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
             scale *= 2.0;
         }
-        x.scale_about(self.centre, &sum.map(|t| 1.0 + self.amplitude * t))
+        x.scale_about(self.centre, &sum.map(|t| 1.0 + a * t))
     }
 
     fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
