@@ -789,7 +789,7 @@ impl Scene {
                 octaves,
             } => {
                 let q = object_x - field.offset;
-                let turb = field.noise.turbulence(q, octaves);
+                let turb = field.noise.turbulence_on(self.isa, q, octaves);
                 0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
             }
         }
