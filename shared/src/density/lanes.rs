@@ -373,10 +373,12 @@ impl Hypertexture {
     /// `eval`'s but never its D nor H.
     #[inline(always)]
     fn warped_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
-        if let ([w], None, Density::Sphere(sphere)) =
-            (self.warps.as_slice(), &self.distortion, &self.object)
-            && w.scale_range().is_some_and(|(c, _, _)| c == sphere.centre)
-        {
+        if let (true, [w], None, Density::Sphere(sphere)) = (
+            self.settles,
+            self.warps.as_slice(),
+            &self.distortion,
+            &self.object,
+        ) {
             let c = sphere.centre;
             let settling = SettlingSphere {
                 d2: std::array::from_fn(|l| (x.get(l) - c).length_squared()),

@@ -264,6 +264,9 @@ pub struct Hypertexture {
     /// Whether the hard region (D = 1) stays solid, f = 1 ([`HardCore::Solid`]):
     /// the value DMFs then shape only the soft region.
     solid_core: bool,
+    /// Whether the object is a sphere under one warp that scales about its
+    /// centre, whose lanes can settle as the octaves go (see `lanes.rs`).
+    settles: bool,
 }
 
 impl Hypertexture {
@@ -277,12 +280,19 @@ impl Hypertexture {
                 Dmf::Value(m) => modulation.push(m),
             }
         }
+        let settles = match (warps.as_slice(), &object) {
+            ([w], Density::Sphere(sphere)) => {
+                w.scale_range().is_some_and(|(c, _, _)| c == sphere.centre)
+            }
+            _ => false,
+        };
         Hypertexture {
             object,
             warps,
             modulation,
             distortion: None,
             solid_core: true,
+            settles,
         }
     }
 
