@@ -272,16 +272,7 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     let reference = decode_png(&reference).into_raw();
 
     let data = dir.join("data");
-    let mut studio = Running::coordinator(&[
-        "studio",
-        scene.to_str().unwrap(),
-        "--listen",
-        "127.0.0.1:0",
-        "--local-workers",
-        "2",
-        "--data",
-        data.to_str().unwrap(),
-    ]);
+    let mut studio = studio(&scene, &data, 2);
     let port = studio.port();
     studio.wait_for("serving on", 30);
     let url = format!("http://127.0.0.1:{port}/");
@@ -545,6 +536,21 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// `coordinator studio SCENE` on a free loopback port with `workers` local
+/// workers and its store under `data`.
+fn studio(scene: &std::path::Path, data: &std::path::Path, workers: u32) -> Running {
+    Running::coordinator(&[
+        "studio",
+        scene.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--local-workers",
+        &workers.to_string(),
+        "--data",
+        data.to_str().unwrap(),
+    ])
+}
+
 /// A scene that does not parse still opens a studio (its text is edited in
 /// the page), and the terminal says what is wrong and where, as the CLI would.
 #[test]
@@ -557,16 +563,7 @@ fn a_broken_scene_opens_with_its_error_on_the_terminal() {
     )
     .unwrap();
     let data = dir.join("data");
-    let mut studio = Running::coordinator(&[
-        "studio",
-        scene.to_str().unwrap(),
-        "--listen",
-        "127.0.0.1:0",
-        "--local-workers",
-        "0",
-        "--data",
-        data.to_str().unwrap(),
-    ]);
+    let mut studio = studio(&scene, &data, 0);
     let line = studio.wait_for("expected camera", 30);
     assert!(
         line.contains("broken.ron:2:11: expected camera, found `oops`"),
@@ -614,16 +611,7 @@ fn latency() {
     let scene = dir.join("fur.ron");
     std::fs::write(&scene, text).unwrap();
     let data = dir.join("data");
-    let mut studio = Running::coordinator(&[
-        "studio",
-        scene.to_str().unwrap(),
-        "--listen",
-        "127.0.0.1:0",
-        "--local-workers",
-        "2",
-        "--data",
-        data.to_str().unwrap(),
-    ]);
+    let mut studio = studio(&scene, &data, 2);
     let port = studio.port();
     studio.wait_for("serving on", 30);
     let mut browser = Browser::start(&chromium, &dir.join("profile"));
