@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use super::WarpDmf;
+use super::{Settling, WarpDmf};
 use crate::density::Field;
 use crate::density::bounds::{Aabb, NOISE_BOUND, hull, unscale};
 use crate::density::lanes::Points;
@@ -79,7 +79,7 @@ impl WarpDmf for Dripping {
     }
 
     #[inline(always)]
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, _: &impl Settling) -> Points {
         let Dripping {
             frequency,
             amplitude,

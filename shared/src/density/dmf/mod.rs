@@ -46,27 +46,13 @@ pub trait WarpDmf: Sized {
     fn apply_dual(&self, x: &DualPoint, field: &Field) -> DualPoint;
 
     /// w at each point, inlined into a SIMD path's copy (`isa` is a
-    /// constant there): implementations are `#[inline(always)]`.
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points;
-
-    /// [`WarpDmf::apply_lanes`] for a caller that needs w(x) only where D
-    /// is not yet settled. A warp summing octaves into the factor s of
-    /// [`WarpDmf::scale_range`] gives `settled(lo, hi)`, after each octave,
-    /// the range `[lo, hi]` where each lane's s must end, and the octaves
-    /// left skip a register's worth of the lanes it returns (a bit mask);
-    /// such a lane comes out as another point of that range, with the same
-    /// D. The other warps ignore `settled`.
-    #[inline(always)]
-    fn apply_lanes_settling(
-        &self,
-        x: &Points,
-        field: &Field,
-        isa: Isa,
-        settled: &impl Settling,
-    ) -> Points {
-        let _ = settled;
-        self.apply_lanes(x, field, isa)
-    }
+    /// constant there): implementations are `#[inline(always)]`. A warp
+    /// summing octaves into the factor s of [`WarpDmf::scale_range`] gives
+    /// `settled(lo, hi)`, before each octave, the range `[lo, hi]` where each
+    /// lane's s must end, and the octaves left skip a register's worth of
+    /// the lanes it returns (a bit mask); such a lane comes out as another
+    /// point of that range, with the same D. The other warps ignore it.
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, settled: &impl Settling) -> Points;
 
     /// For the warps `c + (x − c)·s` that scale about a centre c: c and the
     /// range `[lo, hi]` of the factor s.
@@ -107,14 +93,14 @@ pub trait ValueDmf: Sized {
     ) -> Lanes;
 }
 
-/// Which lanes' D is settled, for [`WarpDmf::apply_lanes_settling`].
+/// Which lanes' D is settled, for [`WarpDmf::apply_lanes`].
 pub trait Settling {
     /// The lanes (a bit mask) whose D is the same for every scale factor s
     /// in `[lo, hi]`, lane by lane.
     fn settled(&self, lo: &Lanes, hi: &Lanes) -> u32;
 }
 
-/// No lane is ever settled: the plain [`WarpDmf::apply_lanes`].
+/// No lane is ever settled: w at every lane.
 pub struct Unsettled;
 
 impl Settling for Unsettled {
@@ -169,15 +155,13 @@ macro_rules! warps {
                 }
             }
 
-            /// [`WarpDmf::apply_lanes`].
+            /// [`WarpDmf::apply_lanes`] with no lane settled: w at every lane.
             #[inline(always)]
             pub(crate) fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
-                match self {
-                    $(Warp::$name(w) => <$ty as WarpDmf>::apply_lanes(w, x, field, isa),)*
-                }
+                self.apply_lanes_settling(x, field, isa, &Unsettled)
             }
 
-            /// [`WarpDmf::apply_lanes_settling`].
+            /// [`WarpDmf::apply_lanes`].
             #[inline(always)]
             pub(crate) fn apply_lanes_settling(
                 &self,
@@ -187,7 +171,7 @@ macro_rules! warps {
                 settled: &impl Settling,
             ) -> Points {
                 match self {
-                    $(Warp::$name(w) => <$ty as WarpDmf>::apply_lanes_settling(w, x, field, isa, settled),)*
+                    $(Warp::$name(w) => <$ty as WarpDmf>::apply_lanes(w, x, field, isa, settled),)*
                 }
             }
 

@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::WarpDmf;
+use super::{Settling, WarpDmf};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::Points;
@@ -54,7 +54,7 @@ impl WarpDmf for NoisyRadius {
     }
 
     #[inline(always)]
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, _: &impl Settling) -> Points {
         let n = field.noise_at(self.frequency, x, isa);
         x.scale_about(self.centre, &n.map(|n| 1.0 + self.amplitude * n))
     }

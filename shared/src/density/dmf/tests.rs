@@ -208,7 +208,7 @@ fn every_dmf_gives_the_same_bits_on_every_path() {
 }
 
 /// The radial warps summing octaves stop at the lanes whose D is settled
-/// (`WarpDmf::apply_lanes_settling`). Lanes along a ray, like the marcher's,
+/// (`WarpDmf::apply_lanes`). Lanes along a ray, like the marcher's,
 /// settle a register at a time: from outside the shell to the hard region
 /// they still give the scalar bits on every path.
 #[test]

@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::{Settling, Unsettled, WarpDmf, octaves_bound};
+use super::{Settling, WarpDmf, octaves_bound};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::{Points, zip};
@@ -61,18 +61,7 @@ impl WarpDmf for TurbulentRadius {
     }
 
     #[inline(always)]
-    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
-        self.apply_lanes_settling(x, field, isa, &Unsettled)
-    }
-
-    #[inline(always)]
-    fn apply_lanes_settling(
-        &self,
-        x: &Points,
-        field: &Field,
-        isa: Isa,
-        settled: &impl Settling,
-    ) -> Points {
+    fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, settled: &impl Settling) -> Points {
         let a = self.amplitude;
         let q = x.map(|p| (p - field.offset) * self.frequency);
         let mut sum = [0.0; LANES];
