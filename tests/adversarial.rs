@@ -398,6 +398,63 @@ fn an_exit_when_done_worker_leaves_once_its_coordinator_is_gone() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A coordinator that takes the connection and is gone before it answers the
+/// registration (killed between the two, as the test above can be) still
+/// counts as reached: an exit-when-done worker leaves after its lease.
+#[test]
+fn an_exit_when_done_worker_leaves_a_coordinator_gone_before_it_answered() {
+    use std::io::Read;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    worker_bin();
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    listener.set_nonblocking(true).unwrap();
+    let done = std::sync::Arc::new(AtomicBool::new(false));
+    let accepting = {
+        let done = std::sync::Arc::clone(&done);
+        // Reads what each connection sends, then closes it without a byte
+        // back: bounded by the flag and by 60 s.
+        std::thread::spawn(move || {
+            let until = Instant::now() + Duration::from_secs(60);
+            while !done.load(Ordering::Relaxed) && Instant::now() < until {
+                match listener.accept() {
+                    Ok((mut conn, _)) => {
+                        conn.set_nonblocking(false).unwrap();
+                        conn.set_read_timeout(Some(Duration::from_millis(300)))
+                            .unwrap();
+                        let _ = conn.read(&mut [0; 4096]);
+                    }
+                    Err(_) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+        })
+    };
+    let started = Instant::now();
+    let worker = Running::worker(&[
+        "--coordinator",
+        &url,
+        "--threads",
+        "1",
+        "--exit-when-done",
+        "--lease-timeout",
+        "2",
+    ]);
+    let (status, log) = worker.finish(20);
+    done.store(true, Ordering::Relaxed);
+    accepting.join().unwrap();
+    assert!(!status.success(), "{}", log.join("\n"));
+    assert!(
+        log.iter().any(|l| l.contains("unreachable for")),
+        "{}",
+        log.join("\n")
+    );
+    assert!(
+        started.elapsed() < Duration::from_secs(15),
+        "left after {:?}",
+        started.elapsed()
+    );
+}
+
 /// Local worker processes that fail for another reason than a refusal are
 /// replaced by in-process workers with that reason in the message, not a
 /// guess about an older build.

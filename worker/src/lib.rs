@@ -48,7 +48,8 @@ pub struct WorkerConfig {
     pub ca: Option<Vec<u8>>,
     /// Return when the frame is finished instead of waiting for the next one;
     /// and fail ([`WorkerError::CoordinatorGone`]) once a coordinator this
-    /// worker had reached has been unreachable for `lease`.
+    /// worker had reached (made a connection to, registered or not) has been
+    /// unreachable for `lease`.
     pub exit_when_done: bool,
     /// How long a coordinator may be unreachable before an `exit_when_done`
     /// worker gives up on it (the coordinator's lease time-out).
@@ -402,8 +403,10 @@ pub async fn run(
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::default();
     let mut backoff = Backoff(Backoff::FIRST);
-    // Since when the coordinator this worker had reached has been unreachable.
+    // Since when the coordinator this worker had reached (a connection was
+    // made to it) has been unreachable.
     let mut lost_since: Option<std::time::Instant> = None;
+    let mut reached = false;
     let gone = |lost_since: Option<std::time::Instant>| match lost_since {
         Some(t) if config.exit_when_done && t.elapsed() >= config.lease => {
             Some(WorkerError::CoordinatorGone {
@@ -430,6 +433,9 @@ pub async fn run(
         let channel = match endpoint.connect().await {
             Ok(c) => c,
             Err(e) => {
+                if reached {
+                    lost_since.get_or_insert_with(std::time::Instant::now);
+                }
                 let wait = retry(backoff.next(), lost_since);
                 tracing::warn!(
                     "cannot reach {}: {}; retrying in {wait:?}",
@@ -442,6 +448,7 @@ pub async fn run(
                 continue;
             }
         };
+        reached = true;
         let mut client = FarmClient::with_interceptor(body::EndStreamEarly(channel), auth.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -460,7 +467,10 @@ pub async fn run(
                 return Err(WorkerError::Refused(said(&status)));
             }
             Err(status) => {
-                let wait = retry(backoff.next(), lost_since);
+                // It took the connection, so it was reached: a coordinator
+                // gone before it answered counts against the lease.
+                let since = *lost_since.get_or_insert_with(std::time::Instant::now);
+                let wait = retry(backoff.next(), Some(since));
                 tracing::warn!(
                     "cannot register with {}: {}; retrying in {wait:?}",
                     config.coordinator,
