@@ -7,9 +7,10 @@
 //! One run can cost 25% more CPU than the next on a shared machine (a busy
 //! neighbour, a cold cache, a slower clock), which one pair of runs cannot tell
 //! apart from a farm that wastes work. So the test runs the serial renders and
-//! the farm in turn, five times, and bounds the median of the five ratios: each
-//! ratio compares runs made seconds apart, and the median ignores the rounds a
-//! neighbour spoilt, in either direction.
+//! the farm in turn, seven farms between eight serial pairs, and bounds the median
+//! of the seven ratios: each farm is compared with the serial runs made just
+//! before and just after it, and the median ignores the rounds a neighbour
+//! spoilt, in either direction.
 //!
 //! Its own test binary: `RUSAGE_CHILDREN` counts every child this process has
 //! waited for, so no other test may run children beside it.
@@ -19,7 +20,7 @@ mod support;
 use support::*;
 
 /// Rounds of a serial and a farm render.
-const ROUNDS: usize = 5;
+const ROUNDS: usize = 7;
 
 /// The middle value.
 fn median(mut v: Vec<f64>) -> f64 {
@@ -137,17 +138,23 @@ fn the_farm_costs_no_more_cpu_than_the_serial_render() {
     ];
     let _ = worker_bin();
 
+    // Serial, farm, serial, farm, …, serial: each farm is compared with the
+    // mean of the serial renders just before and just after it, so that a
+    // machine whose speed drifts during the test moves both sides alike.
     let (mut workers, mut farms) = (Vec::new(), Vec::new());
+    let mut before = serial(&common, &dir);
     for round in 0..ROUNDS {
-        let s = serial(&common, &dir);
         let (w, f) = farm(&common, &dir.join("farm.png"));
+        let after = serial(&common, &dir);
+        let s = (before + after) / 2.0;
         println!(
-            "round {round}: serial CPU {s:.3} s; workers {w:.3} s ({:.3}); farm {f:.3} s ({:.3})",
+            "round {round}: serial CPU {before:.3} s then {after:.3} s; workers {w:.3} s ({:.3}); farm {f:.3} s ({:.3})",
             w / s,
             f / s
         );
         workers.push(w / s);
         farms.push(f / s);
+        before = after;
     }
     let (workers, farm) = (median(workers), median(farms));
     println!("median ratios: workers {workers:.3}; with the coordinator {farm:.3}");
