@@ -129,7 +129,7 @@ pub fn digest(isa: Isa) -> Result<u64, ProbeError> {
 }
 
 /// The files the probe scenes name. A mesh scene is probed on a stand-in for
-/// its mesh ([`stand_in_obj`]), read by the same OBJ reader and walked by the
+/// its mesh (an icosphere), read by the same OBJ reader and walked by the
 /// same tree and closest-point code as the scene's own: Spot's 5,856
 /// triangles cost 14 ms to read and build, three times the rest of the probe,
 /// in every worker and coordinator process. Built once per process.
@@ -137,83 +137,17 @@ fn probe_assets() -> &'static crate::scene::Assets {
     static ASSETS: std::sync::OnceLock<crate::scene::Assets> = std::sync::OnceLock::new();
     ASSETS.get_or_init(|| {
         let mut assets = crate::scene::Assets::none();
-        // A test loads every probe scene, so a stand-in that fails to build
-        // cannot go unnoticed.
-        if let Ok(mesh) = crate::mesh::Mesh::from_obj(
-            "meshes/spot.obj",
-            stand_in_obj().as_bytes(),
-            Default::default(),
-        ) {
+        // An icosahedron cut in four (80 triangles) inside Spot's box, where
+        // the mesh scenes look. A test loads every probe scene, so a stand-in
+        // that fails to build cannot go unnoticed.
+        let stand_in = crate::mesh::icosphere_obj(glam::Vec3::new(0.0, 0.1, 0.18), 0.45, 1);
+        if let Ok(mesh) =
+            crate::mesh::Mesh::from_obj("meshes/spot.obj", stand_in.as_bytes(), Default::default())
+        {
             assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
         }
         assets
     })
-}
-
-/// The probe's stand-in for a mesh: an icosahedron with each face cut in four
-/// and pushed out onto its sphere (80 outward-facing triangles), of radius
-/// 0.45 about (0, 0.1, 0.18), inside Spot's box where the mesh scenes look.
-/// Each face is written with its own three vertices: the reader welds the
-/// equal positions (a midpoint is the same sum either way round).
-fn stand_in_obj() -> String {
-    use glam::Vec3;
-    let t = (1.0 + 5f32.sqrt()) / 2.0;
-    let v = [
-        Vec3::new(-1.0, t, 0.0),
-        Vec3::new(1.0, t, 0.0),
-        Vec3::new(-1.0, -t, 0.0),
-        Vec3::new(1.0, -t, 0.0),
-        Vec3::new(0.0, -1.0, t),
-        Vec3::new(0.0, 1.0, t),
-        Vec3::new(0.0, -1.0, -t),
-        Vec3::new(0.0, 1.0, -t),
-        Vec3::new(t, 0.0, -1.0),
-        Vec3::new(t, 0.0, 1.0),
-        Vec3::new(-t, 0.0, -1.0),
-        Vec3::new(-t, 0.0, 1.0),
-    ];
-    const FACES: [[usize; 3]; 20] = [
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    let place = |p: Vec3| p.normalize() * 0.45 + Vec3::new(0.0, 0.1, 0.18);
-    let mut obj = String::new();
-    let mut written = 0;
-    for [a, b, c] in FACES {
-        let (a, b, c) = (v[a], v[b], v[c]);
-        let (ab, bc, ca) = ((a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5);
-        for [p, q, r] in [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]] {
-            for x in [p, q, r].map(place) {
-                obj.push_str(&format!("v {} {} {}\n", x.x, x.y, x.z));
-            }
-            obj.push_str(&format!(
-                "f {} {} {}\n",
-                written + 1,
-                written + 2,
-                written + 3
-            ));
-            written += 3;
-        }
-    }
-    obj
 }
 
 /// The bytes the digest hashes for one probe scene: each probe pixel's channels

@@ -433,5 +433,76 @@ fn triangles_of(positions: &[Vec3], faces: &[[u32; 3]]) -> Result<Vec<Triangle>,
         .collect())
 }
 
+/// An icosphere as OBJ text: an icosahedron subdivided `levels` times, its
+/// vertices pushed onto the sphere of radius `r` about `centre`, its faces
+/// outward. The known answer of the mesh tests, and the probe's stand-in for
+/// a scene's mesh.
+pub(crate) fn icosphere_obj(centre: Vec3, r: f32, levels: u32) -> String {
+    let t = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut v: Vec<Vec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
+    .collect();
+    let mut f: Vec<[usize; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut mid = BTreeMap::new();
+        let mut half = |a: usize, b: usize, v: &mut Vec<Vec3>| {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a] + v[b]) * 0.5).normalize());
+                v.len() - 1
+            })
+        };
+        let mut next = Vec::new();
+        for [a, b, c] in f {
+            let (ab, bc, ca) = (half(a, b, &mut v), half(b, c, &mut v), half(c, a, &mut v));
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    let mut s = String::new();
+    for p in &v {
+        let p = *p * r + centre;
+        s += &format!("v {} {} {}\n", p.x, p.y, p.z);
+    }
+    for [a, b, c] in f {
+        s += &format!("f {} {} {}\n", a + 1, b + 1, c + 1);
+    }
+    s
+}
+
 #[cfg(test)]
 pub(crate) mod tests;

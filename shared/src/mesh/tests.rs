@@ -32,74 +32,6 @@ pub(crate) fn cube_obj(h: f32) -> String {
     s
 }
 
-/// An icosphere of radius `r`: an icosahedron subdivided `levels` times, its
-/// vertices pushed onto the sphere.
-pub(crate) fn icosphere_obj(r: f32, levels: u32) -> String {
-    let t = (1.0 + 5f32.sqrt()) / 2.0;
-    let mut v: Vec<Vec3> = [
-        (-1.0, t, 0.0),
-        (1.0, t, 0.0),
-        (-1.0, -t, 0.0),
-        (1.0, -t, 0.0),
-        (0.0, -1.0, t),
-        (0.0, 1.0, t),
-        (0.0, -1.0, -t),
-        (0.0, 1.0, -t),
-        (t, 0.0, -1.0),
-        (t, 0.0, 1.0),
-        (-t, 0.0, -1.0),
-        (-t, 0.0, 1.0),
-    ]
-    .iter()
-    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
-    .collect();
-    let mut f: Vec<[usize; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..levels {
-        let mut mid = BTreeMap::new();
-        let mut half = |a: usize, b: usize, v: &mut Vec<Vec3>| {
-            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                v.push(((v[a] + v[b]) * 0.5).normalize());
-                v.len() - 1
-            })
-        };
-        let mut next = Vec::new();
-        for [a, b, c] in f {
-            let (ab, bc, ca) = (half(a, b, &mut v), half(b, c, &mut v), half(c, a, &mut v));
-            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
-        }
-        f = next;
-    }
-    let mut s = String::new();
-    for p in &v {
-        s += &format!("v {} {} {}\n", p.x * r, p.y * r, p.z * r);
-    }
-    for [a, b, c] in f {
-        s += &format!("f {} {} {}\n", a + 1, b + 1, c + 1);
-    }
-    s
-}
-
 fn load(text: &str) -> Result<Mesh, MeshError> {
     Mesh::from_obj("test.obj", text.as_bytes(), MeshLimits::default())
 }
@@ -133,7 +65,7 @@ fn a_cube_has_the_exact_distance_of_a_box() {
 #[test]
 fn an_icosphere_is_a_sphere_within_its_chord_error() {
     let r = 0.8;
-    let mesh = load(&icosphere_obj(r, 3)).unwrap();
+    let mesh = load(&icosphere_obj(Vec3::ZERO, r, 3)).unwrap();
     assert_eq!(mesh.triangle_count(), 20 * 64);
     // The flat faces lie inside the sphere by at most r(1 - cos θ), θ the
     // largest angle from a face's centre to its corners (under 0.1 rad here: the

@@ -87,7 +87,7 @@ fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
     let mut object: ObjectDesc = ron.from_str(object).expect("a valid object");
     object.for_each_mesh_mut(&mut |m| {
-        let obj = crate::mesh::tests::icosphere_obj(0.6, 2);
+        let obj = crate::mesh::icosphere_obj(glam::Vec3::ZERO, 0.6, 2);
         let mesh = crate::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
         m.mesh = Some(std::sync::Arc::new(
             mesh.expect("the icosphere is a closed mesh"),
