@@ -52,11 +52,7 @@ fn network_strings_cannot_forge_log_lines() {
         "0",
     ]);
     let url = format!("http://127.0.0.1:{}", coord.port());
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(async {
+    block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
         let id = register_raw(
             &mut client,
@@ -1128,11 +1124,7 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
         "60",
     ]);
     let url = format!("http://127.0.0.1:{}", coord.port());
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let liars = runtime.block_on(async {
+    let liars = block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
         let mut ids = Vec::new();
         let mut claimed = Vec::new();

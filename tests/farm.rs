@@ -155,21 +155,17 @@ fn a_wrong_token_is_refused_and_no_worker_means_a_clean_failure() {
     let (status, _) = anonymous.finish(30);
     assert!(!status.success(), "a worker with no token is refused too");
     // Every call needs the token, the tile stream included.
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-        .block_on(async {
-            use hypertexture_proto::pb;
-            let mut client = pb::farm_client::FarmClient::connect(url.clone())
-                .await
-                .unwrap();
-            let status = client
-                .submit_tiles(tokio_stream::iter([pb::SubmitTilesParams { tile: None }]))
-                .await
-                .unwrap_err();
-            assert_eq!(status.code(), tonic::Code::Unauthenticated, "{status:?}");
-        });
+    block_on(async {
+        use hypertexture_proto::pb;
+        let mut client = pb::farm_client::FarmClient::connect(url.clone())
+            .await
+            .unwrap();
+        let status = client
+            .submit_tiles(tokio_stream::iter([pb::SubmitTilesParams { tile: None }]))
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), tonic::Code::Unauthenticated, "{status:?}");
+    });
     let (status, log) = coord.finish(60);
     assert!(!status.success(), "the coordinator gives up");
     let log = log.join("\n");
@@ -209,11 +205,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.exr");
     let (coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(async {
+    block_on(async {
         let mut client = FarmClient::connect(url.clone())
             .await
             .unwrap()
@@ -366,6 +358,62 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A raw client's first request for work (it has built no scene yet).
+async fn first_work(
+    client: &mut hypertexture_proto::pb::farm_client::FarmClient<tonic::transport::Channel>,
+    worker_id: &str,
+) -> Option<hypertexture_proto::pb::get_work_result::Outcome> {
+    client
+        .get_work(hypertexture_proto::pb::GetWorkParams {
+            worker_id: worker_id.to_string(),
+            known_scene_hash: 0,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .outcome
+}
+
+/// The tile of `assignment` rendered as a worker renders it (building the
+/// scene into `scene` on first use), asking for the next unit with it.
+fn worker_tile(
+    worker_id: &str,
+    assignment: &hypertexture_proto::pb::Assignment,
+    scene: &mut Option<hypertexture::Scene>,
+) -> hypertexture_proto::pb::SubmitTileParams {
+    use hypertexture_proto::convert;
+    let job = assignment.job.as_ref().unwrap();
+    let scene = scene.get_or_insert_with(|| {
+        hypertexture::Scene::from_text(
+            &job.scene_text,
+            &job.scene_name,
+            hypertexture::Overrides {
+                width: Some(job.width),
+                height: Some(job.height),
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    });
+    let wire_unit = assignment.unit.unwrap();
+    let unit = convert::unit_from_wire(&wire_unit, job.width, job.height).unwrap();
+    let pixels: Vec<(u32, u32)> = unit.pixels(job.width).collect();
+    let samples = hypertexture::render::render_pixels(scene, job.frame, &pixels);
+    hypertexture_proto::pb::SubmitTileParams {
+        worker_id: worker_id.to_string(),
+        assignment_id: assignment.assignment_id,
+        unit: Some(wire_unit),
+        pixels: convert::tile_to_wire(
+            &samples,
+            convert::pixel_format_from_wire(job.pixel_format).unwrap(),
+        ),
+        render_cpu_micros: 1,
+        want_next: true,
+        known_scene_hash: job.scene_hash,
+        calls_cpu_micros: 1,
+    }
+}
+
 /// Protocol 2 by hand: a tile's reply hands out the next unit, without the scene
 /// text the worker already has. The client then dies holding that unit (never
 /// started); the lease runs out, a real worker renders it, and the image is
@@ -381,58 +429,20 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
     in_process("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(async {
+    block_on(async {
         let mut client = FarmClient::connect(url.clone()).await.unwrap();
         let id = register_raw(&mut client, "short-lived").await;
-        let work = client
-            .get_work(pb::GetWorkParams {
-                worker_id: id.clone(),
-                known_scene_hash: 0,
-            })
-            .await
-            .unwrap()
-            .into_inner();
-        let Some(Outcome::Assignment(first)) = work.outcome else {
+        let Some(Outcome::Assignment(first)) = first_work(&mut client, &id).await else {
             panic!("expected an assignment")
         };
-        let job = first.job.unwrap();
+        let job = first.job.clone().unwrap();
         assert!(
             !job.scene_text.is_empty(),
             "a new worker gets the scene text"
         );
         // Render the unit as a worker would, and ask for the next one with the tile.
-        let scene = hypertexture::Scene::from_text(
-            &job.scene_text,
-            &job.scene_name,
-            hypertexture::Overrides {
-                width: Some(job.width),
-                height: Some(job.height),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        let wire_unit = first.unit.unwrap();
-        let unit = hypertexture_proto::convert::unit_from_wire(&wire_unit, 32, 32).unwrap();
-        let pixels: Vec<(u32, u32)> = unit.pixels(32).collect();
-        let samples = hypertexture::render::render_pixels(&scene, job.frame, &pixels);
         let reply = client
-            .submit_tile(pb::SubmitTileParams {
-                worker_id: id.clone(),
-                assignment_id: first.assignment_id,
-                unit: Some(wire_unit),
-                pixels: hypertexture_proto::convert::tile_to_wire(
-                    &samples,
-                    hypertexture_proto::convert::pixel_format_from_wire(job.pixel_format).unwrap(),
-                ),
-                render_cpu_micros: 1,
-                want_next: true,
-                known_scene_hash: job.scene_hash,
-                calls_cpu_micros: 1,
-            })
+            .submit_tile(worker_tile(&id, &first, &mut None))
             .await
             .unwrap()
             .into_inner();
@@ -449,7 +459,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
             ahead_job.scene_text.is_empty(),
             "the worker has this scene: its text is left out"
         );
-        assert_ne!(ahead.unit, Some(wire_unit));
+        assert_ne!(ahead.unit, first.unit);
         // The client dies here, holding `ahead`.
     });
     coord.wait_for("stopped answering", 30);
@@ -472,6 +482,63 @@ fn a_worker_exits_when_the_frame_is_done() {
     assert!(status.success(), "{}", log.join("\n"));
     let (status, log) = coord.finish(30);
     assert!(status.success(), "{}", log.join("\n"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A worker that asks again only after the coordinator has written the image
+/// still hears that the render is finished: the coordinator keeps serving
+/// until every worker has been told. (With every unit checked, the reply to
+/// the last tile comes before the coordinator's own rendering of it settles
+/// the frame, so it says "wait"; the next call says "finished".)
+#[test]
+fn a_worker_that_asks_after_the_image_is_written_is_told_the_render_is_finished() {
+    use hypertexture_proto::pb;
+    use hypertexture_proto::pb::farm_client::FarmClient;
+    use hypertexture_proto::pb::get_work_result::Outcome;
+
+    let dir = scratch("farm-told");
+    let reference = dir.join("reference.png");
+    in_process("noisy_sphere", 16, &reference);
+    let out = dir.join("farm.png");
+    let (mut coord, url) = remote_only("noisy_sphere", 16, &out, &["--verify", "1"]);
+    block_on(async {
+        let mut client = FarmClient::connect(url.clone()).await.unwrap();
+        let id = register_raw(&mut client, "slow-to-ask").await;
+        let mut next = first_work(&mut client, &id).await;
+        let mut scene = None;
+        let mut units = 0;
+        // Render every unit as a worker would, asking for the next with each tile.
+        while let Some(Outcome::Assignment(a)) = next {
+            let reply = client
+                .submit_tile(worker_tile(&id, &a, &mut scene))
+                .await
+                .unwrap()
+                .into_inner();
+            assert!(reply.accepted);
+            units += 1;
+            next = reply.next.and_then(|n| n.outcome);
+        }
+        assert!(units > 1, "{units} units");
+        assert!(
+            matches!(next, Some(Outcome::RetryAfterMs(_))),
+            "the last tile's reply comes before its check settles the frame: {next:?}"
+        );
+        // The image is written meanwhile (the supervisor looks every 100 ms).
+        coord.wait_for("rendered", 30);
+        tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+        let work = client
+            .get_work(pb::GetWorkParams {
+                worker_id: id.clone(),
+                known_scene_hash: 0,
+            })
+            .await
+            .expect("the coordinator still answers")
+            .into_inner();
+        assert_eq!(work.outcome, Some(Outcome::Finished(true)));
+    });
+    let (status, log) = coord.finish(30);
+    assert!(status.success(), "{}", log.join("\n"));
+    same_bytes(&reference, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

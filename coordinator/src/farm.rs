@@ -1264,6 +1264,11 @@ impl Farm {
                 tracing::warn!("worker {name} stopped answering: its units go to others");
             }
             let completed = s.scheduler.take_completed();
+            if !completed.is_empty() {
+                // A frame taken may finish the render: workers waiting in
+                // GetWork look again, and may hear so at once.
+                let _ = self.shared.finished.send(true);
+            }
             let gave_up: Vec<(JobId, crate::scheduler::GiveUp)> = s
                 .scheduler
                 .gave_up_jobs()
@@ -1293,8 +1298,9 @@ impl Farm {
     }
 
     /// Stops the local workers (waiting up to `grace` for them to leave, after
-    /// asking them to with `terminate`) and the server; returns every worker
-    /// that joined.
+    /// asking them to with `terminate`) and the server, once every worker of a
+    /// finished render has heard that it is (within the same `grace`); returns
+    /// every worker that joined.
     pub async fn finish(
         self,
         grace: Duration,
@@ -1308,7 +1314,16 @@ impl Farm {
             checker,
             ..
         } = self;
+        let deadline = Instant::now() + grace;
         locals.stop(grace, terminate).await;
+        // A finished render's remote workers hear it in the reply to their
+        // next call; the server stays up (within `grace`) until each one has,
+        // so an `--exit-when-done` worker is not left asking a closed port.
+        while Instant::now() < deadline
+            && shared.lock().scheduler.yet_to_hear_finished(Instant::now()) > 0
+        {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
         let _ = shared.closing.send(true);
         checker.abort();
         let _ = stop_server.send(());

@@ -283,6 +283,8 @@ pub struct WorkerState {
     /// Why the scene of the one-shot job does not build on this worker, if
     /// it said so: it gets no more units of it.
     pub cannot_build: Option<String>,
+    /// It has been told that the one-shot render is finished.
+    pub told_finished: bool,
     /// Its accepted tiles of the last minute: when, and how many pixels.
     recent: VecDeque<(Instant, u64)>,
 }
@@ -867,6 +869,7 @@ impl Scheduler {
                 process_cpu_micros: None,
                 alive: true,
                 cannot_build: None,
+                told_finished: false,
                 recent: VecDeque::new(),
             },
         );
@@ -911,6 +914,9 @@ impl Scheduler {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
         if self.one_shot && self.jobs.values().all(Job::finished) {
+            if let Some(w) = self.workers.get_mut(&wid) {
+                w.told_finished = true;
+            }
             return Ok(Next::Finished);
         }
         if self.draining {
@@ -1939,6 +1945,23 @@ impl Scheduler {
         self.workers.values().filter(|w| w.alive).count()
     }
 
+    /// Workers of a finished one-shot render that have not heard so yet: still
+    /// in the farm, heard from within the lease, and not told `Finished`.
+    /// (None while the render is not finished, or in a service.)
+    pub fn yet_to_hear_finished(&self, now: Instant) -> usize {
+        if !self.one_shot || !self.finished() {
+            return 0;
+        }
+        self.workers
+            .values()
+            .filter(|w| {
+                w.alive
+                    && !w.told_finished
+                    && now.saturating_duration_since(w.last_seen) <= self.lease
+            })
+            .count()
+    }
+
     /// Workers still in the farm that can render the one-shot job.
     pub fn able(&self) -> usize {
         self.able_for(ONE_SHOT_JOB)
@@ -2098,6 +2121,41 @@ mod tests {
                 .iter()
                 .all(|p| p.rgba[0] == 0.5)
         );
+    }
+
+    #[test]
+    fn a_finished_render_counts_the_workers_yet_to_hear_it() {
+        let now = Instant::now();
+        let units = work_units(8, 8, 8, 4096);
+        let lease = Duration::from_secs(5);
+        let mut s = Scheduler::new(units.clone(), 8, 8, PixelFormat::Samples, lease);
+        let (a, b, c) = (
+            s.register("a", 1, now),
+            s.register("b", 1, now),
+            s.register("c", 1, now),
+        );
+        for _ in 0..units.len() {
+            let (id, unit) = assign(&mut s, &a, now);
+            let wire = convert::unit_to_wire(&unit);
+            assert_eq!(
+                s.submit(&a, id, Some(&wire), &tile(&unit, 8, 0.5), 10, now),
+                Ok(true)
+            );
+            assert!(s.finished() || s.yet_to_hear_finished(now) == 0);
+        }
+        assert!(s.finished());
+        assert_eq!(s.yet_to_hear_finished(now), 3);
+        assert_eq!(s.next(&a, now), Ok(Next::Finished));
+        assert_eq!(s.yet_to_hear_finished(now), 2);
+        s.goodbye(&b, 0).unwrap();
+        assert_eq!(s.yet_to_hear_finished(now), 1);
+        // A worker silent for longer than the lease is not waited for.
+        assert_eq!(
+            s.yet_to_hear_finished(now + lease + Duration::from_millis(1)),
+            0
+        );
+        assert_eq!(s.next(&c, now), Ok(Next::Finished));
+        assert_eq!(s.yet_to_hear_finished(now), 0);
     }
 
     #[test]

@@ -239,6 +239,16 @@ pub fn in_process_worker(
     (runtime, stop, task)
 }
 
+/// Runs `future` to completion on a runtime of its own (one thread), as a
+/// test's hand-made client does.
+pub fn block_on<F: std::future::Future>(future: F) -> F::Output {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("a tokio runtime")
+        .block_on(future)
+}
+
 /// Registers a hand-driven worker (a raw gRPC client, for tests that play a
 /// worker's part themselves) with this build's protocol and probe digest;
 /// returns its id.
