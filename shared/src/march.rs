@@ -299,8 +299,17 @@ fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lane
             }
         }
         Some(m) => {
+            // α_k is read only where f > 0 (an empty lane's is left 0), and
+            // the hard region's f = 1 takes the map once per chunk.
+            let hard = 1.0 - clamp01(m.eval1(1.0));
             for l in 0..LANES {
-                transmit[l] = 1.0 - clamp01(m.eval1(f[l]));
+                transmit[l] = if f[l] == 0.0 {
+                    1.0
+                } else if f[l] == 1.0 {
+                    hard
+                } else {
+                    1.0 - clamp01(m.eval1(f[l]))
+                };
             }
         }
     }
@@ -371,14 +380,16 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
 /// copy of the loop leaves those out (the object point is the world point,
 /// the colour the colour map at f, the normal unperturbed, a ray never
 /// bends), computing what the general copy computes in that case.
-/// `pass_transparent` lets it pass transparent samples without their
-/// normals (the same result; off only to test that).
+/// `shortcuts` lets it pass transparent samples without their normals,
+/// reuse a sample's colour along a run of samples of the same f and normal,
+/// and skip the refraction map where f repeats (the same result; off only
+/// to test that).
 fn march<const COMMON: bool>(
     scene: &Scene,
     ray: Ray,
     field: &Field,
     phase: f32,
-    pass_transparent: bool,
+    shortcuts: bool,
 ) -> Sample {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
@@ -421,10 +432,16 @@ fn march<const COMMON: bool>(
     // or shading: `passed` holds the first and last of them since the last
     // normal, whose normals are found only where a later sample's normal
     // vanishes and falls back on the last one ([`latest_normal`]).
-    let lazy = pass_transparent
+    let lazy = shortcuts
         && scene.refraction.is_none()
         && matches!(scene.gradient, Gradient::Central | Gradient::Dual);
     let mut passed: Option<(u32, u32)> = None;
+    // With `position_free_shading`, the colour of the latest sample shaded
+    // without a normal of its own, and what it was a function of: f and the
+    // shading normal (as bits), on the current segment. A run of samples
+    // with the same f and normal (a hard region, where f = 1 and the normal
+    // stays the last one) reuses it.
+    let mut shaded: Option<((u32, [u32; 3]), Vec3)> = None;
 
     loop {
         if k < basis.first {
@@ -491,29 +508,27 @@ fn march<const COMMON: bool>(
                 last_normal = Some(n);
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
-            let (shading_normal, base) = if COMMON {
-                (shading_normal, Vec3::from_array(scene.colour_map.eval(f)))
-            } else {
-                // Colours and textures belong to the object: its point, not the world's.
-                let object_x = field.object_point(x);
-                let shading_normal = if lit {
-                    pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
-                } else {
-                    shading_normal // `shade` reads it only for lights
-                };
-                let key = scene.colour_key(object_x, f, field);
-                let base = pse::surface_colour(
-                    &scene.expressions,
-                    &scene.colour_map,
-                    object_x,
-                    f,
-                    key,
-                    field,
-                );
-                (shading_normal, base)
+            // Without a normal of its own a sample takes the last one, and
+            // perhaps the latest such sample's colour (in the general copy:
+            // the common case's rays stop at a hard region, where the runs
+            // are, unless an alpha map makes it transparent).
+            let key = (!COMMON && shortcuts && normal.is_none() && scene.position_free_shading)
+                .then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
+            let sample_colour = match (key, shaded) {
+                (Some(key), Some((held, colour))) if key == held => {
+                    #[cfg(test)]
+                    tests::REUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    colour
+                }
+                _ => {
+                    let colour =
+                        sample_colour::<COMMON>(scene, x, f, shading_normal, &basis, field, lit);
+                    if let Some(key) = key {
+                        shaded = Some((key, colour));
+                    }
+                    colour
+                }
             };
-            let sample_colour =
-                base * shade::<COMMON>(scene, x, shading_normal, basis.ray.direction, field);
             let weight = alpha_k * (1.0 - alpha);
             colour += sample_colour * weight;
             alpha += weight;
@@ -526,7 +541,10 @@ fn march<const COMMON: bool>(
         if let (false, Some(refraction), Some(n1)) =
             (COMMON, scene.refraction.as_ref(), medium_index)
         {
-            let n2 = refraction.eval1(f);
+            // The index at the previous sample's f was compared with (or
+            // became) n1: the same f changes nothing.
+            let same = shortcuts && previous.is_some_and(|p| p.to_bits() == f.to_bits());
+            let n2 = if same { n1 } else { refraction.eval1(f) };
             if (n2 - n1).abs() > 1e-6 {
                 medium_index = Some(n2);
                 let n = normal.or_else(|| match scene.gradient {
@@ -547,6 +565,7 @@ fn march<const COMMON: bool>(
                         basis = Basis::new(ray, step, (0.0, exit), phase, field.support);
                         chunk = Chunk::empty();
                         previous = None;
+                        shaded = None;
                         k = 1;
                         continue;
                     }
@@ -585,6 +604,44 @@ fn march<const COMMON: bool>(
         depth,
         normal: normal.to_array(),
     }
+}
+
+/// The colour a sample at x of density f contributes per unit of opacity:
+/// its base colour (the colour map at its key, or the colour expression)
+/// lit by [`shade`] with `shading_normal` (perturbed by the normal
+/// expression). `COMMON`: see [`march`]'s copies.
+#[inline(always)]
+fn sample_colour<const COMMON: bool>(
+    scene: &Scene,
+    x: Vec3,
+    f: f32,
+    shading_normal: Vec3,
+    basis: &Basis,
+    field: &Field,
+    lit: bool,
+) -> Vec3 {
+    let (shading_normal, base) = if COMMON {
+        (shading_normal, Vec3::from_array(scene.colour_map.eval(f)))
+    } else {
+        // Colours and textures belong to the object: its point, not the world's.
+        let object_x = field.object_point(x);
+        let shading_normal = if lit {
+            pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+        } else {
+            shading_normal // `shade` reads it only for lights
+        };
+        let key = scene.colour_key(object_x, f, field);
+        let base = pse::surface_colour(
+            &scene.expressions,
+            &scene.colour_map,
+            object_x,
+            f,
+            key,
+            field,
+        );
+        (shading_normal, base)
+    };
+    base * shade::<COMMON>(scene, x, shading_normal, basis.ray.direction, field)
 }
 
 /// The normal of the latest soft sample in `first ..= last` of `basis` whose
@@ -743,6 +800,57 @@ mod tests {
 
     /// How often a vanishing normal fell back on samples passed without one.
     pub(super) static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+
+    /// How many samples took the colour of the one before.
+    pub(super) static REUSED: AtomicUsize = AtomicUsize::new(0);
+
+    #[test]
+    fn reusing_a_run_of_samples_colour_changes_no_pixel() {
+        // Blue glass in small: the hard region transparent by the alpha
+        // map, the rays bent by the refraction map, lit by one light (runs
+        // of f = 1) or by none (every sample after the first without a
+        // normal of its own, f varying along the soft region).
+        for lights in [
+            "[Directional(direction: (-0.5, 0.7, 0.6), colour: (1.0, 1.0, 1.0))]",
+            "[]",
+        ] {
+            let text = format!(
+                "Scene(image: (width: 24, height: 24),
+                  camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
+                  lights: (ambient: (0.4, 0.4, 0.4), sources: {lights}),
+                  march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Diagonal(120), opacity: 40.0),
+                  object: Sphere(radius: 0.8, softness: 0.3),
+                  modulation: [NoisyRadius(frequency: 3.0, amplitude: 0.15)],
+                  colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
+                  alpha_map: (points: [(0.0, 0.0), (1.0, 0.06)]),
+                  refraction: (points: [(0.0, 1.0), (0.5, 1.0), (0.51, 1.5), (1.0, 1.5)]),
+                  shading: (specular: 0.3))"
+            );
+            let scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
+            assert!(scene.position_free_shading && !scene.common_case);
+            let field = scene.field(0);
+            let before = REUSED.load(Ordering::Relaxed);
+            let mut seen = 0;
+            for y in 0..24 {
+                for x in 0..24 {
+                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
+                    let fast = march::<false>(&scene, ray, &field, 0.25, true);
+                    let every = march::<false>(&scene, ray, &field, 0.25, false);
+                    assert_eq!(
+                        fast.to_array().map(f32::to_bits),
+                        every.to_array().map(f32::to_bits),
+                        "lights {lights}: pixel ({x}, {y})"
+                    );
+                    seen += usize::from(fast.density > 0.0);
+                }
+            }
+            assert!(seen > 100, "the glass covers the image ({seen})");
+            assert!(
+                REUSED.load(Ordering::Relaxed) > before + 1000,
+                "lights {lights}: runs of samples reused their colour"
+            );
+        }
+    }
 
     #[test]
     fn passing_transparent_samples_changes_no_pixel() {

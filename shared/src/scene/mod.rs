@@ -477,6 +477,11 @@ pub struct Scene {
     /// colour key. It then runs a sample loop without
     /// the rest (`march::trace_with_phase`).
     pub(crate) common_case: bool,
+    /// Whether a sample's colour is a function of its f, its shading normal
+    /// and the ray's direction alone (no expressions, motion, strata,
+    /// shadows or point lights), so that a run of samples sharing those
+    /// shares it: see `march`.
+    pub(crate) position_free_shading: bool,
 }
 
 impl Scene {
@@ -573,7 +578,7 @@ impl Scene {
                 squares: squares.0 as f32,
             },
         };
-        let lights = desc
+        let lights: Vec<Light> = desc
             .lights
             .sources
             .iter()
@@ -623,6 +628,14 @@ impl Scene {
             && expressions.normal_perturbation.is_none()
             && !desc.shading.shadows
             && matches!(colour_index, ColourIndex::Density);
+        let position_free_shading = motion.is_none()
+            && expressions.colour.is_none()
+            && expressions.normal_perturbation.is_none()
+            && !desc.shading.shadows
+            && matches!(colour_index, ColourIndex::Density)
+            && lights
+                .iter()
+                .all(|l| matches!(l, Light::Directional { .. }));
         Ok(Scene {
             width: desc.image.width,
             height: desc.image.height,
@@ -657,6 +670,7 @@ impl Scene {
             motion,
             assets: Vec::new(),
             common_case,
+            position_free_shading,
         })
     }
 
