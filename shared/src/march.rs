@@ -801,6 +801,27 @@ mod tests {
     /// How often a vanishing normal fell back on samples passed without one.
     pub(super) static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
 
+    /// The general loop's pixels of `scene` (24×24), each checked to have
+    /// the same bits with the loop's shortcuts and without them.
+    fn same_with_and_without_shortcuts(scene: &Scene, what: &str) -> Vec<Sample> {
+        let field = scene.field(0);
+        let mut pixels = Vec::new();
+        for y in 0..24 {
+            for x in 0..24 {
+                let ray = scene.camera.ray(x, y, (0.5, 0.5));
+                let fast = march::<false>(scene, ray, &field, 0.25, true);
+                let every = march::<false>(scene, ray, &field, 0.25, false);
+                assert_eq!(
+                    fast.to_array().map(f32::to_bits),
+                    every.to_array().map(f32::to_bits),
+                    "{what}: pixel ({x}, {y})"
+                );
+                pixels.push(fast);
+            }
+        }
+        pixels
+    }
+
     /// How many samples took the colour of the one before.
     pub(super) static REUSED: AtomicUsize = AtomicUsize::new(0);
 
@@ -828,22 +849,9 @@ mod tests {
             );
             let scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
             assert!(scene.position_free_shading && !scene.common_case);
-            let field = scene.field(0);
             let before = REUSED.load(Ordering::Relaxed);
-            let mut seen = 0;
-            for y in 0..24 {
-                for x in 0..24 {
-                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
-                    let fast = march::<false>(&scene, ray, &field, 0.25, true);
-                    let every = march::<false>(&scene, ray, &field, 0.25, false);
-                    assert_eq!(
-                        fast.to_array().map(f32::to_bits),
-                        every.to_array().map(f32::to_bits),
-                        "lights {lights}: pixel ({x}, {y})"
-                    );
-                    seen += usize::from(fast.density > 0.0);
-                }
-            }
+            let pixels = same_with_and_without_shortcuts(&scene, &format!("lights {lights}"));
+            let seen = pixels.iter().filter(|p| p.density > 0.0).count();
             assert!(seen > 100, "the glass covers the image ({seen})");
             assert!(
                 REUSED.load(Ordering::Relaxed) > before + 1000,
@@ -871,22 +879,9 @@ mod tests {
                   shading: (gradient: {gradient}, specular: 0.3))"
             );
             let scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
-            let field = scene.field(0);
             let before = FALLBACKS.load(Ordering::Relaxed);
-            let mut shaded = 0;
-            for y in 0..24 {
-                for x in 0..24 {
-                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
-                    let passed = march::<false>(&scene, ray, &field, 0.25, true);
-                    let every = march::<false>(&scene, ray, &field, 0.25, false);
-                    assert_eq!(
-                        passed.to_array().map(f32::to_bits),
-                        every.to_array().map(f32::to_bits),
-                        "{gradient}: pixel ({x}, {y})"
-                    );
-                    shaded += usize::from(passed.rgba[3] > 0.5);
-                }
-            }
+            let pixels = same_with_and_without_shortcuts(&scene, gradient);
+            let shaded = pixels.iter().filter(|p| p.rgba[3] > 0.5).count();
             assert!(
                 shaded > 100,
                 "{gradient}: the sphere covers the image ({shaded})"
