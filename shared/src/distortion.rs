@@ -810,7 +810,7 @@ mod tests {
     fn lanes_on(d: &Distortion, x: &Points, object: &Density, field: &Field, isa: Isa) -> Points {
         #[cfg(target_arch = "x86_64")]
         {
-            #[target_feature(enable = "avx512f")]
+            #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
             fn avx512(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
                 d.apply_lanes(x, o, f, Isa::Avx512)
             }

@@ -130,8 +130,36 @@ pub fn pow01_on(isa: Isa, x: &Lanes, e: f32) -> Lanes {
 /// loop vectorises; each lane's value is the scalar one.
 #[inline(always)]
 pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
-    let mut out = [0.0; LANES];
-    for l in 0..LANES {
+    pow01_lanes_live(x, e, u32::MAX)
+}
+
+/// [`pow01_lanes`] in the blocks of lanes with a lane set in `live`
+/// ([`crate::simd::live_blocks`]); the other blocks come out 1.
+#[inline(always)]
+pub(crate) fn pow01_lanes_live(x: &Lanes, e: f32, live: u32) -> Lanes {
+    use crate::simd::{BLOCK, LiveBlocks, live_blocks};
+    let mut out = [1.0; LANES];
+    match live_blocks(live) {
+        LiveBlocks::All => pow01_block(x, &mut out, e),
+        LiveBlocks::First => pow01_block(
+            &x.as_chunks::<BLOCK>().0[0],
+            &mut out.as_chunks_mut::<BLOCK>().0[0],
+            e,
+        ),
+        LiveBlocks::Second => pow01_block(
+            &x.as_chunks::<BLOCK>().0[1],
+            &mut out.as_chunks_mut::<BLOCK>().0[1],
+            e,
+        ),
+        LiveBlocks::None => {}
+    }
+    out
+}
+
+/// `pow01` of N lanes into `out`, every lane computed and selected.
+#[inline(always)]
+fn pow01_block<const N: usize>(x: &[f32; N], out: &mut [f32; N], e: f32) {
+    for l in 0..N {
         let v = x[l];
         // Keep log2's argument in range for the lanes whose result is discarded.
         let safe = if v > 0.0 && v < 1.0 { v } else { 0.5 };
@@ -144,14 +172,13 @@ pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
             p
         };
     }
-    out
 }
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn pow01_avx512(x: &Lanes, e: f32) -> Lanes {
         pow01_lanes(x, e)
     }

@@ -64,7 +64,16 @@ struct Basis {
     last: f32,
     /// Sample k lies at `t0 + (k + phase)·step` (jittered supersampling).
     phase: f32,
+    /// Blinn's half vector `(l − d)/|l − d|` of each of the first
+    /// [`HALVES`] lights that is directional, where the scene has specular
+    /// highlights (the other entries unused): the same at every sample of
+    /// the segment, of direction d.
+    halves: [Vec3; HALVES],
 }
+
+/// The lights whose half vectors a [`Basis`] holds; [`shade`] computes the
+/// others' at each sample.
+const HALVES: usize = 4;
 
 impl Basis {
     fn new(
@@ -73,6 +82,7 @@ impl Basis {
         (t0, t1): (f32, f32),
         phase: f32,
         support: Option<Support>,
+        scene: &Scene,
     ) -> Basis {
         let (dv, dw) = perpendiculars(ray.direction, step);
         // Empty-space skipping: only the samples inside the (widened) support are
@@ -97,6 +107,12 @@ impl Basis {
                 }
             },
         };
+        let halves = std::array::from_fn(|i| match scene.lights.get(i) {
+            Some(&Light::Directional { direction, .. }) if scene.specular > 0.0 => {
+                (direction - ray.direction).normalize_or_zero()
+            }
+            _ => Vec3::ZERO,
+        });
         Basis {
             ray,
             du: ray.direction * step,
@@ -107,6 +123,7 @@ impl Basis {
             first,
             last,
             phase,
+            halves,
         }
     }
 
@@ -313,13 +330,15 @@ fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lane
             }
         }
     }
-    // 1^e = 1 (`pow01`): empty samples are transparent without the power.
-    if transmit.iter().all(|&t| t >= 1.0) {
+    // 1^e = 1 (`pow01`): empty samples are transparent without the power,
+    // and a block of them goes without it.
+    let opaque = (0..LANES).fold(0u32, |m, l| m | (u32::from(transmit[l] < 1.0) << l));
+    if opaque == 0 {
         return (f, [0.0; LANES]);
     }
     let e = scene.opacity_exponent;
     let p = if simd {
-        crate::fastmath::pow01_lanes(&transmit, e)
+        crate::fastmath::pow01_lanes_live(&transmit, e, opaque)
     } else {
         fastmath::pow01_on(Isa::Scalar, &transmit, e)
     };
@@ -343,7 +362,7 @@ fn outside(field: &Field) -> Option<Vec3> {
 mod x86 {
     use super::*;
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn samples_avx512(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
         samples(scene, x, field, true)
     }
@@ -402,7 +421,7 @@ fn march<const COMMON: bool>(
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
 
-    let mut basis = Basis::new(ray, step, (t0, t1), phase, field.support);
+    let mut basis = Basis::new(ray, step, (t0, t1), phase, field.support, scene);
     let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
     let mut path = 0.0f32;
@@ -562,7 +581,7 @@ fn march<const COMMON: bool>(
                     };
                     if let Some((_, exit)) = slab(&ray, min, max) {
                         path += t;
-                        basis = Basis::new(ray, step, (0.0, exit), phase, field.support);
+                        basis = Basis::new(ray, step, (0.0, exit), phase, field.support, scene);
                         chunk = Chunk::empty();
                         previous = None;
                         shaded = None;
@@ -578,16 +597,12 @@ fn march<const COMMON: bool>(
         if chunk.empty && chunk.full && k == chunk.start + 1 {
             // Sample k − 1 opened a chunk of zeros and went through the loop
             // without effect (no colour, no bend); the rest of the chunk would
-            // do the same, costing budget and leaving f(x − Δx_μ) = 0.
+            // do the same, costing budget and leaving f(x − Δx_μ) = 0. Should
+            // the ray end or the budget run out among them, the loop ends at
+            // the chunk's end too (t grows with k).
             let end = chunk.start + LANES as u32;
-            while k < end {
-                let t = basis.t(k, step);
-                if t > basis.t1 || budget == 0 || t > basis.last {
-                    break;
-                }
-                budget -= 1;
-                k += 1;
-            }
+            budget = budget.saturating_sub(u64::from(end - k));
+            k = end;
         }
     }
 
@@ -641,7 +656,7 @@ fn sample_colour<const COMMON: bool>(
         );
         (shading_normal, base)
     };
-    base * shade::<COMMON>(scene, x, shading_normal, basis.ray.direction, field)
+    base * shade::<COMMON>(scene, x, shading_normal, basis, field)
 }
 
 /// The normal of the latest soft sample in `first ..= last` of `basis` whose
@@ -738,19 +753,29 @@ fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
 }
 
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
-/// along `dir`: ambient plus diffuse and Blinn–Phong specular from every light
-/// (`COMMON`: a scene without shadows).
+/// along the direction of `basis`: ambient plus diffuse and Blinn–Phong
+/// specular from every light (`COMMON`: a scene without shadows).
 #[inline]
-fn shade<const COMMON: bool>(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: &Field) -> Vec3 {
+fn shade<const COMMON: bool>(
+    scene: &Scene,
+    x: Vec3,
+    n: Vec3,
+    basis: &Basis,
+    field: &Field,
+) -> Vec3 {
+    let dir = basis.ray.direction;
     let mut light = scene.ambient;
-    for source in &scene.lights {
-        let (l, colour, distance) = match *source {
-            Light::Directional { direction, colour } => (direction, colour, f32::INFINITY),
+    for (i, source) in scene.lights.iter().enumerate() {
+        // The half vector where the basis holds it.
+        let (l, colour, distance, half) = match *source {
+            Light::Directional { direction, colour } => {
+                (direction, colour, f32::INFINITY, basis.halves.get(i))
+            }
             Light::Point { position, colour } => {
                 let to = position - x;
                 let d2 = to.length_squared().max(1e-4);
                 let d = d2.sqrt();
-                (to / d, colour / d2, d)
+                (to / d, colour / d2, d, None)
             }
         };
         let lambert = n.dot(l);
@@ -764,7 +789,9 @@ fn shade<const COMMON: bool>(scene: &Scene, x: Vec3, n: Vec3, dir: Vec3, field: 
         };
         let mut response = scene.diffuse * lambert;
         if scene.specular > 0.0 {
-            let h = (l - dir).normalize_or_zero();
+            let h = half
+                .copied()
+                .unwrap_or_else(|| (l - dir).normalize_or_zero());
             let nh = n.dot(h);
             if nh > 0.0 {
                 response += scene.specular * fastmath::pow01(nh, scene.shininess);

@@ -380,13 +380,68 @@ impl Noise {
         }
     }
 
+    /// [`Noise::corners`] of 16 cells at once, corner (0, dj, dk)'s rows of
+    /// every lane at index dj + 2·dk: the look-ups of P as byte permutes
+    /// (AVX-512 VBMI) of the 256-byte table held in four registers, so the
+    /// sums (j + dj + φ(k + dk)) mod n are byte additions. The same indices.
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512F, BW and VBMI; i, j, k are in 0..256.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn corners16(
+        &self,
+        i: std::arch::x86_64::__m512i,
+        j: std::arch::x86_64::__m512i,
+        k: std::arch::x86_64::__m512i,
+    ) -> [[u32; 16]; 4] {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX-512F/BW/VBMI by the caller's contract; the loads are
+        // of 64 bytes within the 256 of P, the stores of 16 u32 into arrays
+        // of 16.
+        unsafe {
+            let p = self.perm.as_ptr();
+            let table = [0, 1, 2, 3].map(|q| _mm512_loadu_si512(p.add(64 * q).cast()));
+            // P at 64 byte indices: bits 0–6 pick among 128 bytes, bit 7 the half.
+            let look = |idx: __m512i| {
+                let low = _mm512_permutex2var_epi8(table[0], idx, table[1]);
+                let high = _mm512_permutex2var_epi8(table[2], idx, table[3]);
+                _mm512_mask_blend_epi8(_mm512_movepi8_mask(idx), low, high)
+            };
+            // φ(k) in bytes 0–15, φ(k + 1) in 16–31 (k + 1 = 256 wraps to 0).
+            let kb = _mm512_cvtepi32_epi8(k);
+            let k1b = _mm512_cvtepi32_epi8(_mm512_add_epi32(k, _mm512_set1_epi32(1)));
+            let a = look(_mm512_inserti32x4::<1>(_mm512_castsi128_si512(kb), k1b));
+            // Block dj + 2·dk: j + dj + φ(k + dk), mod 256 as bytes.
+            let a = _mm512_shuffle_i32x4::<0b01_01_00_00>(a, a);
+            let dj = _mm512_inserti32x4::<3>(
+                _mm512_inserti32x4::<1>(_mm512_setzero_si512(), _mm_set1_epi8(1)),
+                _mm_set1_epi8(1),
+            );
+            let jb = _mm512_broadcast_i32x4(_mm512_cvtepi32_epi8(j));
+            let b = look(_mm512_add_epi8(_mm512_add_epi8(jb, dj), a));
+            let mut out = [[0u32; 16]; 4];
+            let blocks = [
+                _mm512_castsi512_si128(b),
+                _mm512_extracti32x4_epi32::<1>(b),
+                _mm512_extracti32x4_epi32::<2>(b),
+                _mm512_extracti32x4_epi32::<3>(b),
+            ];
+            for (o, block) in out.iter_mut().zip(blocks) {
+                let m = _mm512_add_epi32(i, _mm512_cvtepu8_epi32(block));
+                _mm512_storeu_si512(o.as_mut_ptr().cast(), m);
+            }
+            out
+        }
+    }
+
     /// [`Noise::noise`] at 16 points in AVX-512 registers: [`Noise::noise8`]'s
     /// operations, 16 lanes at a time (gradient rows of lanes l, l + 4,
     /// l + 8 and l + 12 in the four 128-bit blocks, so the in-block shuffles
     /// transpose all four at once).
     ///
     /// # Safety
-    /// The CPU must have AVX-512F.
+    /// The CPU must have AVX-512F, BW and VBMI.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub(crate) unsafe fn noise16(
@@ -396,33 +451,15 @@ impl Noise {
         z: std::arch::x86_64::__m512,
     ) -> std::arch::x86_64::__m512 {
         use std::arch::x86_64::*;
-        // SAFETY: AVX-512F by the caller's contract; the stores are of 16
-        // i32 into arrays of 16; the rows are 16-byte aligned and in the
-        // table (below).
+        // SAFETY: AVX-512F, BW and VBMI by the caller's contract; the rows
+        // are 16-byte aligned and in the table (below).
         unsafe {
             let (fx, fy, fz) = (floor16(x), floor16(y), floor16(z));
-            let mut cell = [[0u32; 16]; 3];
             let n = _mm512_set1_epi32(255);
-            _mm512_storeu_si512(
-                cell[0].as_mut_ptr().cast(),
-                _mm512_and_si512(lattice16(fx), n),
-            );
-            _mm512_storeu_si512(
-                cell[1].as_mut_ptr().cast(),
-                _mm512_and_si512(lattice16(fy), n),
-            );
-            _mm512_storeu_si512(
-                cell[2].as_mut_ptr().cast(),
-                _mm512_and_si512(lattice16(fz), n),
-            );
-            let mut corners = [[0usize; 4]; 16];
-            for (l, c) in corners.iter_mut().enumerate() {
-                *c = self.corners(
-                    cell[0][l] as usize,
-                    cell[1][l] as usize,
-                    cell[2][l] as usize,
-                );
-            }
+            let i = _mm512_and_si512(lattice16(fx), n);
+            let j = _mm512_and_si512(lattice16(fy), n);
+            let k = _mm512_and_si512(lattice16(fz), n);
+            let corners = self.corners16(i, j, k);
             let rows = self.gradient_of.as_ptr();
             let one = _mm512_set1_ps(1.0);
             let (u, v, w) = (
@@ -443,7 +480,8 @@ impl Noise {
                     for di in 0..2 {
                         // SAFETY: `corners` are < 511, so the row is in the table.
                         let row = |l: usize| {
-                            _mm_load_ps((*rows.add(corners[l][dj + 2 * dk] + di)).0.as_ptr())
+                            let m = corners[dj + 2 * dk][l] as usize;
+                            _mm_load_ps((*rows.add(m + di)).0.as_ptr())
                         };
                         let quad = |l: usize| {
                             let low = _mm256_set_m128(row(l + 4), row(l));
@@ -762,7 +800,7 @@ mod batch {
         noise_batch_lanes(n, points, out)
     }
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn noise_avx512(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
         n.noise_lanes_on(Isa::Avx512, x, y, z)
     }

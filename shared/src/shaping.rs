@@ -77,8 +77,18 @@ impl Bias {
     /// scalar path's: that goes point by point).
     #[inline(always)]
     pub(crate) fn apply_simd(&self, t: &Lanes) -> Lanes {
+        self.apply_simd_live(t, u32::MAX)
+    }
+
+    /// [`Bias::apply_simd`] in the blocks of lanes with a lane set in
+    /// `live` (the others come out as anything).
+    #[inline(always)]
+    pub(crate) fn apply_simd_live(&self, t: &Lanes, live: u32) -> Lanes {
         let t = t.map(clamp01);
-        self.finish(&t, &crate::fastmath::pow01_lanes(&t, self.exponent))
+        self.finish(
+            &t,
+            &crate::fastmath::pow01_lanes_live(&t, self.exponent, live),
+        )
     }
 
     /// 0 where t is 0, else the power `p`.
@@ -145,9 +155,16 @@ impl Gain {
     /// [`Gain::apply_lanes`] inlined into a SIMD path's code.
     #[inline(always)]
     pub(crate) fn apply_simd(&self, t: &Lanes) -> Lanes {
+        self.apply_simd_live(t, u32::MAX)
+    }
+
+    /// [`Gain::apply_simd`] in the blocks of lanes with a lane set in
+    /// `live` (the others come out as anything).
+    #[inline(always)]
+    pub(crate) fn apply_simd_live(&self, t: &Lanes, live: u32) -> Lanes {
         let t = t.map(clamp01);
         let arg = t.map(|t| if t < 0.5 { 2.0 * t } else { 2.0 - 2.0 * t });
-        self.finish(&t, &self.bias.apply_simd(&arg))
+        self.finish(&t, &self.bias.apply_simd_live(&arg, live))
     }
 
     /// The two halves of the spline from `b = bias(arg)`.

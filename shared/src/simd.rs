@@ -29,6 +29,38 @@ pub const LANES: usize = 16;
 /// One f32 per lane.
 pub type Lanes = [f32; LANES];
 
+/// Lanes per block: an AVX register of f32. Lane code that takes a mask of
+/// live lanes skips a block of [`BLOCK`] lanes with none live
+/// ([`live_blocks`]).
+pub const BLOCK: usize = 8;
+
+/// Which lanes of a mask `live` (bit l for lane l) to compute, by whole
+/// blocks of [`BLOCK`]: all [`LANES`] (both blocks live, one register on
+/// AVX-512), the first or the second block only, or none.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LiveBlocks {
+    /// Both blocks.
+    All,
+    /// Lanes 0 .. [`BLOCK`] only.
+    First,
+    /// Lanes [`BLOCK`] .. [`LANES`] only.
+    Second,
+    /// No lane.
+    None,
+}
+
+/// The blocks of `live` to compute.
+#[inline(always)]
+pub fn live_blocks(live: u32) -> LiveBlocks {
+    const MASK: u32 = (1 << BLOCK) - 1;
+    match (live & MASK != 0, (live >> BLOCK) & MASK != 0) {
+        (true, true) => LiveBlocks::All,
+        (true, false) => LiveBlocks::First,
+        (false, true) => LiveBlocks::Second,
+        (false, false) => LiveBlocks::None,
+    }
+}
+
 /// An instruction-set path for the batch kernels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Isa {
@@ -38,24 +70,20 @@ pub enum Isa {
     Sse41,
     /// Lane-parallel code compiled for AVX2 (8-wide).
     Avx2,
-    /// Lane-parallel code compiled for AVX-512 (16-wide: all [`LANES`] in
-    /// one register).
+    /// Lane-parallel code compiled for AVX-512 F, BW and VBMI (16-wide: all
+    /// [`LANES`] in one register; Ice Lake, Sapphire Rapids, Zen 4 and
+    /// later).
     Avx512,
 }
 
 impl Isa {
-    /// The path the renderer takes on this CPU: the widest it supports, but
-    /// AVX2 where there is AVX-512 too. On the Xeon measured (Sapphire
-    /// Rapids class) the 16-wide path takes 1.07× the CPU time of AVX2 for
-    /// the fur (docs/benchmark-log.md): the marcher's scalar code between
-    /// the kernels runs slower after 512-bit instructions.
-    /// [`crate::Scene::set_isa`] asks for it (`ISA=avx512` in the examples).
+    /// The path the renderer takes on this CPU: the widest it supports. The
+    /// 16-wide path looks up the noise's permutation by byte permutes
+    /// (VBMI), which leaves it 0.89× the CPU time of AVX2 for the fur and
+    /// 0.88× for the noisy sphere on the Xeon measured (docs/benchmark-log.md).
+    /// [`crate::Scene::set_isa`] asks for another (`ISA=avx2` in the examples).
     pub fn detect() -> Isa {
-        let available = Isa::available();
-        if available.contains(&Isa::Avx2) {
-            return Isa::Avx2;
-        }
-        available.into_iter().last().unwrap_or(Isa::Scalar)
+        Isa::available().into_iter().last().unwrap_or(Isa::Scalar)
     }
 
     /// Every path this CPU can run, slowest first.
@@ -69,7 +97,10 @@ impl Isa {
             if std::is_x86_feature_detected!("avx2") {
                 v.push(Isa::Avx2);
             }
-            if std::is_x86_feature_detected!("avx512f") {
+            if std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512bw")
+                && std::is_x86_feature_detected!("avx512vbmi")
+            {
                 v.push(Isa::Avx512);
             }
         }

@@ -221,10 +221,33 @@ impl SoftTorus {
     /// [`SoftTorus::project`] at each of the lanes' points (the same bits).
     #[inline(always)]
     pub fn project_lanes(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes) {
+        self.project_lanes_live(x, y, z, u32::MAX);
+    }
+
+    /// [`SoftTorus::project_lanes`] in the blocks of lanes with a lane set
+    /// in `live` ([`crate::simd::live_blocks`]); the other points are left.
+    #[inline(always)]
+    pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
+        use crate::simd::{BLOCK, LiveBlocks, live_blocks};
+        // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
+        fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
+            &mut a.as_chunks_mut::<BLOCK>().0[i]
+        }
+        match live_blocks(live) {
+            LiveBlocks::All => self.project_block(x, y, z),
+            LiveBlocks::First => self.project_block(h(x, 0), h(y, 0), h(z, 0)),
+            LiveBlocks::Second => self.project_block(h(x, 1), h(y, 1), h(z, 1)),
+            LiveBlocks::None => {}
+        }
+    }
+
+    /// [`SoftTorus::project`] of N lanes in place.
+    #[inline(always)]
+    fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]) {
         let (c, a) = (self.centre, self.axis);
         let fallback = a.any_orthonormal_vector();
         let inner = self.falloff.inner;
-        for l in 0..LANES {
+        for l in 0..N {
             let (px, py, pz) = (x[l], y[l], z[l]);
             // The nearest point of the core circle.
             let (qx, qy, qz) = (px - c.x, py - c.y, pz - c.z);

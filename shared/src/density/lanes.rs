@@ -137,15 +137,25 @@ impl Density {
         }
     }
 
-    /// [`Density::project_lanes`] in place: the points are not copied (the
-    /// fur's hot path).
+    /// [`Density::project_lanes`] in place (the points are not copied: the
+    /// fur's hot path), of the lanes set in `live` (bit l for lane l): a
+    /// torus's in the blocks of [`crate::simd::BLOCK`] lanes with one live,
+    /// the other objects' point by point. The other points are left.
     #[inline(always)]
-    pub(crate) fn project_lanes_in_place(&self, x: &mut Points) {
+    pub(crate) fn project_lanes_in_place(&self, x: &mut Points, live: u32) {
+        #[inline(always)]
+        fn each_live(x: &mut Points, live: u32, project: impl Fn(Vec3) -> Vec3) {
+            for l in 0..LANES {
+                if live & (1 << l) != 0 {
+                    x.set(l, project(x.get(l)));
+                }
+            }
+        }
         match self {
-            Density::Sphere(s) => *x = x.map(|p| s.project(p)),
-            Density::Box(b) => *x = x.map(|p| b.project(p)),
-            Density::Torus(t) => t.project_lanes(&mut x.x, &mut x.y, &mut x.z),
-            Density::Mesh(m) => *x = x.map(|p| m.project(p)),
+            Density::Sphere(s) => each_live(x, live, |p| s.project(p)),
+            Density::Box(b) => each_live(x, live, |p| b.project(p)),
+            Density::Torus(t) => t.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
+            Density::Mesh(m) => each_live(x, live, |p| m.project(p)),
             _ => {}
         }
     }
@@ -311,7 +321,7 @@ impl Density {
 mod x86 {
     use super::*;
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn eval_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
         d.eval_lanes_simd(x, field, Isa::Avx512)
     }
@@ -326,7 +336,7 @@ mod x86 {
         d.eval_lanes_simd(x, field, Isa::Sse41)
     }
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn eval_object_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
         d.eval_object_lanes_simd(x, field, Isa::Avx512)
     }

@@ -604,7 +604,7 @@ impl Program {
 mod x86 {
     use super::*;
 
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
     pub(super) fn run_avx512(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
         p.run_simd(x, d, field, Isa::Avx512)
     }

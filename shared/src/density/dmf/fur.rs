@@ -97,7 +97,7 @@ impl ValueDmf for Fur {
             let a = field.noise_lanes_live(&q.map(|q| q - VNOISE_OFFSET), isa, live);
             let b = field.noise_lanes_live(&q, isa, live);
             let c = field.noise_lanes_live(&q.map(|q| q + VNOISE_OFFSET), isa, live);
-            let curl = self.curl_gain.apply_simd(&d.map(|d| 1.0 - d));
+            let curl = self.curl_gain.apply_simd_live(&d.map(|d| 1.0 - d), live);
             let mut out = Points::default();
             for l in 0..LANES {
                 let v = Vec3::new(a[l], b[l], c[l]);
@@ -107,11 +107,13 @@ impl ValueDmf for Fur {
         } else {
             *x
         };
-        object.project_lanes_in_place(&mut x);
+        object.project_lanes_in_place(&mut x, live);
         let s = field
             .noise_at_live(self.frequency, &x, isa, live)
             .map(|n| 0.5 * (1.0 + n));
-        let shaped = self.gain.apply_simd(&self.bias.apply_simd(&s));
+        let shaped = self
+            .gain
+            .apply_simd_live(&self.bias.apply_simd_live(&s, live), live);
         zip(&shaped, d, |f, d| f * d)
     }
 }

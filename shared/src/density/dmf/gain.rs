@@ -36,8 +36,8 @@ impl ValueDmf for Gain {
         _object: &Density,
         _field: &Field,
         _isa: Isa,
-        _live: u32,
+        live: u32,
     ) -> Lanes {
-        self.apply_simd(d)
+        self.apply_simd_live(d, live)
     }
 }
