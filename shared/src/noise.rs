@@ -388,7 +388,8 @@ impl Noise {
     /// # Safety
     /// The CPU must have AVX-512F, BW and VBMI; i, j, k are in 0..256.
     #[cfg(target_arch = "x86_64")]
-    #[inline(always)]
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+    #[inline]
     unsafe fn corners16(
         &self,
         i: std::arch::x86_64::__m512i,
@@ -401,17 +402,29 @@ impl Noise {
         // of 16.
         unsafe {
             let p = self.perm.as_ptr();
-            let table = [0, 1, 2, 3].map(|q| _mm512_loadu_si512(p.add(64 * q).cast()));
-            // P at 64 byte indices: bits 0–6 pick among 128 bytes, bit 7 the half.
-            let look = |idx: __m512i| {
+            let table = [
+                _mm512_loadu_si512(p.cast()),
+                _mm512_loadu_si512(p.add(64).cast()),
+                _mm512_loadu_si512(p.add(128).cast()),
+                _mm512_loadu_si512(p.add(192).cast()),
+            ];
+            // P at 64 byte indices: bits 0–6 pick among 128 bytes, bit 7 the
+            // half. (A function, not a closure: a closure does not take the
+            // target features, and its intrinsics were left as calls.)
+            #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+            #[inline]
+            fn look(table: &[__m512i; 4], idx: __m512i) -> __m512i {
                 let low = _mm512_permutex2var_epi8(table[0], idx, table[1]);
                 let high = _mm512_permutex2var_epi8(table[2], idx, table[3]);
                 _mm512_mask_blend_epi8(_mm512_movepi8_mask(idx), low, high)
-            };
+            }
             // φ(k) in bytes 0–15, φ(k + 1) in 16–31 (k + 1 = 256 wraps to 0).
             let kb = _mm512_cvtepi32_epi8(k);
             let k1b = _mm512_cvtepi32_epi8(_mm512_add_epi32(k, _mm512_set1_epi32(1)));
-            let a = look(_mm512_inserti32x4::<1>(_mm512_castsi128_si512(kb), k1b));
+            let a = look(
+                &table,
+                _mm512_inserti32x4::<1>(_mm512_castsi128_si512(kb), k1b),
+            );
             // Block dj + 2·dk: j + dj + φ(k + dk), mod 256 as bytes.
             let a = _mm512_shuffle_i32x4::<0b01_01_00_00>(a, a);
             let dj = _mm512_inserti32x4::<3>(
@@ -419,7 +432,7 @@ impl Noise {
                 _mm_set1_epi8(1),
             );
             let jb = _mm512_broadcast_i32x4(_mm512_cvtepi32_epi8(j));
-            let b = look(_mm512_add_epi8(_mm512_add_epi8(jb, dj), a));
+            let b = look(&table, _mm512_add_epi8(_mm512_add_epi8(jb, dj), a));
             let mut out = [[0u32; 16]; 4];
             let blocks = [
                 _mm512_castsi512_si128(b),

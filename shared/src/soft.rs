@@ -111,6 +111,45 @@ impl SoftSphere {
         self.centre + direction_or(x - self.centre, Vec3::Y) * self.falloff.inner
     }
 
+    /// [`SoftSphere::project`] at the lanes of the blocks with a lane set in
+    /// `live` ([`crate::simd::live_blocks`]), written lane-parallel with
+    /// exactly the scalar operations (so the same bits); the other points
+    /// are left.
+    #[inline(always)]
+    pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
+        use crate::simd::{BLOCK, LiveBlocks, live_blocks};
+        // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
+        fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
+            &mut a.as_chunks_mut::<BLOCK>().0[i]
+        }
+        match live_blocks(live) {
+            LiveBlocks::All => self.project_block(x, y, z),
+            LiveBlocks::First => self.project_block(h(x, 0), h(y, 0), h(z, 0)),
+            LiveBlocks::Second => self.project_block(h(x, 1), h(y, 1), h(z, 1)),
+            LiveBlocks::None => {}
+        }
+    }
+
+    /// [`SoftSphere::project`] of N lanes in place.
+    #[inline(always)]
+    fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]) {
+        let (c, inner) = (self.centre, self.falloff.inner);
+        for l in 0..N {
+            let (vx, vy, vz) = (x[l] - c.x, y[l] - c.y, z[l] - c.z);
+            let len2 = vx * vx + vy * vy + vz * vz;
+            let len = len2.sqrt();
+            // `direction_or(v, Y)`.
+            let (dx, dy, dz) = if len2 > 1e-20 {
+                (vx / len, vy / len, vz / len)
+            } else {
+                (0.0, 1.0, 0.0)
+            };
+            x[l] = c.x + dx * inner;
+            y[l] = c.y + dy * inner;
+            z[l] = c.z + dz * inner;
+        }
+    }
+
     /// [`SoftSphere::density`] at each of the lanes' points, written
     /// lane-parallel with exactly the scalar operations (so the same bits).
     #[inline(always)]

@@ -139,8 +139,9 @@ impl Density {
 
     /// [`Density::project_lanes`] in place (the points are not copied: the
     /// fur's hot path), of the lanes set in `live` (bit l for lane l): a
-    /// torus's in the blocks of [`crate::simd::BLOCK`] lanes with one live,
-    /// the other objects' point by point. The other points are left.
+    /// sphere's or a torus's in the blocks of [`crate::simd::BLOCK`] lanes
+    /// with one live, the other objects' point by point. The other points
+    /// are left.
     #[inline(always)]
     pub(crate) fn project_lanes_in_place(&self, x: &mut Points, live: u32) {
         #[inline(always)]
@@ -152,7 +153,7 @@ impl Density {
             }
         }
         match self {
-            Density::Sphere(s) => each_live(x, live, |p| s.project(p)),
+            Density::Sphere(s) => s.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
             Density::Box(b) => each_live(x, live, |p| b.project(p)),
             Density::Torus(t) => t.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
             Density::Mesh(m) => each_live(x, live, |p| m.project(p)),
