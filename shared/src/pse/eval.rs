@@ -494,7 +494,7 @@ impl Program {
                 }
                 Op::Noise(d, p) => {
                     let q = points(&r, p);
-                    r[d as usize] = field.noise.noise_lanes(&q.x, &q.y, &q.z);
+                    r[d as usize] = field.noise.noise_lanes_on(isa, &q.x, &q.y, &q.z);
                 }
                 Op::Density(d, i, p) => {
                     let q = points(&r, p);
@@ -516,10 +516,10 @@ impl Program {
                 Op::VNoise(d, p) => {
                     // Noise::vnoise: noise at x − c, x, x + c.
                     let q = points(&r, p);
-                    let noise = |q: &Points| field.noise.noise_lanes(&q.x, &q.y, &q.z);
-                    let a = noise(&q.map(|q| q - VNOISE_OFFSET));
-                    let b = noise(&q);
-                    let c = noise(&q.map(|q| q + VNOISE_OFFSET));
+                    let (qa, qc) = (q.map(|q| q - VNOISE_OFFSET), q.map(|q| q + VNOISE_OFFSET));
+                    let a = field.noise.noise_lanes_on(isa, &qa.x, &qa.y, &qa.z);
+                    let b = field.noise.noise_lanes_on(isa, &q.x, &q.y, &q.z);
+                    let c = field.noise.noise_lanes_on(isa, &qc.x, &qc.y, &qc.z);
                     (r[d[0] as usize], r[d[1] as usize], r[d[2] as usize]) = (a, b, c);
                 }
                 Op::Turbulence(d, p, o) | Op::Fbm(d, p, o) => {
@@ -532,7 +532,7 @@ impl Program {
                         let mut scale = 1.0f32;
                         for _ in 0..o[0] {
                             let s = q.map(|q| q * scale);
-                            let n = field.noise.noise_lanes(&s.x, &s.y, &s.z);
+                            let n = field.noise.noise_lanes_on(isa, &s.x, &s.y, &s.z);
                             for l in 0..LANES {
                                 let v = if absolute { n[l].abs() } else { n[l] };
                                 sum[l] += v / scale;
