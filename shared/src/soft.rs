@@ -112,24 +112,15 @@ impl SoftSphere {
     }
 
     /// [`SoftSphere::project`] at the lanes of the blocks with a lane set in
-    /// `live` ([`crate::simd::live_blocks`]), written lane-parallel with
-    /// exactly the scalar operations (so the same bits); the other points
-    /// are left.
+    /// `live` ([`project_live_blocks`]), written lane-parallel with exactly
+    /// the scalar operations (so the same bits); the other points are left.
     #[inline(always)]
     pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
-        use crate::simd::{BLOCK, LiveBlocks, live_blocks};
-        // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
-        fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
-            &mut a.as_chunks_mut::<BLOCK>().0[i]
-        }
-        match live_blocks(live) {
-            LiveBlocks::All => self.project_block(x, y, z),
-            LiveBlocks::First => self.project_block(h(x, 0), h(y, 0), h(z, 0)),
-            LiveBlocks::Second => self.project_block(h(x, 1), h(y, 1), h(z, 1)),
-            LiveBlocks::None => {}
-        }
+        project_live_blocks(self, x, y, z, live);
     }
+}
 
+impl ProjectBlock for SoftSphere {
     /// [`SoftSphere::project`] of N lanes in place.
     #[inline(always)]
     fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]) {
@@ -149,7 +140,9 @@ impl SoftSphere {
             z[l] = c.z + dz * inner;
         }
     }
+}
 
+impl SoftSphere {
     /// [`SoftSphere::density`] at each of the lanes' points, written
     /// lane-parallel with exactly the scalar operations (so the same bits).
     #[inline(always)]
@@ -264,22 +257,14 @@ impl SoftTorus {
     }
 
     /// [`SoftTorus::project_lanes`] in the blocks of lanes with a lane set
-    /// in `live` ([`crate::simd::live_blocks`]); the other points are left.
+    /// in `live` ([`project_live_blocks`]); the other points are left.
     #[inline(always)]
     pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
-        use crate::simd::{BLOCK, LiveBlocks, live_blocks};
-        // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
-        fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
-            &mut a.as_chunks_mut::<BLOCK>().0[i]
-        }
-        match live_blocks(live) {
-            LiveBlocks::All => self.project_block(x, y, z),
-            LiveBlocks::First => self.project_block(h(x, 0), h(y, 0), h(z, 0)),
-            LiveBlocks::Second => self.project_block(h(x, 1), h(y, 1), h(z, 1)),
-            LiveBlocks::None => {}
-        }
+        project_live_blocks(self, x, y, z, live);
     }
+}
 
+impl ProjectBlock for SoftTorus {
     /// [`SoftTorus::project`] of N lanes in place.
     #[inline(always)]
     fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]) {
@@ -316,6 +301,35 @@ impl SoftTorus {
             y[l] = ky + ey * inner;
             z[l] = kz + ez * inner;
         }
+    }
+}
+
+/// An object's projection onto its inner surface, N lanes in place.
+trait ProjectBlock {
+    fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]);
+}
+
+/// `o`'s projection at the lanes of `live`'s blocks
+/// ([`crate::simd::live_blocks`]): all [`crate::simd::LANES`] in one go, or
+/// the live block alone.
+#[inline(always)]
+fn project_live_blocks(
+    o: &impl ProjectBlock,
+    x: &mut Lanes,
+    y: &mut Lanes,
+    z: &mut Lanes,
+    live: u32,
+) {
+    use crate::simd::{BLOCK, LiveBlocks, live_blocks};
+    // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
+    fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
+        &mut a.as_chunks_mut::<BLOCK>().0[i]
+    }
+    match live_blocks(live) {
+        LiveBlocks::All => o.project_block(x, y, z),
+        LiveBlocks::First => o.project_block(h(x, 0), h(y, 0), h(z, 0)),
+        LiveBlocks::Second => o.project_block(h(x, 1), h(y, 1), h(z, 1)),
+        LiveBlocks::None => {}
     }
 }
 
