@@ -110,14 +110,6 @@ impl SoftSphere {
     pub fn project(&self, x: Vec3) -> Vec3 {
         self.centre + direction_or(x - self.centre, Vec3::Y) * self.falloff.inner
     }
-
-    /// [`SoftSphere::project`] at the lanes of the blocks with a lane set in
-    /// `live` ([`project_live_blocks`]), written lane-parallel with exactly
-    /// the scalar operations (so the same bits); the other points are left.
-    #[inline(always)]
-    pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
-        project_live_blocks(self, x, y, z, live);
-    }
 }
 
 impl ProjectBlock for SoftSphere {
@@ -255,13 +247,6 @@ impl SoftTorus {
     pub fn project_lanes(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes) {
         self.project_lanes_live(x, y, z, u32::MAX);
     }
-
-    /// [`SoftTorus::project_lanes`] in the blocks of lanes with a lane set
-    /// in `live` ([`project_live_blocks`]); the other points are left.
-    #[inline(always)]
-    pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
-        project_live_blocks(self, x, y, z, live);
-    }
 }
 
 impl ProjectBlock for SoftTorus {
@@ -304,32 +289,29 @@ impl ProjectBlock for SoftTorus {
     }
 }
 
-/// An object's projection onto its inner surface, N lanes in place.
-trait ProjectBlock {
+/// An object's projection onto its inner surface in lanes (a sphere's, a
+/// torus's), written lane-parallel with exactly the scalar operations (so
+/// the same bits).
+pub(crate) trait ProjectBlock {
+    /// The projection of N lanes in place.
     fn project_block<const N: usize>(&self, x: &mut [f32; N], y: &mut [f32; N], z: &mut [f32; N]);
-}
 
-/// `o`'s projection at the lanes of `live`'s blocks
-/// ([`crate::simd::live_blocks`]): all [`crate::simd::LANES`] in one go, or
-/// the live block alone.
-#[inline(always)]
-fn project_live_blocks(
-    o: &impl ProjectBlock,
-    x: &mut Lanes,
-    y: &mut Lanes,
-    z: &mut Lanes,
-    live: u32,
-) {
-    use crate::simd::{BLOCK, LiveBlocks, live_blocks};
-    // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
-    fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
-        &mut a.as_chunks_mut::<BLOCK>().0[i]
-    }
-    match live_blocks(live) {
-        LiveBlocks::All => o.project_block(x, y, z),
-        LiveBlocks::First => o.project_block(h(x, 0), h(y, 0), h(z, 0)),
-        LiveBlocks::Second => o.project_block(h(x, 1), h(y, 1), h(z, 1)),
-        LiveBlocks::None => {}
+    /// The projection at the lanes of the blocks with a lane set in `live`
+    /// ([`crate::simd::live_blocks`]): all [`crate::simd::LANES`] in one go,
+    /// or the live block alone. The other points are left.
+    #[inline(always)]
+    fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
+        use crate::simd::{BLOCK, LiveBlocks, live_blocks};
+        // Lanes i·BLOCK .. (i + 1)·BLOCK, as an array.
+        fn h(a: &mut Lanes, i: usize) -> &mut [f32; BLOCK] {
+            &mut a.as_chunks_mut::<BLOCK>().0[i]
+        }
+        match live_blocks(live) {
+            LiveBlocks::All => self.project_block(x, y, z),
+            LiveBlocks::First => self.project_block(h(x, 0), h(y, 0), h(z, 0)),
+            LiveBlocks::Second => self.project_block(h(x, 1), h(y, 1), h(z, 1)),
+            LiveBlocks::None => {}
+        }
     }
 }
 

@@ -11,7 +11,7 @@ use glam::Vec3;
 use super::dmf::Settling;
 use super::{Density, Field, Hypertexture};
 use crate::simd::{Isa, LANES, Lanes};
-use crate::soft::{Falloff, boolean};
+use crate::soft::{Falloff, ProjectBlock, boolean};
 
 /// [`LANES`] points, one coordinate per array: the batch the vectorised paths
 /// evaluate (several samples along a ray, or the gradient's neighbours).
