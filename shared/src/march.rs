@@ -461,6 +461,15 @@ fn march<const COMMON: bool>(
     // with the same f and normal (a hard region, where f = 1 and the normal
     // stays the last one) reuses it.
     let mut shaded: Option<((u32, [u32; 3]), Vec3)> = None;
+    // In the common copy under directional lights only, the samples' light
+    // waits and is found [`LANES`] samples at a time ([`Deferred`]).
+    let mut deferred = (COMMON
+        && lit
+        && scene
+            .lights
+            .iter()
+            .all(|l| matches!(l, Light::Directional { .. })))
+    .then(Deferred::default);
 
     loop {
         if k < basis.first {
@@ -527,29 +536,41 @@ fn march<const COMMON: bool>(
                 last_normal = Some(n);
             }
             let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
-            // Without a normal of its own a sample takes the last one, and
-            // perhaps the latest such sample's colour (in the general copy:
-            // the common case's rays stop at a hard region, where the runs
-            // are, unless an alpha map makes it transparent).
-            let key = (!COMMON && shortcuts && normal.is_none() && scene.position_free_shading)
-                .then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
-            let sample_colour = match (key, shaded) {
-                (Some(key), Some((held, colour))) if key == held => {
-                    #[cfg(test)]
-                    tests::REUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    colour
-                }
-                _ => {
-                    let colour =
-                        sample_colour::<COMMON>(scene, x, f, shading_normal, &basis, field, lit);
-                    if let Some(key) = key {
-                        shaded = Some((key, colour));
-                    }
-                    colour
-                }
-            };
             let weight = alpha_k * (1.0 - alpha);
-            colour += sample_colour * weight;
+            if let Some(deferred) = &mut deferred {
+                let base = Vec3::from_array(scene.colour_map.eval(f));
+                deferred.push(shading_normal, base, weight, scene, &basis, &mut colour);
+            } else {
+                // Without a normal of its own a sample takes the last one, and
+                // perhaps the latest such sample's colour (in the general copy:
+                // the common case's rays stop at a hard region, where the runs
+                // are, unless an alpha map makes it transparent).
+                let key = (!COMMON && shortcuts && normal.is_none() && scene.position_free_shading)
+                    .then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
+                let sample_colour = match (key, shaded) {
+                    (Some(key), Some((held, colour))) if key == held => {
+                        #[cfg(test)]
+                        tests::REUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        colour
+                    }
+                    _ => {
+                        let colour = sample_colour::<COMMON>(
+                            scene,
+                            x,
+                            f,
+                            shading_normal,
+                            &basis,
+                            field,
+                            lit,
+                        );
+                        if let Some(key) = key {
+                            shaded = Some((key, colour));
+                        }
+                        colour
+                    }
+                };
+                colour += sample_colour * weight;
+            }
             alpha += weight;
             weighted_density += f * weight;
             if alpha >= scene.threshold {
@@ -606,6 +627,9 @@ fn march<const COMMON: bool>(
         }
     }
 
+    if let Some(deferred) = &mut deferred {
+        deferred.flush(scene, &basis, &mut colour);
+    }
     let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
     let rgb = colour + bg * (1.0 - alpha);
     let normal = first_normal.unwrap_or(Vec3::ZERO);
@@ -802,6 +826,97 @@ fn shade<const COMMON: bool>(
     light
 }
 
+/// Samples of one ray whose colour waits for their light: the shading
+/// normal, base colour and compositing weight of each, up to [`LANES`]. The
+/// light of all of them is found at once ([`shade_lanes`]), and their colours
+/// are added in the order of the samples, `colour += (base · light) · weight`
+/// as [`march`] adds them one by one: the same bits.
+#[derive(Default)]
+struct Deferred {
+    normal: Points,
+    base: [Vec3; LANES],
+    weight: Lanes,
+    len: usize,
+}
+
+impl Deferred {
+    /// Adds a sample, flushing into `colour` when full.
+    #[inline(always)]
+    fn push(
+        &mut self,
+        normal: Vec3,
+        base: Vec3,
+        weight: f32,
+        scene: &Scene,
+        basis: &Basis,
+        colour: &mut Vec3,
+    ) {
+        self.normal.set(self.len, normal);
+        self.base[self.len] = base;
+        self.weight[self.len] = weight;
+        self.len += 1;
+        if self.len == LANES {
+            self.flush(scene, basis, colour);
+        }
+    }
+
+    /// Adds the held samples' colours to `colour`, in order.
+    #[inline(never)]
+    fn flush(&mut self, scene: &Scene, basis: &Basis, colour: &mut Vec3) {
+        if self.len == 0 {
+            return;
+        }
+        let [r, g, b] = shade_lanes(scene, &self.normal, basis);
+        for l in 0..self.len {
+            *colour += (self.base[l] * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
+        }
+        self.len = 0;
+    }
+}
+
+/// [`shade`] (the common case: no shadows) of [`LANES`] samples at once
+/// along the direction of `basis`, under directional lights only: each
+/// lane's red, green and blue have the bits `shade` gives, the powers of
+/// the highlights taken on the scene's instruction-set path.
+fn shade_lanes(scene: &Scene, n: &Points, basis: &Basis) -> [Lanes; 3] {
+    let mut light = scene.ambient.to_array().map(|a| [a; LANES]);
+    for (i, source) in scene.lights.iter().enumerate() {
+        let Light::Directional {
+            direction: l,
+            colour,
+        } = *source
+        else {
+            unreachable!("`Deferred` is used under directional lights only")
+        };
+        let lambert: Lanes =
+            std::array::from_fn(|j| (n.x[j] * l.x) + (n.y[j] * l.y) + (n.z[j] * l.z));
+        let mut response = lambert.map(|lambert| scene.diffuse * lambert);
+        if scene.specular > 0.0 {
+            let h = basis
+                .halves
+                .get(i)
+                .copied()
+                .unwrap_or_else(|| (l - basis.ray.direction).normalize_or_zero());
+            let nh: Lanes =
+                std::array::from_fn(|j| (n.x[j] * h.x) + (n.y[j] * h.y) + (n.z[j] * h.z));
+            let power = fastmath::pow01_on(scene.isa, &nh, scene.shininess);
+            for j in 0..LANES {
+                if nh[j] > 0.0 {
+                    response[j] += scene.specular * power[j];
+                }
+            }
+        }
+        for (c, light) in light.iter_mut().enumerate() {
+            for j in 0..LANES {
+                if lambert[j] > 0.0 {
+                    light[j] += colour[c] * response[j];
+                }
+            }
+        }
+    }
+    light
+}
+
 /// Snell's law: `d` bent at a surface of unit normal `n` from index n1 to n2
 /// (`eta = n1 / n2`); total internal reflection mirrors it.
 #[inline]
@@ -884,6 +999,48 @@ mod tests {
                 REUSED.load(Ordering::Relaxed) > before + 1000,
                 "lights {lights}: runs of samples reused their colour"
             );
+        }
+    }
+
+    #[test]
+    fn deferred_light_changes_no_pixel() {
+        // The common copy finds the light of up to LANES samples at once
+        // (`Deferred`); the general copy shades each sample as it comes.
+        // Faint matter (many samples a ray, so a ray flushes more than
+        // once), highlights, and more directional lights than a basis holds
+        // half vectors for.
+        let light = "Directional(direction: (-0.5, 0.7, 0.6), colour: (0.3, 0.3, 0.3))";
+        let text = format!(
+            "Scene(image: (width: 24, height: 24),
+              camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
+              lights: (ambient: (0.1, 0.1, 0.1), sources: [{light}, {light}, {light}, {light},
+                Directional(direction: (0.6, -0.2, 0.7), colour: (0.2, 0.5, 0.9))]),
+              march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Diagonal(120), opacity: 2.0),
+              object: Sphere(radius: 0.6, softness: 0.8),
+              modulation: [NoisyRadius(frequency: 3.0, amplitude: 0.15)],
+              colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
+              shading: (specular: 0.4, shininess: 20.0))"
+        );
+        let mut scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
+        assert!(scene.common_case);
+        for isa in Isa::available() {
+            assert!(scene.set_isa(isa));
+            let field = scene.field(0);
+            let mut long = 0;
+            for y in 0..24 {
+                for x in 0..24 {
+                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
+                    let deferred = march::<true>(&scene, ray, &field, 0.25, true);
+                    let each = march::<false>(&scene, ray, &field, 0.25, true);
+                    assert_eq!(
+                        deferred.to_array().map(f32::to_bits),
+                        each.to_array().map(f32::to_bits),
+                        "{isa:?}: pixel ({x}, {y})"
+                    );
+                    long += usize::from(deferred.rgba[3] > 0.0 && deferred.rgba[3] < 0.9);
+                }
+            }
+            assert!(long > 20, "{isa:?}: rays through faint matter ({long})");
         }
     }
 
