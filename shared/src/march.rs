@@ -151,8 +151,8 @@ struct Chunk {
     /// f(x + Δx_ν), f(x + Δx_ω) of samples `start + l`, where `has_gradient`.
     neighbours: [(f32, f32); LANES],
     has_gradient: u32,
-    /// Whether every f held is +0.
-    empty: bool,
+    /// Bit l: f at sample `start + l` is not +0.
+    nonzero: u32,
 }
 
 impl Chunk {
@@ -165,7 +165,7 @@ impl Chunk {
             alpha: [0.0; LANES],
             neighbours: [(0.0, 0.0); LANES],
             has_gradient: 0,
-            empty: false,
+            nonzero: 0,
         }
     }
 
@@ -201,7 +201,7 @@ impl Chunk {
             _ => samples(scene, x, field, false),
         };
         self.has_gradient = 0;
-        self.empty = self.f.iter().all(|f| f.to_bits() == 0);
+        self.nonzero = (0..LANES).fold(0, |m, l| m | (u32::from(self.f[l].to_bits() != 0) << l));
         (self.f[0], self.alpha[0])
     }
 
@@ -615,15 +615,23 @@ fn march<const COMMON: bool>(
 
         previous = Some(f);
         k += 1;
-        if chunk.empty && chunk.full && k == chunk.start + 1 {
-            // Sample k − 1 opened a chunk of zeros and went through the loop
-            // without effect (no colour, no bend); the rest of the chunk would
-            // do the same, costing budget and leaving f(x − Δx_μ) = 0. Should
-            // the ray end or the budget run out among them, the loop ends at
-            // the chunk's end too (t grows with k).
-            let end = chunk.start + LANES as u32;
-            budget = budget.saturating_sub(u64::from(end - k));
-            k = end;
+        if f.to_bits() == 0 && chunk.full {
+            // Sample k − 1 is +0 and went through the loop without effect
+            // (no colour; no bend, and after it none at f = 0 either); so
+            // would the held +0 samples after it, costing budget and leaving
+            // f(x − Δx_μ) = 0. They are passed at once, to the next held
+            // sample that is not +0 or the chunk's end. Should the ray end or
+            // the budget run out among them, the loop ends at that sample
+            // (t grows with k).
+            let j = k - chunk.start;
+            let ahead = chunk.nonzero.checked_shr(j).unwrap_or(0);
+            let next = if ahead == 0 {
+                LANES as u32
+            } else {
+                j + ahead.trailing_zeros()
+            };
+            budget = budget.saturating_sub(u64::from(next - j));
+            k = chunk.start + next;
         }
     }
 
