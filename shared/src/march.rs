@@ -19,7 +19,7 @@ use crate::film::Sample;
 use crate::pse::surface as pse;
 use crate::scene::{Gradient, Light, Scene};
 use crate::shaping::clamp01;
-use crate::simd::Isa;
+use crate::simd::{Isa, lane_mask};
 use crate::simd::{LANES, Lanes};
 
 /// The parameters where `ray` enters and leaves the ball of `radius` about
@@ -183,26 +183,34 @@ impl Chunk {
     /// Evaluates samples k .. k + [`LANES`]; f and α_k at k.
     #[inline(never)]
     fn fill(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
-        self.full = true;
-        self.start = k;
-        self.x = sample_points(scene, basis, k, field);
-        let x = &self.x;
-        (self.f, self.alpha) = match scene.isa {
-            Isa::Scalar => samples(scene, x, field, false),
+        match scene.isa {
+            Isa::Scalar => self.fill_on(k, basis, scene, field, false),
             // SAFETY: a scene only carries a path that `Isa::available`
             // reported, and `Scene::with_isa` refuses the others.
             #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::samples_sse41(scene, x, field) },
+            Isa::Sse41 => unsafe { x86::fill_sse41(self, k, basis, scene, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::samples_avx2(scene, x, field) },
+            Isa::Avx2 => unsafe { x86::fill_avx2(self, k, basis, scene, field) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::samples_avx512(scene, x, field) },
+            Isa::Avx512 => unsafe { x86::fill_avx512(self, k, basis, scene, field) },
             #[cfg(not(target_arch = "x86_64"))]
-            _ => samples(scene, x, field, false),
-        };
-        self.has_gradient = 0;
-        self.nonzero = (0..LANES).fold(0, |m, l| m | (u32::from(self.f[l].to_bits() != 0) << l));
+            _ => self.fill_on(k, basis, scene, field, false),
+        }
         (self.f[0], self.alpha[0])
+    }
+
+    /// [`Chunk::fill`]'s work; with `simd` (a constant where it is inlined:
+    /// into the copies per instruction set in [`x86`]) the points, the
+    /// density tree's lane code, the powers and the masks are all compiled
+    /// for that set, and the points go to the density in registers.
+    #[inline(always)]
+    fn fill_on(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field, simd: bool) {
+        self.full = true;
+        self.start = k;
+        self.x = sample_points(scene, basis, k, field);
+        (self.f, self.alpha) = samples(scene, &self.x, field, simd);
+        self.has_gradient = 0;
+        self.nonzero = lane_mask(|l| self.f[l].to_bits() != 0);
     }
 
     /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and the held
@@ -279,27 +287,39 @@ impl Chunk {
 /// ray's end (`t1`, or the end of the support), which the marcher never
 /// reads, get a point outside the support: 0 at once, and the modulation's
 /// noise is skipped where a register holds only such lanes.
-#[inline]
+#[inline(always)]
 fn sample_points(scene: &Scene, basis: &Basis, k: u32, field: &Field) -> Points {
+    // Branch-free, so that the lanes vectorise: t of every lane, then its
+    // point, or the point outside where t is past the end (never, with no
+    // point outside: no t exceeds +∞).
+    let (outside, end) = match outside(field) {
+        Some(p) => (p, basis.t1.min(basis.last)),
+        None => (Vec3::ZERO, f32::INFINITY),
+    };
+    let step = scene.step;
+    // (k + l) as f32 by the signed conversion, which vectorises (the same
+    // value, so the same bits, below 2^31).
+    let t: Lanes = match i32::try_from(k) {
+        Ok(k) if k < i32::MAX - LANES as i32 => {
+            std::array::from_fn(|l| basis.t0 + ((k + l as i32) as f32 + basis.phase) * step)
+        }
+        _ => std::array::from_fn(|l| basis.t(k + l as u32, step)),
+    };
+    let (o, d) = (basis.ray.origin, basis.ray.direction);
     let mut x = Points::default();
-    let end = basis.t1.min(basis.last);
-    let outside = outside(field);
-    for l in 0..LANES {
-        let t = basis.t(k + l as u32, scene.step);
-        x.set(
-            l,
-            match outside {
-                Some(o) if t > end => o,
-                _ => basis.ray.at(t),
-            },
-        );
+    for (l, &t) in t.iter().enumerate() {
+        // `Ray::at`, coordinate by coordinate.
+        let past = t > end;
+        x.x[l] = if past { outside.x } else { o.x + d.x * t };
+        x.y[l] = if past { outside.y } else { o.y + d.y * t };
+        x.z[l] = if past { outside.z } else { o.z + d.z * t };
     }
     x
 }
 
 /// f and the opacity α_k = 1 − (1 − ρ)^(c·step) at the points `x` of a
 /// chunk. With `simd` (a constant where it is inlined: into the copies per
-/// instruction set below) the density tree's lane code and the powers are
+/// instruction set of [`Chunk::fill`]) the density tree's lane code and the powers are
 /// inlined here too, so the points go to the powers in registers.
 #[inline(always)]
 fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lanes) {
@@ -332,7 +352,7 @@ fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lane
     }
     // 1^e = 1 (`pow01`): empty samples are transparent without the power,
     // and a block of them goes without it.
-    let opaque = (0..LANES).fold(0u32, |m, l| m | (u32::from(transmit[l] < 1.0) << l));
+    let opaque = lane_mask(|l| transmit[l] < 1.0);
     if opaque == 0 {
         return (f, [0.0; LANES]);
     }
@@ -357,24 +377,24 @@ fn outside(field: &Field) -> Option<Vec3> {
     field.support.map(|s| s.aabb.1 + Vec3::ONE)
 }
 
-/// The copies of [`samples`] per instruction set.
+/// The copies of [`Chunk::fill`]'s work per instruction set.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
 
     #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn samples_avx512(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
-        samples(scene, x, field, true)
+    pub(super) fn fill_avx512(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
+        chunk.fill_on(k, b, scene, field, true);
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) fn samples_avx2(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
-        samples(scene, x, field, true)
+    pub(super) fn fill_avx2(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
+        chunk.fill_on(k, b, scene, field, true);
     }
 
     #[target_feature(enable = "sse4.1")]
-    pub(super) fn samples_sse41(scene: &Scene, x: &Points, field: &Field) -> (Lanes, Lanes) {
-        samples(scene, x, field, true)
+    pub(super) fn fill_sse41(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
+        chunk.fill_on(k, b, scene, field, true);
     }
 }
 

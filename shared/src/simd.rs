@@ -61,6 +61,18 @@ pub fn live_blocks(live: u32) -> LiveBlocks {
     }
 }
 
+/// The mask of the lanes where `test` holds (bit l for lane l): each lane's
+/// bit, then their union, two loops that vectorise (a compare and a few
+/// shifts and ors per register, not a chain of 16).
+#[inline(always)]
+pub fn lane_mask(test: impl Fn(usize) -> bool) -> u32 {
+    let mut bits = [0u32; LANES];
+    for (l, bit) in bits.iter_mut().enumerate() {
+        *bit = u32::from(test(l)) << l;
+    }
+    bits.iter().fold(0, |m, b| m | b)
+}
+
 /// An instruction-set path for the batch kernels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Isa {
