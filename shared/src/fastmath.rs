@@ -81,7 +81,14 @@ pub fn exp2(y: f32) -> f32 {
     // max/min (not clamp) so that NaN becomes −126 rather than staying NaN.
     #[allow(clippy::manual_clamp)]
     let y = y.max(-126.0).min(127.0);
-    let k = floor(y + 0.5);
+    // k = ⌊y + ½⌋ as `floor` computes it, without its range tests: y + ½ is
+    // finite and within ±127.5, so its truncation fits an i32 and is the
+    // integer k or k + 1; the integer comes out of the same steps.
+    let v = y + 0.5;
+    // SAFETY: v is finite and |v| ≤ 127.5.
+    let truncated = unsafe { v.to_int_unchecked::<i32>() };
+    let above = truncated as f32 > v;
+    let k = truncated as f32 - if above { 1.0 } else { 0.0 };
     let f = y - k; // [−0.5, 0.5]
     const C1: f32 = std::f32::consts::LN_2; // the fitted value rounds to it
     const C2: f32 = 0.240_222_35;
@@ -89,7 +96,7 @@ pub fn exp2(y: f32) -> f32 {
     const C4: f32 = 0.009_671_88;
     const C5: f32 = 0.001_340_72;
     let p = 1.0 + f * (C1 + f * (C2 + f * (C3 + f * (C4 + f * C5))));
-    let k = lattice(k);
+    let k = truncated - i32::from(above);
     // 2^k built from its exponent bits; 0 at the bottom of the range.
     let scale = f32::from_bits(((k.max(-126) + 127) as u32) << 23);
     if k <= -126 { 0.0 } else { p * scale }
