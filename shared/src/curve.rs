@@ -16,6 +16,10 @@ pub struct Curve<const N: usize> {
     values: Vec<[f32; N]>,
     /// Linear or spline.
     interpolation: Interpolation,
+    /// `keys[i + 1] − keys[i]` and `values[i + 1] − values[i]` of each
+    /// segment, computed once: the same bits as at each evaluation.
+    widths: Vec<f32>,
+    deltas: Vec<[f32; N]>,
 }
 
 impl<const N: usize> Curve<N> {
@@ -26,10 +30,17 @@ impl<const N: usize> Curve<N> {
     ) -> Self {
         let (keys, values): (Vec<f32>, Vec<[f32; N]>) = points.into_iter().unzip();
         assert!(!keys.is_empty(), "a curve needs a control point");
+        let widths = keys.windows(2).map(|k| k[1] - k[0]).collect();
+        let deltas = values
+            .windows(2)
+            .map(|v| std::array::from_fn(|c| v[1][c] - v[0][c]))
+            .collect();
         Curve {
             keys,
             values,
             interpolation,
+            widths,
+            deltas,
         }
     }
 
@@ -48,16 +59,21 @@ impl<const N: usize> Curve<N> {
         if t >= self.keys[n - 1] {
             return self.values[n - 1];
         }
-        // The segment [keys[i], keys[i + 1]] holding t.
-        let i = self.keys.partition_point(|&k| k <= t) - 1;
-        let u = (t - self.keys[i]) / (self.keys[i + 1] - self.keys[i]);
+        // The segment [keys[i], keys[i + 1]] holding t: the last key ≤ t,
+        // which is not the last key (t is below it). Maps have few keys.
+        let mut i = 0;
+        while i + 2 < n && self.keys[i + 1] <= t {
+            i += 1;
+        }
+        let u = (t - self.keys[i]) / self.widths[i];
         let (p1, p2) = (self.values[i], self.values[i + 1]);
         let mut out = [0.0; N];
         match self.interpolation {
             Interpolation::Step => out = p1,
             Interpolation::Linear => {
+                let delta = self.deltas[i];
                 for c in 0..N {
-                    out[c] = p1[c] + (p2[c] - p1[c]) * u;
+                    out[c] = p1[c] + delta[c] * u;
                 }
             }
             Interpolation::Spline => {
