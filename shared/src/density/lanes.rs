@@ -10,7 +10,7 @@ use glam::Vec3;
 
 use super::dmf::Settling;
 use super::{Density, Field, Hypertexture};
-use crate::simd::{Isa, LANES, Lanes};
+use crate::simd::{Isa, LANES, Lanes, lane_mask};
 use crate::soft::{Falloff, ProjectBlock, boolean};
 
 /// [`LANES`] points, one coordinate per array: the batch the vectorised paths
@@ -365,13 +365,7 @@ struct SettlingSphere<'a> {
 impl Settling for SettlingSphere<'_> {
     #[inline(always)]
     fn settled(&self, lo: &Lanes, hi: &Lanes) -> u32 {
-        // Each lane's bit, then their union: both loops vectorise.
-        let mut bits = [0u32; LANES];
-        for (l, bit) in bits.iter_mut().enumerate() {
-            let settled = self.falloff.settled(self.d2[l], lo[l], hi[l], self.hard);
-            *bit = if settled { 1 << l } else { 0 };
-        }
-        bits.iter().fold(0, |m, b| m | b)
+        lane_mask(|l| self.falloff.settled(self.d2[l], lo[l], hi[l], self.hard))
     }
 }
 
