@@ -42,6 +42,20 @@ pub fn lattice(x: f32) -> i32 {
     unsafe { (if fits { x } else { 0.0 }).to_int_unchecked::<i32>() }
 }
 
+/// ⌊v⌋ and its integer, as `floor` and `lattice` give them, for v within
+/// ±127.5 (finite), without their range tests: the truncation fits an i32
+/// and is ⌊v⌋ or ⌊v⌋ + 1, and one compare gives both.
+#[inline(always)]
+fn floor_small(v: f32) -> (f32, i32) {
+    // SAFETY: v is finite and |v| ≤ 127.5, within i32's range.
+    let truncated = unsafe { v.to_int_unchecked::<i32>() };
+    let above = truncated as f32 > v;
+    (
+        truncated as f32 - if above { 1.0 } else { 0.0 },
+        truncated - i32::from(above),
+    )
+}
+
 /// log₂ x for finite x > 0 (subnormals included). Not for 0, negatives or NaN:
 /// callers clamp first. No division: the mantissa m, folded into [√½, √2),
 /// goes through `t·P(t)`, t = m − 1, P of degree 4 fitted for the least
@@ -81,14 +95,8 @@ pub fn exp2(y: f32) -> f32 {
     // max/min (not clamp) so that NaN becomes −126 rather than staying NaN.
     #[allow(clippy::manual_clamp)]
     let y = y.max(-126.0).min(127.0);
-    // k = ⌊y + ½⌋ as `floor` computes it, without its range tests: y + ½ is
-    // finite and within ±127.5, so its truncation fits an i32 and is the
-    // integer k or k + 1; the integer comes out of the same steps.
-    let v = y + 0.5;
-    // SAFETY: v is finite and |v| ≤ 127.5.
-    let truncated = unsafe { v.to_int_unchecked::<i32>() };
-    let above = truncated as f32 > v;
-    let k = truncated as f32 - if above { 1.0 } else { 0.0 };
+    // y + ½ is finite and within ±127.5.
+    let (k, n) = floor_small(y + 0.5);
     let f = y - k; // [−0.5, 0.5]
     const C1: f32 = std::f32::consts::LN_2; // the fitted value rounds to it
     const C2: f32 = 0.240_222_35;
@@ -96,10 +104,9 @@ pub fn exp2(y: f32) -> f32 {
     const C4: f32 = 0.009_671_88;
     const C5: f32 = 0.001_340_72;
     let p = 1.0 + f * (C1 + f * (C2 + f * (C3 + f * (C4 + f * C5))));
-    let k = truncated - i32::from(above);
     // 2^k built from its exponent bits; 0 at the bottom of the range.
-    let scale = f32::from_bits(((k.max(-126) + 127) as u32) << 23);
-    if k <= -126 { 0.0 } else { p * scale }
+    let scale = f32::from_bits(((n.max(-126) + 127) as u32) << 23);
+    if n <= -126 { 0.0 } else { p * scale }
 }
 
 /// x^e for x in [0, 1] and e ≥ 0 (0^e = 0 for e > 0, x^0 = 1 for x > 0): the
@@ -235,6 +242,26 @@ mod tests {
         assert_eq!(exp2(0.0), 1.0);
         assert_eq!(exp2(-3.0), 0.125);
         assert!((log2(1e-40) - (1e-40f64).log2() as f32).abs() < 1e-4);
+    }
+
+    /// `floor_small` is `floor` and `lattice` over its whole domain (every
+    /// f32 within ±127.5 at a step of 2⁻¹⁰, each ± an ulp, the integers and
+    /// halves among them), so exp2's bits are those of the two.
+    #[test]
+    fn floor_small_is_floor_and_lattice() {
+        let mut v = -127.5f32;
+        while v <= 127.5 {
+            for v in [v, v.next_down().max(-127.5), v.next_up().min(127.5), -0.0] {
+                let k = floor(v);
+                assert_eq!(floor_small(v), (k, lattice(k)), "floor_small({v})");
+                assert_eq!(
+                    floor_small(v).0.to_bits(),
+                    k.to_bits(),
+                    "the sign of 0 at {v}"
+                );
+            }
+            v += 1.0 / 1024.0;
+        }
     }
 
     #[test]
