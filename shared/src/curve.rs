@@ -139,6 +139,34 @@ mod tests {
         assert_eq!(c.eval1(f32::NAN), 0.0);
     }
 
+    /// The segments' widths and differences kept from construction give the
+    /// bits of computing them at each evaluation, found by a binary search.
+    #[test]
+    fn kept_segments_give_the_bits_of_computing_them() {
+        let pts = [
+            (0.0, [0.1, 0.7, 0.3]),
+            (0.13, [0.9, 0.2, 0.35]),
+            (0.4, [0.45, 0.45, 0.0]),
+            (0.41, [0.3, 1.0, 0.6]),
+            (0.77, [0.05, 0.6, 0.95]),
+            (1.0, [0.8, 0.1, 0.2]),
+        ];
+        let c = Curve::new(Interpolation::Linear, pts);
+        let (keys, values): (Vec<f32>, Vec<[f32; 3]>) = pts.into_iter().unzip();
+        for j in 0..=4096 {
+            // Just below each 4096th, so that the keys' neighbours are met.
+            let t = (j as f32 / 4096.0).next_down().max(0.0);
+            let got = c.eval(t);
+            let i = keys.partition_point(|&k| k <= t).clamp(1, keys.len() - 1) - 1;
+            let u = (t - keys[i]) / (keys[i + 1] - keys[i]);
+            for ch in 0..3 {
+                let (p1, p2) = (values[i][ch], values[i + 1][ch]);
+                let want = if t <= keys[0] { p1 } else { p1 + (p2 - p1) * u };
+                assert_eq!(got[ch].to_bits(), want.to_bits(), "at {t}, channel {ch}");
+            }
+        }
+    }
+
     #[test]
     fn spline_passes_through_control_points() {
         let pts = [
