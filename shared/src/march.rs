@@ -449,8 +449,8 @@ fn march<const COMMON: bool>(
     let mut alpha = 0.0f32;
     let mut weighted_density = 0.0f32;
     let mut depth = 0.0f32;
-    let mut first_normal: Option<Vec3> = None;
-    let mut last_normal: Option<Vec3> = None;
+    let mut first_normal: Option<Normal> = None;
+    let mut last_normal: Option<Normal> = None;
     // f(x - Δx_μ): the previous sample, when it lay on the current segment.
     let mut previous: Option<f32> = None;
     let mut medium_index = if COMMON {
@@ -490,6 +490,16 @@ fn march<const COMMON: bool>(
             .iter()
             .all(|l| matches!(l, Light::Directional { .. })))
     .then(Deferred::default);
+    // With the paper's forward differences, the gradients wait too: a
+    // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
+    // with the other waiting samples', [`LANES`] / 2 samples a call across
+    // the chunks, and the normals (and the last one, which a sample without
+    // its own takes) are found in the order of the samples
+    // ([`Deferred::resolves`]).
+    let gradients_wait = deferred.is_some() && matches!(scene.gradient, Gradient::Forward);
+    if let Some(deferred) = &mut deferred {
+        deferred.resolves = gradients_wait;
+    }
 
     loop {
         if k < basis.first {
@@ -512,6 +522,8 @@ fn march<const COMMON: bool>(
         let (f, alpha_k) = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
+        // f(x − Δx_μ) of a soft sample whose gradient waits.
+        let mut waits = None;
         let soft = f > 0.0 && f < 1.0;
         let pass = lazy && soft && alpha_k == 0.0 && first_normal.is_some();
         // Without lights the shading ignores the normal: only the first one is
@@ -520,6 +532,8 @@ fn march<const COMMON: bool>(
             if lit {
                 passed = Some((passed.map_or(k, |(a, _)| a), k));
             }
+        } else if gradients_wait && soft {
+            waits = Some(previous.unwrap_or_else(|| f_at(x - basis.du)));
         } else if soft && (lit || first_normal.is_none()) {
             normal = match scene.gradient {
                 Gradient::Forward => {
@@ -543,7 +557,25 @@ fn march<const COMMON: bool>(
         if f > 0.0 && depth == 0.0 {
             depth = path + t;
         }
-        if f > 0.0 && !pass {
+        if f > 0.0
+            && gradients_wait
+            && let Some(deferred) = &mut deferred
+        {
+            let weight = alpha_k * (1.0 - alpha);
+            let own = match waits {
+                Some(behind) => Own::Waiting {
+                    x: chunk.x.get((k - chunk.start) as usize),
+                    behind,
+                },
+                None => Own::Found(normal),
+            };
+            deferred.push_own(own, f, weight, scene, &basis, field, &mut colour);
+            alpha += weight;
+            weighted_density += f * weight;
+            if alpha >= scene.threshold {
+                break;
+            }
+        } else if f > 0.0 && !pass {
             if normal.is_some() {
                 last_normal = normal;
                 passed = None;
@@ -555,16 +587,18 @@ fn march<const COMMON: bool>(
             {
                 last_normal = Some(n);
             }
-            let shading_normal = normal.or(last_normal).unwrap_or(-basis.ray.direction);
+            let shading_normal = normal
+                .or(last_normal)
+                .unwrap_or(Normal::of_unit(-basis.ray.direction));
             let weight = alpha_k * (1.0 - alpha);
             if let Some(deferred) = &mut deferred {
-                let base = Vec3::from_array(scene.colour_map.eval(f));
-                deferred.push(shading_normal, base, weight, scene, &basis, &mut colour);
+                deferred.push(shading_normal, f, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
                 // perhaps the latest such sample's colour (in the general copy:
                 // the common case's rays stop at a hard region, where the runs
                 // are, unless an alpha map makes it transparent).
+                let shading_normal = shading_normal.unit();
                 let key = (!COMMON && shortcuts && normal.is_none() && scene.position_free_shading)
                     .then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
                 let sample_colour = match (key, shaded) {
@@ -615,7 +649,7 @@ fn march<const COMMON: bool>(
                     }
                 });
                 if let Some(n) = n {
-                    let bent = refract(basis.ray.direction, n, n1 / n2);
+                    let bent = refract(basis.ray.direction, n.unit(), n1 / n2);
                     let ray = Ray {
                         origin: x,
                         direction: bent,
@@ -656,11 +690,14 @@ fn march<const COMMON: bool>(
     }
 
     if let Some(deferred) = &mut deferred {
-        deferred.flush(scene, &basis, &mut colour);
+        deferred.flush(scene, &basis, field, &mut colour);
+        if deferred.resolves {
+            first_normal = deferred.first;
+        }
     }
     let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
     let rgb = colour + bg * (1.0 - alpha);
-    let normal = first_normal.unwrap_or(Vec3::ZERO);
+    let normal = first_normal.map_or(Vec3::ZERO, Normal::unit);
     Sample {
         rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
         density: if alpha > 0.0 {
@@ -722,7 +759,7 @@ fn latest_normal(
     basis: &Basis,
     (first, last): (u32, u32),
     field: &Field,
-) -> Option<Vec3> {
+) -> Option<Normal> {
     #[cfg(test)]
     tests::FALLBACKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let f_at = |x: Vec3| scene.density.eval(x, field);
@@ -733,7 +770,9 @@ fn latest_normal(
             return None;
         }
         match scene.gradient {
-            Gradient::Central => crate::lighting::central_normal(&f_at, x, scene.step),
+            Gradient::Central => {
+                crate::lighting::central_normal(&f_at, x, scene.step).map(Normal::of_unit)
+            }
             Gradient::Dual => dual_normal(scene, x, field),
             Gradient::Forward => None,
         }
@@ -754,11 +793,10 @@ fn gradient_normal(
     fv: f32,
     fw: f32,
     basis: &Basis,
-) -> Option<Vec3> {
+) -> Option<Normal> {
     let behind = previous.unwrap_or_else(|| f_at(x - basis.du));
     let g = basis.du * (f - behind) + basis.dv * (fv - f) + basis.dw * (fw - f);
-    let len2 = g.length_squared();
-    (len2 > 1e-30).then(|| -g / len2.sqrt())
+    Normal::of_gradient(g)
 }
 
 /// [`crate::lighting::central_normal`] of a field evaluated `LANES` points
@@ -771,7 +809,7 @@ fn central_normal_lanes(
     h: f32,
     field: &Field,
     eval: impl Fn(&Points) -> Lanes,
-) -> Option<Vec3> {
+) -> Option<Normal> {
     let mut p = Points::default();
     let spare = outside(field).unwrap_or(x);
     for l in 6..LANES {
@@ -783,15 +821,14 @@ fn central_normal_lanes(
     }
     let f = eval(&p);
     let g = Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]);
-    let len2 = g.length_squared();
-    (len2 > 1e-30).then(|| -g / len2.sqrt())
+    Normal::of_gradient(g)
 }
 
 /// The unit outward normal at x from the derivative of the density
 /// (forward-mode differentiation, [`crate::dual`]), or `None` where the
 /// gradient vanishes.
 #[inline]
-fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
+fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Normal> {
     let g = scene
         .density
         .eval_dual(
@@ -800,8 +837,38 @@ fn dual_normal(scene: &Scene, x: Vec3, field: &Field) -> Option<Vec3> {
             crate::dual::spacing(scene.step),
         )
         .d;
-    let len2 = g.length_squared();
-    (len2 > 1e-30).then(|| -g / len2.sqrt())
+    Normal::of_gradient(g)
+}
+
+/// A unit outward normal as the density gradient g it comes from and
+/// |g|²: the normal is `−g / √|g|²` ([`Normal::unit`]), found where it is
+/// read, so that the samples whose light waits ([`Deferred`]) find theirs
+/// together.
+#[derive(Clone, Copy, Debug)]
+struct Normal {
+    g: Vec3,
+    len2: f32,
+}
+
+impl Normal {
+    /// The normal of the gradient g, `None` where g vanishes.
+    #[inline(always)]
+    fn of_gradient(g: Vec3) -> Option<Normal> {
+        let len2 = g.length_squared();
+        (len2 > 1e-30).then_some(Normal { g, len2 })
+    }
+
+    /// The unit vector n: −(−n) / √1 has the bits of n.
+    #[inline(always)]
+    fn of_unit(n: Vec3) -> Normal {
+        Normal { g: -n, len2: 1.0 }
+    }
+
+    /// The unit normal, `−g / √|g|²`.
+    #[inline(always)]
+    fn unit(self) -> Vec3 {
+        -self.g / self.len2.sqrt()
+    }
 }
 
 /// Light reaching the eye from a unit of material at x with unit normal n, seen
@@ -855,48 +922,205 @@ fn shade<const COMMON: bool>(
 }
 
 /// Samples of one ray whose colour waits for their light: the shading
-/// normal, base colour and compositing weight of each, up to [`LANES`]. The
+/// normal, density and compositing weight of each, up to [`LANES`]. The
 /// light of all of them is found at once ([`shade_lanes`]), and their colours
 /// are added in the order of the samples, `colour += (base · light) · weight`
 /// as [`march`] adds them one by one: the same bits.
-#[derive(Default)]
+///
+/// Where it `resolves`, each sample comes with its own normal or none
+/// ([`Own`]), or with what its gradient needs: the neighbours of the
+/// waiting samples are evaluated together at the flush, and each sample
+/// takes its own normal, else the last one found before it (kept from
+/// flush to flush), else −d, as [`march`] would have.
 struct Deferred {
-    normal: Points,
-    base: [Vec3; LANES],
+    /// The gradients g and |g|² of the shading normals ([`Normal`]).
+    gradient: Points,
+    len2: Lanes,
+    /// f of each sample, the colour map's key.
+    f: Lanes,
     weight: Lanes,
     len: usize,
+    /// Whether samples come with their own normals, to be resolved here.
+    resolves: bool,
+    /// Where it resolves: bit l of `found` says that sample l has its own
+    /// normal (in `gradient` and `len2`); bit l of `waiting`, that it is
+    /// found from the point x and f(x − Δx_μ) held for it.
+    found: u32,
+    waiting: u32,
+    x: Points,
+    behind: Lanes,
+    /// The first and the last normal found on the ray.
+    first: Option<Normal>,
+    last: Option<Normal>,
+}
+
+/// A sample's own normal, as the marcher hands it to a resolving
+/// [`Deferred`].
+enum Own {
+    /// Found already (or none: the sample takes the last one).
+    Found(Option<Normal>),
+    /// From the forward differences at point x, f(x − Δx_μ) being `behind`.
+    Waiting { x: Vec3, behind: f32 },
+}
+
+impl Default for Deferred {
+    fn default() -> Deferred {
+        Deferred {
+            gradient: Points::default(),
+            // Lanes not yet held are normalised too (and not read).
+            len2: [1.0; LANES],
+            f: [0.0; LANES],
+            weight: [0.0; LANES],
+            len: 0,
+            resolves: false,
+            found: 0,
+            waiting: 0,
+            x: Points::default(),
+            behind: [0.0; LANES],
+            first: None,
+            last: None,
+        }
+    }
 }
 
 impl Deferred {
-    /// Adds a sample, flushing into `colour` when full.
+    /// Adds a sample with its shading normal, flushing into `colour` when
+    /// full.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn push(
         &mut self,
-        normal: Vec3,
-        base: Vec3,
+        normal: Normal,
+        f: f32,
         weight: f32,
         scene: &Scene,
         basis: &Basis,
+        field: &Field,
         colour: &mut Vec3,
     ) {
-        self.normal.set(self.len, normal);
-        self.base[self.len] = base;
+        self.gradient.set(self.len, normal.g);
+        self.len2[self.len] = normal.len2;
+        self.f[self.len] = f;
         self.weight[self.len] = weight;
         self.len += 1;
         if self.len == LANES {
-            self.flush(scene, basis, colour);
+            self.flush(scene, basis, field, colour);
         }
+    }
+
+    /// Adds a sample with its own normal (where it `resolves`), flushing
+    /// into `colour` when full.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn push_own(
+        &mut self,
+        own: Own,
+        f: f32,
+        weight: f32,
+        scene: &Scene,
+        basis: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+    ) {
+        match own {
+            Own::Found(None) => {}
+            Own::Found(Some(normal)) => self.hold(self.len, normal),
+            Own::Waiting { x, behind } => {
+                self.x.set(self.len, x);
+                self.behind[self.len] = behind;
+                self.waiting |= 1 << self.len;
+            }
+        }
+        self.f[self.len] = f;
+        self.weight[self.len] = weight;
+        self.len += 1;
+        if self.len == LANES {
+            self.flush(scene, basis, field, colour);
+        }
+    }
+
+    /// Holds `normal` as sample l's.
+    #[inline(always)]
+    fn hold(&mut self, l: usize, normal: Normal) {
+        self.gradient.set(l, normal.g);
+        self.len2[l] = normal.len2;
+        self.found |= 1 << l;
+    }
+
+    /// The own normals of the waiting samples: [`gradient_normal`]'s
+    /// differences, their neighbours evaluated [`LANES`] / 2 samples a call
+    /// (the other lanes at a point outside the support, or else the first
+    /// point again).
+    fn find_waiting(&mut self, scene: &Scene, basis: &Basis, field: &Field) {
+        let mut waiting = self.waiting;
+        while waiting != 0 {
+            let mut x = Points::default();
+            let mut which = [0; LANES / 2];
+            let mut n = 0;
+            while waiting != 0 && n < LANES / 2 {
+                let l = waiting.trailing_zeros() as usize;
+                waiting &= waiting - 1;
+                let p = self.x.get(l);
+                x.set(2 * n, p + basis.dv);
+                x.set(2 * n + 1, p + basis.dw);
+                which[n] = l;
+                n += 1;
+            }
+            for l in 2 * n..LANES {
+                x.set(l, outside(field).unwrap_or(x.get(l % 2)));
+            }
+            let v = scene.density.eval_lanes(&x, field, scene.isa);
+            for (i, &l) in which[..n].iter().enumerate() {
+                let (f, fv, fw) = (self.f[l], v[2 * i], v[2 * i + 1]);
+                let g = basis.du * (f - self.behind[l]) + basis.dv * (fv - f) + basis.dw * (fw - f);
+                if let Some(normal) = Normal::of_gradient(g) {
+                    self.hold(l, normal);
+                }
+            }
+        }
+        self.waiting = 0;
     }
 
     /// Adds the held samples' colours to `colour`, in order.
     #[inline(never)]
-    fn flush(&mut self, scene: &Scene, basis: &Basis, colour: &mut Vec3) {
+    fn flush(&mut self, scene: &Scene, basis: &Basis, field: &Field, colour: &mut Vec3) {
         if self.len == 0 {
             return;
         }
-        let [r, g, b] = shade_lanes(scene, &self.normal, basis);
+        if self.resolves {
+            self.find_waiting(scene, basis, field);
+            for l in 0..self.len {
+                if self.found & (1 << l) != 0 {
+                    let own = Normal {
+                        g: self.gradient.get(l),
+                        len2: self.len2[l],
+                    };
+                    self.last = Some(own);
+                    if self.first.is_none() {
+                        self.first = Some(own);
+                    }
+                } else {
+                    #[cfg(test)]
+                    tests::TOOK_LAST.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    let normal = self.last.unwrap_or(Normal::of_unit(-basis.ray.direction));
+                    self.gradient.set(l, normal.g);
+                    self.len2[l] = normal.len2;
+                }
+            }
+            self.found = 0;
+        }
+        // `Normal::unit` lane by lane: the same operations, so the same bits.
+        let mut normal = Points::default();
+        for l in 0..LANES {
+            let length = self.len2[l].sqrt();
+            normal.x[l] = -self.gradient.x[l] / length;
+            normal.y[l] = -self.gradient.y[l] / length;
+            normal.z[l] = -self.gradient.z[l] / length;
+        }
+        let [r, g, b] = shade_lanes(scene, &normal, basis);
         for l in 0..self.len {
-            *colour += (self.base[l] * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
+            let base = Vec3::from_array(scene.colour_map.eval(self.f[l]));
+            *colour += (base * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
         }
         self.len = 0;
     }
@@ -995,6 +1219,10 @@ mod tests {
     /// How many samples took the colour of the one before.
     pub(super) static REUSED: AtomicUsize = AtomicUsize::new(0);
 
+    /// How many samples whose normal was resolved by a [`Deferred`] took the
+    /// last one (or −d).
+    pub(super) static TOOK_LAST: AtomicUsize = AtomicUsize::new(0);
+
     #[test]
     fn reusing_a_run_of_samples_colour_changes_no_pixel() {
         // Blue glass in small: the hard region transparent by the alpha
@@ -1032,43 +1260,71 @@ mod tests {
 
     #[test]
     fn deferred_light_changes_no_pixel() {
-        // The common copy finds the light of up to LANES samples at once
-        // (`Deferred`); the general copy shades each sample as it comes.
-        // Faint matter (many samples a ray, so a ray flushes more than
-        // once), highlights, and more directional lights than a basis holds
-        // half vectors for.
+        // The common copy finds the light of up to LANES samples at once,
+        // and with forward differences their gradients too (`Deferred`); the
+        // general copy shades each sample as it comes. Faint matter (many
+        // samples a ray, so a ray flushes more than once, gradients waiting
+        // across chunks), a hard region (its normal found at once), terraces
+        // of constant density (their samples' gradients vanish and they take
+        // the last normal), highlights, and more directional lights than a
+        // basis holds half vectors for.
         let light = "Directional(direction: (-0.5, 0.7, 0.6), colour: (0.3, 0.3, 0.3))";
-        let text = format!(
+        let lights = format!(
+            "lights: (ambient: (0.1, 0.1, 0.1), sources: [{light}, {light}, {light}, {light},
+                Directional(direction: (0.6, -0.2, 0.7), colour: (0.2, 0.5, 0.9))])"
+        );
+        let noisy = format!(
             "Scene(image: (width: 24, height: 24),
               camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
-              lights: (ambient: (0.1, 0.1, 0.1), sources: [{light}, {light}, {light}, {light},
-                Directional(direction: (0.6, -0.2, 0.7), colour: (0.2, 0.5, 0.9))]),
+              {lights},
               march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Diagonal(120), opacity: 2.0),
               object: Sphere(radius: 0.6, softness: 0.8),
               modulation: [NoisyRadius(frequency: 3.0, amplitude: 0.15)],
               colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
               shading: (specular: 0.4, shininess: 20.0))"
         );
-        let mut scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
-        assert!(scene.common_case);
-        for isa in Isa::available() {
-            assert!(scene.set_isa(isa));
-            let field = scene.field(0);
-            let mut long = 0;
-            for y in 0..24 {
-                for x in 0..24 {
-                    let ray = scene.camera.ray(x, y, (0.5, 0.5));
-                    let deferred = march::<true>(&scene, ray, &field, 0.25, true);
-                    let each = march::<false>(&scene, ray, &field, 0.25, true);
-                    assert_eq!(
-                        deferred.to_array().map(f32::to_bits),
-                        each.to_array().map(f32::to_bits),
-                        "{isa:?}: pixel ({x}, {y})"
-                    );
-                    long += usize::from(deferred.rgba[3] > 0.0 && deferred.rgba[3] < 0.9);
+        let terraces = format!(
+            "Scene(image: (width: 24, height: 24),
+              camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
+              {lights},
+              march: (bounds: (min: (-1.3, -1.3, -1.3), max: (1.3, 1.3, 1.3)), step: Diagonal(120), opacity: 1.0),
+              object: Sphere(radius: 0.6, softness: 1.2),
+              density: \"floor(D(x) * 4) / 4\",
+              colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
+              shading: (specular: 0.4, shininess: 20.0))"
+        );
+        for (what, text) in [("noisy", noisy), ("terraces", terraces)] {
+            let mut scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
+            assert!(scene.common_case, "{what}");
+            let before = TOOK_LAST.load(Ordering::Relaxed);
+            for isa in Isa::available() {
+                assert!(scene.set_isa(isa));
+                let field = scene.field(0);
+                let mut long = 0;
+                for y in 0..24 {
+                    for x in 0..24 {
+                        let ray = scene.camera.ray(x, y, (0.5, 0.5));
+                        let deferred = march::<true>(&scene, ray, &field, 0.25, true);
+                        let each = march::<false>(&scene, ray, &field, 0.25, true);
+                        assert_eq!(
+                            deferred.to_array().map(f32::to_bits),
+                            each.to_array().map(f32::to_bits),
+                            "{what}, {isa:?}: pixel ({x}, {y})"
+                        );
+                        long += usize::from(deferred.rgba[3] > 0.0 && deferred.rgba[3] < 0.9);
+                    }
                 }
+                assert!(
+                    long > 20,
+                    "{what}, {isa:?}: rays through faint matter ({long})"
+                );
             }
-            assert!(long > 20, "{isa:?}: rays through faint matter ({long})");
+            if what == "terraces" {
+                assert!(
+                    TOOK_LAST.load(Ordering::Relaxed) > before,
+                    "{what}: some sample took the last normal"
+                );
+            }
         }
     }
 
