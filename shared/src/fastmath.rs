@@ -125,30 +125,32 @@ pub fn pow01(x: f32, e: f32) -> f32 {
 /// `pow01(x, e)` lane by lane on `isa`, one exponent for all.
 #[inline]
 pub fn pow01_on(isa: Isa, x: &Lanes, e: f32) -> Lanes {
+    pow01_on_live(isa, x, e, u32::MAX)
+}
+
+/// [`pow01_on`] at the lanes set in `live`: on a SIMD path a block of lanes
+/// none of which is live is skipped (and comes out 1).
+#[inline]
+pub fn pow01_on_live(isa: Isa, x: &Lanes, e: f32, live: u32) -> Lanes {
     match isa {
         Isa::Scalar => x.map(|x| pow01(x, e)),
         // SAFETY: a scene only carries a path that `Isa::available` reported,
         // and `Scene::with_isa` refuses the others.
         #[cfg(target_arch = "x86_64")]
-        Isa::Sse41 => unsafe { x86::pow01_sse41(x, e) },
+        Isa::Sse41 => unsafe { x86::pow01_sse41(x, e, live) },
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { x86::pow01_avx2(x, e) },
+        Isa::Avx2 => unsafe { x86::pow01_avx2(x, e, live) },
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => unsafe { x86::pow01_avx512(x, e) },
+        Isa::Avx512 => unsafe { x86::pow01_avx512(x, e, live) },
         #[cfg(not(target_arch = "x86_64"))]
         _ => pow01_on(Isa::Scalar, x, e),
     }
 }
 
-/// `pow01` written lane-parallel: both branches computed, then selected, so the
-/// loop vectorises; each lane's value is the scalar one.
-#[inline(always)]
-pub(crate) fn pow01_lanes(x: &Lanes, e: f32) -> Lanes {
-    pow01_lanes_live(x, e, u32::MAX)
-}
-
-/// [`pow01_lanes`] in the blocks of lanes with a lane set in `live`
-/// ([`crate::simd::live_blocks`]); the other blocks come out 1.
+/// `pow01` written lane-parallel (both branches computed, then selected, so
+/// the loop vectorises; each lane's value is the scalar one), in the blocks
+/// of lanes with a lane set in `live` ([`crate::simd::live_blocks`]); the
+/// other blocks come out 1.
 #[inline(always)]
 pub(crate) fn pow01_lanes_live(x: &Lanes, e: f32, live: u32) -> Lanes {
     use crate::simd::{BLOCK, LiveBlocks, live_blocks};
@@ -193,18 +195,18 @@ mod x86 {
     use super::*;
 
     #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn pow01_avx512(x: &Lanes, e: f32) -> Lanes {
-        pow01_lanes(x, e)
+    pub(super) fn pow01_avx512(x: &Lanes, e: f32, live: u32) -> Lanes {
+        pow01_lanes_live(x, e, live)
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) fn pow01_avx2(x: &Lanes, e: f32) -> Lanes {
-        pow01_lanes(x, e)
+    pub(super) fn pow01_avx2(x: &Lanes, e: f32, live: u32) -> Lanes {
+        pow01_lanes_live(x, e, live)
     }
 
     #[target_feature(enable = "sse4.1")]
-    pub(super) fn pow01_sse41(x: &Lanes, e: f32) -> Lanes {
-        pow01_lanes(x, e)
+    pub(super) fn pow01_sse41(x: &Lanes, e: f32, live: u32) -> Lanes {
+        pow01_lanes_live(x, e, live)
     }
 }
 

@@ -1109,29 +1109,42 @@ impl Deferred {
             }
             self.found = 0;
         }
+        if self.len <= LANES / 2 {
+            self.shade::<{ LANES / 2 }>(scene, basis, colour);
+        } else {
+            self.shade::<LANES>(scene, basis, colour);
+        }
+        self.len = 0;
+    }
+
+    /// Adds the colours of the held samples (at most W) to `colour`, in
+    /// order, their normals and light found W lanes at a time.
+    #[inline(always)]
+    fn shade<const W: usize>(&self, scene: &Scene, basis: &Basis, colour: &mut Vec3) {
         // `Normal::unit` lane by lane: the same operations, so the same bits.
-        let mut normal = Points::default();
-        for l in 0..LANES {
+        let mut normal = [[0.0; W]; 3];
+        #[allow(clippy::needless_range_loop)] // lane l of four arrays
+        for l in 0..W {
             let length = self.len2[l].sqrt();
-            normal.x[l] = -self.gradient.x[l] / length;
-            normal.y[l] = -self.gradient.y[l] / length;
-            normal.z[l] = -self.gradient.z[l] / length;
+            normal[0][l] = -self.gradient.x[l] / length;
+            normal[1][l] = -self.gradient.y[l] / length;
+            normal[2][l] = -self.gradient.z[l] / length;
         }
         let [r, g, b] = shade_lanes(scene, &normal, basis);
         for l in 0..self.len {
             let base = Vec3::from_array(scene.colour_map.eval(self.f[l]));
             *colour += (base * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
         }
-        self.len = 0;
     }
 }
 
-/// [`shade`] (the common case: no shadows) of [`LANES`] samples at once
-/// along the direction of `basis`, under directional lights only: each
-/// lane's red, green and blue have the bits `shade` gives, the powers of
-/// the highlights taken on the scene's instruction-set path.
-fn shade_lanes(scene: &Scene, n: &Points, basis: &Basis) -> [Lanes; 3] {
-    let mut light = scene.ambient.to_array().map(|a| [a; LANES]);
+/// [`shade`] (the common case: no shadows) of W samples at once (at most
+/// [`LANES`]) along the direction of `basis`, under directional lights
+/// only: each lane's red, green and blue have the bits `shade` gives, the
+/// powers of the highlights taken on the scene's instruction-set path.
+#[inline(always)]
+fn shade_lanes<const W: usize>(scene: &Scene, n: &[[f32; W]; 3], basis: &Basis) -> [[f32; W]; 3] {
+    let mut light = scene.ambient.to_array().map(|a| [a; W]);
     for (i, source) in scene.lights.iter().enumerate() {
         let Light::Directional {
             direction: l,
@@ -1140,8 +1153,8 @@ fn shade_lanes(scene: &Scene, n: &Points, basis: &Basis) -> [Lanes; 3] {
         else {
             unreachable!("`Deferred` is used under directional lights only")
         };
-        let lambert: Lanes =
-            std::array::from_fn(|j| (n.x[j] * l.x) + (n.y[j] * l.y) + (n.z[j] * l.z));
+        let lambert: [f32; W] =
+            std::array::from_fn(|j| (n[0][j] * l.x) + (n[1][j] * l.y) + (n[2][j] * l.z));
         let mut response = lambert.map(|lambert| scene.diffuse * lambert);
         if scene.specular > 0.0 {
             let h = basis
@@ -1149,17 +1162,20 @@ fn shade_lanes(scene: &Scene, n: &Points, basis: &Basis) -> [Lanes; 3] {
                 .get(i)
                 .copied()
                 .unwrap_or_else(|| (l - basis.ray.direction).normalize_or_zero());
-            let nh: Lanes =
-                std::array::from_fn(|j| (n.x[j] * h.x) + (n.y[j] * h.y) + (n.z[j] * h.z));
-            let power = fastmath::pow01_on(scene.isa, &nh, scene.shininess);
-            for j in 0..LANES {
+            let mut nh = [0.0; LANES];
+            for j in 0..W {
+                nh[j] = (n[0][j] * h.x) + (n[1][j] * h.y) + (n[2][j] * h.z);
+            }
+            let live = u32::MAX >> (32 - W);
+            let power = fastmath::pow01_on_live(scene.isa, &nh, scene.shininess, live);
+            for j in 0..W {
                 if nh[j] > 0.0 {
                     response[j] += scene.specular * power[j];
                 }
             }
         }
         for (c, light) in light.iter_mut().enumerate() {
-            for j in 0..LANES {
+            for j in 0..W {
                 if lambert[j] > 0.0 {
                     light[j] += colour[c] * response[j];
                 }
