@@ -442,6 +442,18 @@ fn march<const COMMON: bool>(
     let f_at = |x: Vec3| scene.density.eval(x, field);
 
     let mut basis = Basis::new(ray, step, (t0, t1), phase, field.support, scene);
+    if basis.first == u32::MAX {
+        // The ray misses the support: no sample would be evaluated, and the
+        // loop below would end at once. What it would return, without
+        // setting up its chunk and batch.
+        let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
+        let (colour, alpha) = (Vec3::ZERO, 0.0f32);
+        let rgb = colour + bg * (1.0 - alpha);
+        return Sample {
+            rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
+            ..Sample::default()
+        };
+    }
     let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
     let mut path = 0.0f32;
