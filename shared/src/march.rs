@@ -210,7 +210,11 @@ impl Chunk {
         self.x = sample_points(scene, basis, k, field);
         (self.f, self.alpha) = samples(scene, &self.x, field, simd);
         self.has_gradient = 0;
-        self.nonzero = lane_mask(|l| self.f[l].to_bits() != 0);
+        self.nonzero = if simd {
+            crate::simd::nonzero_mask(scene.isa, &self.f)
+        } else {
+            lane_mask(|l| self.f[l].to_bits() != 0)
+        };
     }
 
     /// f(x + Δx_ν) and f(x + Δx_ω) at sample k (held): for it and the held
@@ -352,7 +356,11 @@ fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lane
     }
     // 1^e = 1 (`pow01`): empty samples are transparent without the power,
     // and a block of them goes without it.
-    let opaque = lane_mask(|l| transmit[l] < 1.0);
+    let opaque = if simd {
+        crate::simd::below_mask(scene.isa, &transmit, 1.0)
+    } else {
+        lane_mask(|l| transmit[l] < 1.0)
+    };
     if opaque == 0 {
         return (f, [0.0; LANES]);
     }

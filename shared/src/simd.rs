@@ -73,6 +73,56 @@ pub fn lane_mask(test: impl Fn(usize) -> bool) -> u32 {
     bits.iter().fold(0, |m, b| m | b)
 }
 
+/// The mask of the lanes of `v` that are not +0 (bit l for lane l), on
+/// `isa`'s registers where it is a SIMD path (inlined into that path's
+/// copy): the mask [`lane_mask`] gives.
+#[inline(always)]
+pub fn nonzero_mask(isa: Isa, v: &Lanes) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+        use std::arch::x86_64::*;
+        // SAFETY: the path is AVX2 or AVX-512 only on CPUs that have it, and
+        // this code is inlined into that path's copy; the loads are of 8
+        // lanes within arrays of LANES.
+        return unsafe {
+            let zero = _mm256_setzero_si256();
+            let mut m = 0u32;
+            for h in 0..LANES / 8 {
+                let bits = _mm256_loadu_si256(v.as_ptr().add(8 * h).cast());
+                let zeros = _mm256_castsi256_ps(_mm256_cmpeq_epi32(bits, zero));
+                m |= (_mm256_movemask_ps(zeros) as u32) << (8 * h);
+            }
+            !m & ((1u64 << LANES) - 1) as u32
+        };
+    }
+    let _ = isa;
+    lane_mask(|l| v[l].to_bits() != 0)
+}
+
+/// The mask of the lanes of `v` below `bound` (bit l for lane l; false for
+/// NaN), on `isa`'s registers where it is a SIMD path (inlined into that
+/// path's copy): the mask [`lane_mask`] gives.
+#[inline(always)]
+pub fn below_mask(isa: Isa, v: &Lanes, bound: f32) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+        use std::arch::x86_64::*;
+        // SAFETY: as in `nonzero_mask`.
+        return unsafe {
+            let b = _mm256_set1_ps(bound);
+            let mut m = 0u32;
+            for h in 0..LANES / 8 {
+                let x = _mm256_loadu_ps(v.as_ptr().add(8 * h));
+                let below = _mm256_cmp_ps::<_CMP_LT_OQ>(x, b);
+                m |= (_mm256_movemask_ps(below) as u32) << (8 * h);
+            }
+            m
+        };
+    }
+    let _ = isa;
+    lane_mask(|l| v[l] < bound)
+}
+
 /// An instruction-set path for the batch kernels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Isa {
@@ -171,5 +221,61 @@ pub(crate) fn deinterleave(
             _mm_shuffle_ps::<0b11_11_00_00>(c, c),
         );
         (x, y, z)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The masks by compare and `movemask` are [`lane_mask`]'s on every
+    /// path, at ±0, NaN, subnormals, the bound itself and its neighbours.
+    #[test]
+    fn masks_on_every_path_are_lane_masks() {
+        let special = [
+            0.0,
+            -0.0,
+            f32::NAN,
+            -f32::NAN,
+            f32::MIN_POSITIVE / 2.0,
+            -f32::MIN_POSITIVE / 2.0,
+            1.0,
+            1.0f32.next_down(),
+            1.0f32.next_up(),
+            0.5,
+            -0.5,
+            f32::INFINITY,
+            -f32::INFINITY,
+            2.0,
+            f32::MAX,
+            -1.0,
+        ];
+        // A xorshift, so that the bottom layer's tests use nothing above it.
+        let mut state = 0x9e37_79b9_u32;
+        for round in 0..200 {
+            let v: Lanes = std::array::from_fn(|l| {
+                state ^= state << 13;
+                state ^= state >> 17;
+                state ^= state << 5;
+                let pick = if round % 2 == 0 {
+                    l * 7 + round
+                } else {
+                    state as usize
+                };
+                special[pick % special.len()]
+            });
+            for isa in Isa::available() {
+                assert_eq!(
+                    nonzero_mask(isa, &v),
+                    lane_mask(|l| v[l].to_bits() != 0),
+                    "{isa:?}: {v:?}"
+                );
+                assert_eq!(
+                    below_mask(isa, &v, 1.0),
+                    lane_mask(|l| v[l] < 1.0),
+                    "{isa:?}: {v:?}"
+                );
+            }
+        }
     }
 }
