@@ -1020,12 +1020,7 @@ impl Deferred {
     ) {
         self.gradient.set(self.len, normal.g);
         self.len2[self.len] = normal.len2;
-        self.f[self.len] = f;
-        self.weight[self.len] = weight;
-        self.len += 1;
-        if self.len == LANES {
-            self.flush(scene, basis, field, colour);
-        }
+        self.append(f, weight, scene, basis, field, colour);
     }
 
     /// Adds a sample with its own normal (where it `resolves`), flushing
@@ -1051,6 +1046,21 @@ impl Deferred {
                 self.waiting |= 1 << self.len;
             }
         }
+        self.append(f, weight, scene, basis, field, colour);
+    }
+
+    /// Holds the next sample's f and weight (its normal held already),
+    /// flushing into `colour` when full.
+    #[inline(always)]
+    fn append(
+        &mut self,
+        f: f32,
+        weight: f32,
+        scene: &Scene,
+        basis: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+    ) {
         self.f[self.len] = f;
         self.weight[self.len] = weight;
         self.len += 1;
