@@ -589,7 +589,7 @@ fn march<const COMMON: bool>(
                 },
                 None => Own::Found(normal),
             };
-            deferred.push_own(own, f, weight, scene, &basis, field, &mut colour);
+            deferred.push(own, f, weight, scene, &basis, field, &mut colour);
             alpha += weight;
             weighted_density += f * weight;
             if alpha >= scene.threshold {
@@ -612,7 +612,8 @@ fn march<const COMMON: bool>(
                 .unwrap_or(Normal::of_unit(-basis.ray.direction));
             let weight = alpha_k * (1.0 - alpha);
             if let Some(deferred) = &mut deferred {
-                deferred.push(shading_normal, f, weight, scene, &basis, field, &mut colour);
+                let own = Own::Found(Some(shading_normal));
+                deferred.push(own, f, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
                 // perhaps the latest such sample's colour (in the general copy:
@@ -974,8 +975,7 @@ struct Deferred {
     last: Option<Normal>,
 }
 
-/// A sample's own normal, as the marcher hands it to a resolving
-/// [`Deferred`].
+/// A sample's own normal, as the marcher hands it to a [`Deferred`].
 enum Own {
     /// Found already (or none: the sample takes the last one).
     Found(Option<Normal>),
@@ -1004,30 +1004,12 @@ impl Default for Deferred {
 }
 
 impl Deferred {
-    /// Adds a sample with its shading normal, flushing into `colour` when
+    /// Adds a sample with its own normal (where it does not `resolve`, the
+    /// shading normal the marcher resolved), flushing into `colour` when
     /// full.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn push(
-        &mut self,
-        normal: Normal,
-        f: f32,
-        weight: f32,
-        scene: &Scene,
-        basis: &Basis,
-        field: &Field,
-        colour: &mut Vec3,
-    ) {
-        self.gradient.set(self.len, normal.g);
-        self.len2[self.len] = normal.len2;
-        self.append(f, weight, scene, basis, field, colour);
-    }
-
-    /// Adds a sample with its own normal (where it `resolves`), flushing
-    /// into `colour` when full.
-    #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn push_own(
         &mut self,
         own: Own,
         f: f32,
@@ -1046,21 +1028,6 @@ impl Deferred {
                 self.waiting |= 1 << self.len;
             }
         }
-        self.append(f, weight, scene, basis, field, colour);
-    }
-
-    /// Holds the next sample's f and weight (its normal held already),
-    /// flushing into `colour` when full.
-    #[inline(always)]
-    fn append(
-        &mut self,
-        f: f32,
-        weight: f32,
-        scene: &Scene,
-        basis: &Basis,
-        field: &Field,
-        colour: &mut Vec3,
-    ) {
         self.f[self.len] = f;
         self.weight[self.len] = weight;
         self.len += 1;
@@ -1137,8 +1104,8 @@ impl Deferred {
                     self.len2[l] = normal.len2;
                 }
             }
-            self.found = 0;
         }
+        self.found = 0;
         if self.len <= LANES / 2 {
             self.shade::<{ LANES / 2 }>(scene, basis, colour);
         } else {
