@@ -20,6 +20,11 @@ pub struct Curve<const N: usize> {
     /// segment, computed once: the same bits as at each evaluation.
     widths: Vec<f32>,
     deltas: Vec<[f32; N]>,
+    /// The Catmull–Rom polynomial of each segment, 2p₁, p₂ − p₀,
+    /// 2p₀ − 5p₁ + 4p₂ − p₃ and 3p₁ − p₀ − 3p₂ + p₃ (p₀ and p₃ the
+    /// neighbouring values, repeated at the ends), computed once: the same
+    /// bits as at each evaluation.
+    spline: Vec<[[f32; N]; 4]>,
 }
 
 impl<const N: usize> Curve<N> {
@@ -35,12 +40,29 @@ impl<const N: usize> Curve<N> {
             .windows(2)
             .map(|v| std::array::from_fn(|c| v[1][c] - v[0][c]))
             .collect();
+        let n = values.len();
+        let spline = (0..n.saturating_sub(1))
+            .map(|i| {
+                let (p0, p1) = (values[i.saturating_sub(1)], values[i]);
+                let (p2, p3) = (values[i + 1], values[(i + 2).min(n - 1)]);
+                let mut c = [[0.0; N]; 4];
+                for ch in 0..N {
+                    let (a, b, d, e) = (p0[ch], p1[ch], p2[ch], p3[ch]);
+                    c[0][ch] = 2.0 * b;
+                    c[1][ch] = d - a;
+                    c[2][ch] = 2.0 * a - 5.0 * b + 4.0 * d - e;
+                    c[3][ch] = 3.0 * b - a - 3.0 * d + e;
+                }
+                c
+            })
+            .collect();
         Curve {
             keys,
             values,
             interpolation,
             widths,
             deltas,
+            spline,
         }
     }
 
@@ -66,7 +88,7 @@ impl<const N: usize> Curve<N> {
             i += 1;
         }
         let u = (t - self.keys[i]) / self.widths[i];
-        let (p1, p2) = (self.values[i], self.values[i + 1]);
+        let p1 = self.values[i];
         let mut out = [0.0; N];
         match self.interpolation {
             Interpolation::Step => out = p1,
@@ -77,16 +99,10 @@ impl<const N: usize> Curve<N> {
                 }
             }
             Interpolation::Spline => {
-                let p0 = self.values[i.saturating_sub(1)];
-                let p3 = self.values[(i + 2).min(n - 1)];
+                let [c0, c1, c2, c3] = &self.spline[i];
                 let (u2, u3) = (u * u, u * u * u);
                 for c in 0..N {
-                    let (a, b, d, e) = (p0[c], p1[c], p2[c], p3[c]);
-                    out[c] = 0.5
-                        * (2.0 * b
-                            + (d - a) * u
-                            + (2.0 * a - 5.0 * b + 4.0 * d - e) * u2
-                            + (3.0 * b - a - 3.0 * d + e) * u3);
+                    out[c] = 0.5 * (c0[c] + c1[c] * u + c2[c] * u2 + c3[c] * u3);
                 }
             }
         }
@@ -163,6 +179,35 @@ mod tests {
                 let (p1, p2) = (values[i][ch], values[i + 1][ch]);
                 let want = if t <= keys[0] { p1 } else { p1 + (p2 - p1) * u };
                 assert_eq!(got[ch].to_bits(), want.to_bits(), "at {t}, channel {ch}");
+            }
+        }
+        // The spline's kept polynomials, against the Catmull–Rom formula
+        // through the neighbouring values (repeated at the ends).
+        let c = Curve::new(Interpolation::Spline, pts);
+        let n = keys.len();
+        for j in 0..=4096 {
+            let t = (j as f32 / 4096.0).next_down().max(0.0);
+            let got = c.eval(t);
+            let i = keys.partition_point(|&k| k <= t).clamp(1, n - 1) - 1;
+            let u = (t - keys[i]) / (keys[i + 1] - keys[i]);
+            let (u2, u3) = (u * u, u * u * u);
+            for ch in 0..3 {
+                let a = values[i.saturating_sub(1)][ch];
+                let (b, d) = (values[i][ch], values[i + 1][ch]);
+                let e = values[(i + 2).min(n - 1)][ch];
+                let want = if t <= keys[0] {
+                    b
+                } else {
+                    0.5 * (2.0 * b
+                        + (d - a) * u
+                        + (2.0 * a - 5.0 * b + 4.0 * d - e) * u2
+                        + (3.0 * b - a - 3.0 * d + e) * u3)
+                };
+                assert_eq!(
+                    got[ch].to_bits(),
+                    want.to_bits(),
+                    "spline at {t}, channel {ch}"
+                );
             }
         }
     }

@@ -557,7 +557,13 @@ fn march<const COMMON: bool>(
         } else if soft && (lit || first_normal.is_none()) {
             normal = match scene.gradient {
                 Gradient::Forward => {
-                    let (fv, fw) = chunk.neighbours(k, &basis, scene, field, alpha);
+                    // Unlit, a ray reads only its first normal: that
+                    // sample's two neighbours, without the chunk's others.
+                    let (fv, fw) = if lit {
+                        chunk.neighbours(k, &basis, scene, field, alpha)
+                    } else {
+                        (f_at(x + basis.dv), f_at(x + basis.dw))
+                    };
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
                 Gradient::Central => central_normal_lanes(x, step, field, |p| {
