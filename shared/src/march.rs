@@ -429,8 +429,8 @@ pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> S
 /// bends), computing what the general copy computes in that case.
 /// `shortcuts` lets it pass transparent samples without their normals,
 /// reuse a sample's colour along a run of samples of the same f and normal,
-/// and skip the refraction map where f repeats (the same result; off only
-/// to test that).
+/// skip the refraction map where f repeats, and let the samples' light wait
+/// ([`Deferred`]) (the same result; off only to test that).
 fn march<const COMMON: bool>(
     scene: &Scene,
     ray: Ray,
@@ -501,15 +501,10 @@ fn march<const COMMON: bool>(
     // with the same f and normal (a hard region, where f = 1 and the normal
     // stays the last one) reuses it.
     let mut shaded: Option<((u32, [u32; 3]), Vec3)> = None;
-    // In the common copy under directional lights only, the samples' light
-    // waits and is found [`LANES`] samples at a time ([`Deferred`]).
-    let mut deferred = (COMMON
-        && lit
-        && scene
-            .lights
-            .iter()
-            .all(|l| matches!(l, Light::Directional { .. })))
-    .then(Deferred::default);
+    // Under directional lights only, with no refraction, normal expression
+    // or shadows, the samples' light waits and is found [`LANES`] samples at
+    // a time ([`Deferred`]); their base colours are found as they come.
+    let mut deferred = (shortcuts && scene.light_waits).then(Deferred::default);
     // With the paper's forward differences, the gradients wait too: a
     // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
     // with the other waiting samples', [`LANES`] / 2 samples a call across
@@ -595,7 +590,8 @@ fn march<const COMMON: bool>(
                 },
                 None => Own::Found(normal),
             };
-            deferred.push(own, f, weight, scene, &basis, field, &mut colour);
+            let base = base_colour::<COMMON>(scene, x, f, field);
+            deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             alpha += weight;
             weighted_density += f * weight;
             if alpha >= scene.threshold {
@@ -619,7 +615,8 @@ fn march<const COMMON: bool>(
             let weight = alpha_k * (1.0 - alpha);
             if let Some(deferred) = &mut deferred {
                 let own = Own::Found(Some(shading_normal));
-                deferred.push(own, f, weight, scene, &basis, field, &mut colour);
+                let base = base_colour::<COMMON>(scene, x, f, field);
+                deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
                 // perhaps the latest such sample's colour (in the general copy:
@@ -751,28 +748,35 @@ fn sample_colour<const COMMON: bool>(
     field: &Field,
     lit: bool,
 ) -> Vec3 {
-    let (shading_normal, base) = if COMMON {
-        (shading_normal, Vec3::from_array(scene.colour_map.eval(f)))
+    let shading_normal = if COMMON || !lit {
+        shading_normal // `shade` reads it only for lights
+    } else {
+        let object_x = field.object_point(x);
+        pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+    };
+    base_colour::<COMMON>(scene, x, f, field)
+        * shade::<COMMON>(scene, x, shading_normal, basis, field)
+}
+
+/// The base colour of a sample at x of density f: the colour map at its
+/// key, or the colour expression. `COMMON`: the key is f.
+#[inline(always)]
+fn base_colour<const COMMON: bool>(scene: &Scene, x: Vec3, f: f32, field: &Field) -> Vec3 {
+    if COMMON {
+        Vec3::from_array(scene.colour_map.eval(f))
     } else {
         // Colours and textures belong to the object: its point, not the world's.
         let object_x = field.object_point(x);
-        let shading_normal = if lit {
-            pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
-        } else {
-            shading_normal // `shade` reads it only for lights
-        };
         let key = scene.colour_key(object_x, f, field);
-        let base = pse::surface_colour(
+        pse::surface_colour(
             &scene.expressions,
             &scene.colour_map,
             object_x,
             f,
             key,
             field,
-        );
-        (shading_normal, base)
-    };
-    base * shade::<COMMON>(scene, x, shading_normal, basis, field)
+        )
+    }
 }
 
 /// The normal of the latest soft sample in `first ..= last` of `basis` whose
@@ -963,8 +967,9 @@ struct Deferred {
     /// The gradients g and |g|² of the shading normals ([`Normal`]).
     gradient: Points,
     len2: Lanes,
-    /// f of each sample, the colour map's key.
+    /// f and the base colour ([`base_colour`]) of each sample.
     f: Lanes,
+    base: Points,
     weight: Lanes,
     len: usize,
     /// Whether samples come with their own normals, to be resolved here.
@@ -996,6 +1001,7 @@ impl Default for Deferred {
             // Lanes not yet held are normalised too (and not read).
             len2: [1.0; LANES],
             f: [0.0; LANES],
+            base: Points::default(),
             weight: [0.0; LANES],
             len: 0,
             resolves: false,
@@ -1019,6 +1025,7 @@ impl Deferred {
         &mut self,
         own: Own,
         f: f32,
+        base: Vec3,
         weight: f32,
         scene: &Scene,
         basis: &Basis,
@@ -1035,6 +1042,7 @@ impl Deferred {
             }
         }
         self.f[self.len] = f;
+        self.base.set(self.len, base);
         self.weight[self.len] = weight;
         self.len += 1;
         if self.len == LANES {
@@ -1135,8 +1143,7 @@ impl Deferred {
         }
         let [r, g, b] = shade_lanes(scene, &normal, basis);
         for l in 0..self.len {
-            let base = Vec3::from_array(scene.colour_map.eval(self.f[l]));
-            *colour += (base * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
+            *colour += (self.base.get(l) * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
         }
     }
 }
@@ -1279,9 +1286,11 @@ mod tests {
 
     #[test]
     fn deferred_light_changes_no_pixel() {
-        // The common copy finds the light of up to LANES samples at once,
-        // and with forward differences their gradients too (`Deferred`); the
-        // general copy shades each sample as it comes. Faint matter (many
+        // The light of up to LANES samples is found at once, and with
+        // forward differences their gradients too (`Deferred`), in the
+        // common copy and, for a scene with a colour index or expression,
+        // in the general one; without shortcuts the general copy shades
+        // each sample as it comes. Faint matter (many
         // samples a ray, so a ray flushes more than once, gradients waiting
         // across chunks), a hard region (its normal found at once), terraces
         // of constant density (their samples' gradients vanish and they take
@@ -1312,9 +1321,24 @@ mod tests {
               colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
               shading: (specular: 0.4, shininess: 20.0))"
         );
-        for (what, text) in [("noisy", noisy), ("terraces", terraces)] {
+        // Strata keyed by noise and a colour expression: the general copy.
+        let strata = noisy.replace(
+            "colour_map:",
+            "colour_index: Strata(frequency: 6.0, amplitude: 3.0, octaves: 3), colour_map:",
+        );
+        let expression = noisy.replace(
+            "colour_map:",
+            "colour: \"[0.5 + 0.5 * noise(4 * x), 0.6, d]\", colour_map:",
+        );
+        for (what, text, common) in [
+            ("noisy", noisy, true),
+            ("terraces", terraces, true),
+            ("strata", strata, false),
+            ("expression", expression, false),
+        ] {
             let mut scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
-            assert!(scene.common_case, "{what}");
+            assert_eq!(scene.common_case, common, "{what}");
+            assert!(scene.light_waits, "{what}");
             let before = TOOK_LAST.load(Ordering::Relaxed);
             for isa in Isa::available() {
                 assert!(scene.set_isa(isa));
@@ -1323,8 +1347,12 @@ mod tests {
                 for y in 0..24 {
                     for x in 0..24 {
                         let ray = scene.camera.ray(x, y, (0.5, 0.5));
-                        let deferred = march::<true>(&scene, ray, &field, 0.25, true);
-                        let each = march::<false>(&scene, ray, &field, 0.25, true);
+                        let deferred = if common {
+                            march::<true>(&scene, ray, &field, 0.25, true)
+                        } else {
+                            march::<false>(&scene, ray, &field, 0.25, true)
+                        };
+                        let each = march::<false>(&scene, ray, &field, 0.25, false);
                         assert_eq!(
                             deferred.to_array().map(f32::to_bits),
                             each.to_array().map(f32::to_bits),

@@ -482,6 +482,10 @@ pub struct Scene {
     /// shadows or point lights), so that a run of samples sharing those
     /// shares it: see `march`.
     pub(crate) position_free_shading: bool,
+    /// Whether a sample's light may wait and be found with other samples'
+    /// (`march`'s `Deferred`): no refraction, no normal expression, no
+    /// shadows, and directional lights only (at least one).
+    pub(crate) light_waits: bool,
 }
 
 impl Scene {
@@ -636,6 +640,13 @@ impl Scene {
             && lights
                 .iter()
                 .all(|l| matches!(l, Light::Directional { .. }));
+        let light_waits = desc.refraction.is_none()
+            && expressions.normal_perturbation.is_none()
+            && !desc.shading.shadows
+            && !lights.is_empty()
+            && lights
+                .iter()
+                .all(|l| matches!(l, Light::Directional { .. }));
         Ok(Scene {
             width: desc.image.width,
             height: desc.image.height,
@@ -671,6 +682,7 @@ impl Scene {
             assets: Vec::new(),
             common_case,
             position_free_shading,
+            light_waits,
         })
     }
 
