@@ -39,14 +39,16 @@ pub struct Noise {
     perm: [u8; 256],
     /// G: 256 pseudorandom unit vectors, uniform on the sphere.
     gradients: [Vec3; 256],
-    /// P twice over, `P[m mod n]` for m < 2n: φ(a + φ(b)) needs no mask when
-    /// a and b are already reduced mod n (derived from `perm`).
-    perm2: [u8; 512],
     /// `G[P[m mod n]]` for m < 2n, padded to 16 bytes: the last level of the
     /// hash and the gradient in one aligned load, and the rows of corners
     /// (i, ·, ·) and (i + 1, ·, ·) next to each other (derived from `perm` and
     /// `gradients`).
     gradient_of: [Row; 512],
+    /// The inner two levels of the hash for every (j, k) in 0..n: entry
+    /// `k·n + j` holds φ(j + dj + φ(k + dk)) in byte dj + 2·dk, so that one
+    /// load gives the rows of a cell's four corners (0, dj, dk) (derived
+    /// from `perm`).
+    cells: Box<[u32; 1 << 16]>,
 }
 
 /// A gradient `(x, y, z, 0)` on its own 16-byte line, loaded as one vector.
@@ -88,37 +90,45 @@ impl Noise {
                 }
             };
         }
-        let perm2 = std::array::from_fn(|m| perm[m & 255]);
+        // P twice over: φ(a + φ(b)) needs no mask when a and b are reduced.
+        let perm2: [u8; 512] = std::array::from_fn(|m| perm[m & 255]);
         let gradient_of = std::array::from_fn(|m| {
             let g = gradients[usize::from(perm[m & 255])];
             Row([g.x, g.y, g.z, 0.0])
         });
+        let mut cells: Box<[u32; 1 << 16]> = vec![0; 1 << 16]
+            .into_boxed_slice()
+            .try_into()
+            .expect("a table of n² entries");
+        for (m, cell) in cells.iter_mut().enumerate() {
+            let (j, k) = (m & 255, m >> 8);
+            for dk in 0..2 {
+                let a = usize::from(perm2[k + dk]);
+                for dj in 0..2 {
+                    *cell |= u32::from(perm2[j + dj + a]) << (8 * (dj + 2 * dk));
+                }
+            }
+        }
         Noise {
             perm,
             gradients,
-            perm2,
             gradient_of,
+            cells,
         }
     }
 
     /// The rows of `gradient_of` of the cell (i, j, k)'s corners (0, dj, dk),
     /// at index dj + 2·dk, all < 511; corner (1, dj, dk)'s is the next row.
-    /// Γ_ijk = G[φ(i + φ(j + φ(k)))] with φ(m) = P[m mod n], from 6 look-ups
-    /// of P (each φ(k + dk) and φ(j + dj + ·) serves two corners) rather
-    /// than 14. i, j, k are already reduced mod n.
+    /// Γ_ijk = G[φ(i + φ(j + φ(k)))] with φ(m) = P[m mod n], from one entry
+    /// of `cells` rather than 14 look-ups of P. i, j, k are already reduced
+    /// mod n.
     #[inline(always)]
     fn corners(&self, i: usize, j: usize, k: usize) -> [usize; 4] {
-        // (a + b) mod n = ((a mod n) + b) mod n: `perm2` and `gradient_of`
-        // cover the sums of two reduced numbers without a mask.
+        // (a + b) mod n = ((a mod n) + b) mod n: `gradient_of` covers the
+        // sum of two reduced numbers without a mask.
         let (i, j, k) = (i & 255, j & 255, k & 255);
-        let mut out = [0; 4];
-        for dk in 0..2 {
-            let a = usize::from(self.perm2[k + dk]);
-            for dj in 0..2 {
-                out[dj + 2 * dk] = i + usize::from(self.perm2[j + dj + a]);
-            }
-        }
-        out
+        let cell = self.cells[(k << 8) | j];
+        std::array::from_fn(|c| i + ((cell >> (8 * c)) & 255) as usize)
     }
 
     /// Gradient noise at `p`, roughly in [−1, 1]; exactly 0 at every lattice point.
@@ -311,27 +321,22 @@ impl Noise {
         // arrays of 8; the rows are 16-byte aligned and in the table (below).
         unsafe {
             let (fx, fy, fz) = (floor8(x), floor8(y), floor8(z));
-            let mut cell = [[0u32; 8]; 3];
             let n = _mm256_set1_epi32(255);
-            _mm256_storeu_si256(
-                cell[0].as_mut_ptr().cast(),
-                _mm256_and_si256(lattice8(fx), n),
-            );
-            _mm256_storeu_si256(
-                cell[1].as_mut_ptr().cast(),
-                _mm256_and_si256(lattice8(fy), n),
-            );
-            _mm256_storeu_si256(
-                cell[2].as_mut_ptr().cast(),
-                _mm256_and_si256(lattice8(fz), n),
-            );
-            let mut corners = [[0usize; 4]; 8];
-            for (l, c) in corners.iter_mut().enumerate() {
-                *c = self.corners(
-                    cell[0][l] as usize,
-                    cell[1][l] as usize,
-                    cell[2][l] as usize,
-                );
+            let i = _mm256_and_si256(lattice8(fx), n);
+            let j = _mm256_and_si256(lattice8(fy), n);
+            let k = _mm256_and_si256(lattice8(fz), n);
+            // `corners`: the cells' entries gathered, their bytes added to i.
+            let entry = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
+            let packed = _mm256_i32gather_epi32::<4>(self.cells.as_ptr().cast(), entry);
+            let bytes = [
+                _mm256_and_si256(packed, n),
+                _mm256_and_si256(_mm256_srli_epi32::<8>(packed), n),
+                _mm256_and_si256(_mm256_srli_epi32::<16>(packed), n),
+                _mm256_srli_epi32::<24>(packed),
+            ];
+            let mut corners = [[0u32; 8]; 4];
+            for (c, b) in corners.iter_mut().zip(bytes) {
+                _mm256_storeu_si256(c.as_mut_ptr().cast(), _mm256_add_epi32(i, b));
             }
             let rows = self.gradient_of.as_ptr();
             let one = _mm256_set1_ps(1.0);
@@ -353,7 +358,8 @@ impl Noise {
                     for di in 0..2 {
                         // SAFETY: `corners` are < 511, so the row is in the table.
                         let row = |l: usize| {
-                            _mm_load_ps((*rows.add(corners[l][dj + 2 * dk] + di)).0.as_ptr())
+                            let m = corners[dj + 2 * dk][l] as usize;
+                            _mm_load_ps((*rows.add(m + di)).0.as_ptr())
                         };
                         let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
                         let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
@@ -1146,6 +1152,35 @@ mod tests {
         (0..n).map(move |_| {
             Vec3::new(r.next_f32() - 0.5, r.next_f32() - 0.5, r.next_f32() - 0.5) * scale
         })
+    }
+
+    /// The table of cells gives Γ's rows as the paper's hash defines them:
+    /// corner (di, dj, dk) of cell (i, j, k) is G[φ(i + di + φ(j + dj + φ(k + dk)))].
+    #[test]
+    fn cells_give_the_hash_of_every_corner() {
+        for seed in [DEFAULT_SEED, 7] {
+            let n = Noise::new(seed);
+            let phi = |m: usize| usize::from(n.perm[m % 256]);
+            for k in 0..256 {
+                for j in 0..256 {
+                    let i = (j * 7 + k * 13) % 256;
+                    let corners = n.corners(i, j, k);
+                    for dk in 0..2 {
+                        for dj in 0..2 {
+                            for di in 0..2 {
+                                let row = n.gradient_of[corners[dj + 2 * dk] + di].0;
+                                let g = n.gradients[phi(i + di + phi(j + dj + phi(k + dk)))];
+                                assert_eq!(
+                                    row,
+                                    [g.x, g.y, g.z, 0.0],
+                                    "({i}, {j}, {k}) + ({di}, {dj}, {dk})"
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]
