@@ -84,7 +84,6 @@ impl Basis {
         support: Option<Support>,
         scene: &Scene,
     ) -> Basis {
-        let (dv, dw) = perpendiculars(ray.direction, step);
         // Empty-space skipping: only the samples inside the (widened) support are
         // evaluated; the others are 0, exactly what evaluating them would give.
         let inside = |s: Support| {
@@ -99,7 +98,22 @@ impl Basis {
         let (first, last) = match support {
             None => (0, t1),
             Some(s) => match inside(s) {
-                None => (u32::MAX, t0 - 1.0),
+                None => {
+                    // No sample is evaluated: the ray's offsets and half
+                    // vectors are never read.
+                    return Basis {
+                        ray,
+                        du: Vec3::ZERO,
+                        dv: Vec3::ZERO,
+                        dw: Vec3::ZERO,
+                        t0,
+                        t1,
+                        first: u32::MAX,
+                        last: t0 - 1.0,
+                        phase,
+                        halves: [Vec3::ZERO; HALVES],
+                    };
+                }
                 Some((a, b)) => {
                     let skip = ((a - t0) / step - phase).floor() - 1.0;
                     let first = if skip > 0.0 { skip as u32 } else { 0 };
@@ -107,6 +121,7 @@ impl Basis {
                 }
             },
         };
+        let (dv, dw) = perpendiculars(ray.direction, step);
         let halves = std::array::from_fn(|i| match scene.lights.get(i) {
             Some(&Light::Directional { direction, .. }) if scene.specular > 0.0 => {
                 (direction - ray.direction).normalize_or_zero()
