@@ -25,6 +25,9 @@ pub struct Curve<const N: usize> {
     /// neighbouring values, repeated at the ends), computed once: the same
     /// bits as at each evaluation.
     spline: Vec<[[f32; N]; 4]>,
+    /// The one value of a linear or step curve whose points all hold it
+    /// (none −0 or NaN): what every evaluation gives, `p₁ + 0·u = p₁`.
+    flat: Option<[f32; N]>,
 }
 
 impl<const N: usize> Curve<N> {
@@ -56,6 +59,12 @@ impl<const N: usize> Curve<N> {
                 c
             })
             .collect();
+        let same = |v: &[f32; N]| v.map(f32::to_bits) == values[0].map(f32::to_bits);
+        let plain = |x: f32| !x.is_nan() && x.to_bits() != (-0.0f32).to_bits();
+        let flat = (interpolation != Interpolation::Spline
+            && values.iter().all(same)
+            && values[0].iter().all(|&x| plain(x)))
+        .then_some(values[0]);
         Curve {
             keys,
             values,
@@ -63,6 +72,7 @@ impl<const N: usize> Curve<N> {
             widths,
             deltas,
             spline,
+            flat,
         }
     }
 
@@ -74,6 +84,9 @@ impl<const N: usize> Curve<N> {
     /// The value at `t`.
     #[inline(always)]
     pub fn eval(&self, t: f32) -> [f32; N] {
+        if let Some(value) = self.flat {
+            return value;
+        }
         let n = self.keys.len();
         if n == 1 || t.is_nan() || t <= self.keys[0] {
             return self.values[0];
@@ -210,6 +223,39 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A flat map gives its value everywhere, as evaluating it would.
+    #[test]
+    fn flat_maps_give_the_bits_of_evaluating_them() {
+        for interpolation in [Interpolation::Linear, Interpolation::Step] {
+            let v = [0.85, 0.8, 0.72];
+            let c = Curve::new(interpolation, [(0.0, v), (0.4, v), (1.0, v)]);
+            assert_eq!(c.flat, Some(v));
+            let mut general = c.clone();
+            general.flat = None;
+            for j in 0..=1024 {
+                let t = j as f32 / 1000.0 - 0.01;
+                assert_eq!(
+                    c.eval(t).map(f32::to_bits),
+                    general.eval(t).map(f32::to_bits)
+                );
+            }
+        }
+        let zero = [-0.0, 0.5, 0.5];
+        assert_eq!(
+            Curve::new(Interpolation::Linear, [(0.0, zero), (1.0, zero)]).flat,
+            None
+        );
+        let v = [0.5; 3];
+        assert_eq!(
+            Curve::new(Interpolation::Spline, [(0.0, v), (1.0, v)]).flat,
+            None
+        );
+        assert_eq!(
+            Curve::new(Interpolation::Linear, [(0.0, v), (1.0, [0.6; 3])]).flat,
+            None
+        );
     }
 
     #[test]
