@@ -86,12 +86,14 @@ impl Basis {
     ) -> Basis {
         // Empty-space skipping: only the samples inside the (widened) support are
         // evaluated; the others are 0, exactly what evaluating them would give.
+        // The ball first: a ray that misses it needs no slab.
         let inside = |s: Support| {
-            let (a, b) = slab(&ray, s.aabb.0, s.aabb.1)?;
-            let (c, d) = match s.ball {
-                Some((centre, r)) => ball(&ray, centre, r)?,
-                None => (a, b),
+            let ball = match s.ball {
+                Some((centre, r)) => Some(ball(&ray, centre, r)?),
+                None => None,
             };
+            let (a, b) = slab(&ray, s.aabb.0, s.aabb.1)?;
+            let (c, d) = ball.unwrap_or((a, b));
             let (a, b) = (a.max(c), b.min(d));
             (a <= b).then_some((a, b))
         };
