@@ -520,18 +520,21 @@ fn march<const COMMON: bool>(
     let mut shaded: Option<((u32, [u32; 3]), Vec3)> = None;
     // Under directional lights only, with no refraction, normal expression
     // or shadows, the samples' light waits and is found [`LANES`] samples at
-    // a time ([`Deferred`]); their base colours are found as they come.
-    let mut deferred = (shortcuts && scene.light_waits).then(Deferred::default);
+    // a time ([`Deferred`]); their base colours are found as they come. The
+    // batch is set up at the ray's first sample that adds colour.
+    let defers = shortcuts && scene.light_waits;
+    let mut deferred: Option<Deferred> = None;
     // With the paper's forward differences, the gradients wait too: a
     // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
     // with the other waiting samples', [`LANES`] / 2 samples a call across
     // the chunks, and the normals (and the last one, which a sample without
     // its own takes) are found in the order of the samples
     // ([`Deferred::resolves`]).
-    let gradients_wait = deferred.is_some() && matches!(scene.gradient, Gradient::Forward);
-    if let Some(deferred) = &mut deferred {
-        deferred.resolves = gradients_wait;
-    }
+    let gradients_wait = defers && matches!(scene.gradient, Gradient::Forward);
+    let batch = || Deferred {
+        resolves: gradients_wait,
+        ..Deferred::default()
+    };
 
     loop {
         if k < basis.first {
@@ -595,10 +598,8 @@ fn march<const COMMON: bool>(
         if f > 0.0 && depth == 0.0 {
             depth = path + t;
         }
-        if f > 0.0
-            && gradients_wait
-            && let Some(deferred) = &mut deferred
-        {
+        if f > 0.0 && gradients_wait {
+            let deferred = deferred.get_or_insert_with(batch);
             let weight = alpha_k * (1.0 - alpha);
             let own = match waits {
                 Some(behind) => Own::Waiting {
@@ -630,7 +631,8 @@ fn march<const COMMON: bool>(
                 .or(last_normal)
                 .unwrap_or(Normal::of_unit(-basis.ray.direction));
             let weight = alpha_k * (1.0 - alpha);
-            if let Some(deferred) = &mut deferred {
+            if defers {
+                let deferred = deferred.get_or_insert_with(batch);
                 let own = Own::Found(Some(shading_normal));
                 let base = base_colour::<COMMON>(scene, x, f, field);
                 deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
