@@ -577,7 +577,15 @@ fn march<const COMMON: bool>(
                     let (fv, fw) = if lit {
                         chunk.neighbours(k, &basis, scene, field, alpha)
                     } else {
-                        (f_at(x + basis.dv), f_at(x + basis.dw))
+                        let mut p = Points::default();
+                        let spare = outside(field).unwrap_or(x);
+                        for l in 2..LANES {
+                            p.set(l, spare);
+                        }
+                        p.set(0, x + basis.dv);
+                        p.set(1, x + basis.dw);
+                        let f = scene.density.eval_lanes(&p, field, scene.isa);
+                        (f[0], f[1])
                     };
                     gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
                 }
