@@ -25,25 +25,32 @@ impl Ray {
 /// t ≥ 0, or `None` when it misses (the slab test).
 #[inline]
 pub fn slab(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
-    let mut t0: f32 = 0.0;
-    let mut t1 = f32::INFINITY;
-    for axis in 0..3 {
-        let (o, d) = (ray.origin[axis], ray.direction[axis]);
-        if d == 0.0 {
-            if o < min[axis] || o > max[axis] {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d;
-        let (mut near, mut far) = ((min[axis] - o) * inv, (max[axis] - o) * inv);
-        if near > far {
-            std::mem::swap(&mut near, &mut far);
-        }
-        t0 = t0.max(near);
-        t1 = t1.min(far);
+    let mut t = (0.0f32, f32::INFINITY);
+    let (o, d) = (ray.origin, ray.direction);
+    let inside = slab_axis(o.x, d.x, min.x, max.x, &mut t)
+        && slab_axis(o.y, d.y, min.y, max.y, &mut t)
+        && slab_axis(o.z, d.z, min.z, max.z, &mut t);
+    (inside && t.0 <= t.1).then_some(t)
+}
+
+/// One axis of [`slab`]: narrows `(t0, t1)` to the parameters between the
+/// axis's two planes (a NaN bound, from a plane through the origin along
+/// an axis the ray barely moves on, is ignored), or says the ray misses.
+#[inline(always)]
+fn slab_axis(o: f32, d: f32, min: f32, max: f32, (t0, t1): &mut (f32, f32)) -> bool {
+    if d == 0.0 {
+        return !(o < min || o > max);
     }
-    (t0 <= t1).then_some((t0, t1))
+    let inv = 1.0 / d;
+    let (a, b) = ((min - o) * inv, (max - o) * inv);
+    let (near, far) = if a > b { (b, a) } else { (a, b) };
+    if near > *t0 {
+        *t0 = near;
+    }
+    if far < *t1 {
+        *t1 = far;
+    }
+    true
 }
 
 /// A camera ready to generate rays for an image of a given size.
@@ -279,5 +286,66 @@ mod tests {
         };
         let (t0, t1) = slab(&diagonal, min, max).unwrap();
         assert!((t0 - 2.0 * 3f32.sqrt()).abs() < 1e-5 && (t1 - 4.0 * 3f32.sqrt()).abs() < 1e-5);
+    }
+
+    /// The slab test as `f32::max` and `min` over the axes: `slab` gives
+    /// the same parameters (a zero's sign aside, where either is a maximum)
+    /// for rays along and across the axes, from the faces, and with
+    /// directions of ±0, subnormal and ordinary components.
+    #[test]
+    fn slab_is_the_maximum_of_the_near_planes() {
+        fn reference(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
+            let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+            for axis in 0..3 {
+                let (o, d) = (ray.origin[axis], ray.direction[axis]);
+                if d == 0.0 {
+                    if o < min[axis] || o > max[axis] {
+                        return None;
+                    }
+                    continue;
+                }
+                let inv = 1.0 / d;
+                let (mut near, mut far) = ((min[axis] - o) * inv, (max[axis] - o) * inv);
+                if near > far {
+                    std::mem::swap(&mut near, &mut far);
+                }
+                t0 = t0.max(near);
+                t1 = t1.min(far);
+            }
+            (t0 <= t1).then_some((t0, t1))
+        }
+        let (min, max) = (Vec3::new(-1.0, -0.5, -2.0), Vec3::new(1.0, 1.5, 0.25));
+        let coordinates = [-3.0, -1.0, -0.5, 0.0, 0.25, 1.0, 1.5, 4.0];
+        let components = [-1.0, -0.6, -1e-40, -0.0, 0.0, 1e-40, 0.3, 1.0];
+        let mut rays = 0;
+        for &ox in &coordinates {
+            for &oy in &coordinates {
+                for &oz in &coordinates {
+                    for &dx in &components {
+                        for &dy in &components {
+                            for &dz in &components {
+                                let ray = Ray {
+                                    origin: Vec3::new(ox, oy, oz),
+                                    direction: Vec3::new(dx, dy, dz),
+                                };
+                                let (got, want) = (slab(&ray, min, max), reference(&ray, min, max));
+                                match (got, want) {
+                                    (Some(g), Some(w)) => {
+                                        assert!(
+                                            g.0 == w.0 && g.1 == w.1,
+                                            "{ray:?}: {g:?} against {w:?}"
+                                        );
+                                        assert_eq!(g.0.is_nan(), w.0.is_nan());
+                                        rays += 1;
+                                    }
+                                    _ => assert_eq!(got, want, "{ray:?}"),
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(rays > 10_000, "{rays} rays through the box");
     }
 }
