@@ -16,7 +16,7 @@
 //! Only IEEE basic operations are used (no fused multiply-add, no libm), in a
 //! fixed order, so every CPU computes the same bits.
 
-use std::sync::LazyLock;
+use std::sync::{Arc, LazyLock, Mutex};
 
 use glam::Vec3;
 
@@ -33,7 +33,7 @@ pub const DEFAULT_SEED: u64 = 1989;
 pub const VNOISE_OFFSET: Vec3 = Vec3::new(107.3, 113.7, 127.9);
 
 /// The paper's noise tables: permutation P and gradients G, n = 256.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone)]
 pub struct Noise {
     /// P: a pseudorandom permutation of 0..256.
     perm: [u8; 256],
@@ -48,7 +48,71 @@ pub struct Noise {
     /// `k·n + j` holds φ(j + dj + φ(k + dk)) in byte dj + 2·dk, so that one
     /// load gives the rows of a cell's four corners (0, dj, dk) (derived
     /// from `perm`).
-    cells: Box<[u32; 1 << 16]>,
+    /// Shared by every `Noise` of the same seed ([`cells_of`]).
+    cells: Arc<Cells>,
+}
+
+/// The table of [`Noise`]'s `cells`: one entry per (j, k).
+type Cells = [u32; 1 << 16];
+
+/// Scenes of one seed share their table of cells (256 KiB): a process
+/// that loads many scenes one after another (the known-answer probe loads
+/// every gallery scene) builds it once per seed. The tables of the last
+/// [`CELLS_KEPT`] seeds are kept, the latest last.
+static CELLS: Mutex<Vec<(u64, Arc<Cells>)>> = Mutex::new(Vec::new());
+
+/// How many seeds' tables [`CELLS`] keeps (2 MiB).
+const CELLS_KEPT: usize = 8;
+
+/// The table of cells of `seed`, whose P doubled is `perm2`: the one held
+/// already, or built.
+fn cells_of(seed: u64, perm2: &[u8; 512]) -> Arc<Cells> {
+    // A panic elsewhere while the lock was held leaves the list as valid.
+    let mut held = CELLS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    if let Some(at) = held.iter().position(|(s, _)| *s == seed) {
+        let entry = held.remove(at);
+        let cells = Arc::clone(&entry.1);
+        held.push(entry);
+        return cells;
+    }
+    let mut cells: Box<Cells> = vec![0; 1 << 16]
+        .into_boxed_slice()
+        .try_into()
+        .expect("a table of n² entries");
+    for (m, cell) in cells.iter_mut().enumerate() {
+        let (j, k) = (m & 255, m >> 8);
+        for dk in 0..2 {
+            let a = usize::from(perm2[k + dk]);
+            for dj in 0..2 {
+                *cell |= u32::from(perm2[j + dj + a]) << (8 * (dj + 2 * dk));
+            }
+        }
+    }
+    let cells: Arc<Cells> = Arc::from(cells);
+    if held.len() == CELLS_KEPT {
+        held.remove(0);
+    }
+    held.push((seed, Arc::clone(&cells)));
+    cells
+}
+
+/// The tables derived from P and G follow from them.
+impl PartialEq for Noise {
+    fn eq(&self, other: &Noise) -> bool {
+        self.perm == other.perm && self.gradients == other.gradients
+    }
+}
+
+/// P and G; the tables derived from them are left out.
+impl std::fmt::Debug for Noise {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Noise")
+            .field("perm", &self.perm)
+            .field("gradients", &self.gradients)
+            .finish_non_exhaustive()
+    }
 }
 
 /// A gradient `(x, y, z, 0)` on its own 16-byte line, loaded as one vector.
@@ -96,24 +160,11 @@ impl Noise {
             let g = gradients[usize::from(perm[m & 255])];
             Row([g.x, g.y, g.z, 0.0])
         });
-        let mut cells: Box<[u32; 1 << 16]> = vec![0; 1 << 16]
-            .into_boxed_slice()
-            .try_into()
-            .expect("a table of n² entries");
-        for (m, cell) in cells.iter_mut().enumerate() {
-            let (j, k) = (m & 255, m >> 8);
-            for dk in 0..2 {
-                let a = usize::from(perm2[k + dk]);
-                for dj in 0..2 {
-                    *cell |= u32::from(perm2[j + dj + a]) << (8 * (dj + 2 * dk));
-                }
-            }
-        }
         Noise {
             perm,
             gradients,
             gradient_of,
-            cells,
+            cells: cells_of(seed, &perm2),
         }
     }
 
@@ -1181,6 +1232,15 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Scenes of one seed share the table; another seed has its own.
+    #[test]
+    fn a_seed_builds_its_cells_once() {
+        let (a, b, c) = (Noise::new(11), Noise::new(11), Noise::new(12));
+        assert!(Arc::ptr_eq(&a.cells, &b.cells));
+        assert!(!Arc::ptr_eq(&a.cells, &c.cells));
+        assert_ne!(a.cells[..], c.cells[..]);
     }
 
     #[test]
