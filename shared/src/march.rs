@@ -775,14 +775,19 @@ fn sample_colour<const COMMON: bool>(
     field: &Field,
     lit: bool,
 ) -> Vec3 {
-    let shading_normal = if COMMON || !lit {
-        shading_normal // `shade` reads it only for lights
+    let (shading_normal, base) = if COMMON {
+        (shading_normal, base_colour::<true>(scene, x, f, field))
     } else {
+        // Colours and textures belong to the object: its point, not the world's.
         let object_x = field.object_point(x);
-        pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+        let shading_normal = if lit {
+            pse::perturb_normal(&scene.expressions, object_x, f, shading_normal, field)
+        } else {
+            shading_normal // `shade` reads it only for lights
+        };
+        (shading_normal, object_colour(scene, object_x, f, field))
     };
-    base_colour::<COMMON>(scene, x, f, field)
-        * shade::<COMMON>(scene, x, shading_normal, basis, field)
+    base * shade::<COMMON>(scene, x, shading_normal, basis, field)
 }
 
 /// The base colour of a sample at x of density f: the colour map at its
@@ -792,18 +797,22 @@ fn base_colour<const COMMON: bool>(scene: &Scene, x: Vec3, f: f32, field: &Field
     if COMMON {
         Vec3::from_array(scene.colour_map.eval(f))
     } else {
-        // Colours and textures belong to the object: its point, not the world's.
-        let object_x = field.object_point(x);
-        let key = scene.colour_key(object_x, f, field);
-        pse::surface_colour(
-            &scene.expressions,
-            &scene.colour_map,
-            object_x,
-            f,
-            key,
-            field,
-        )
+        object_colour(scene, field.object_point(x), f, field)
     }
+}
+
+/// [`base_colour`] at the object's point `object_x`.
+#[inline(always)]
+fn object_colour(scene: &Scene, object_x: Vec3, f: f32, field: &Field) -> Vec3 {
+    let key = scene.colour_key(object_x, f, field);
+    pse::surface_colour(
+        &scene.expressions,
+        &scene.colour_map,
+        object_x,
+        f,
+        key,
+        field,
+    )
 }
 
 /// The normal of the latest soft sample in `first ..= last` of `basis` whose
