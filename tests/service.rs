@@ -328,6 +328,14 @@ fn a_cancelled_jobs_units_in_flight_are_dropped_by_their_worker() {
     );
     let (runtime, stop, task) = in_process_worker(&url, "slow", None);
     poll_job(&url, id, 120, |j| j["units_done"].as_u64() >= Some(1));
+    // Between a unit's result and its next lease the worker holds none: the
+    // cancel waits for a unit in flight (at most 120 s).
+    let in_flight = format!("hypertexture_units_in_flight{{job=\"{id}\"}}");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while metric(&url, &in_flight) < 1.0 {
+        assert!(Instant::now() < deadline, "no unit of job {id} in flight");
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let (ok, stdout, _) = client(&["cancel", "--server", &url, &id.to_string()]);
     assert!(ok, "{stdout}");
     let _ = stop.send(true);
