@@ -376,20 +376,6 @@ impl Noise {
             let i = _mm256_and_si256(lattice8(fx), n);
             let j = _mm256_and_si256(lattice8(fy), n);
             let k = _mm256_and_si256(lattice8(fz), n);
-            // `corners`: the cells' entries gathered, their bytes added to i.
-            let entry = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
-            let packed = _mm256_i32gather_epi32::<4>(self.cells.as_ptr().cast(), entry);
-            let bytes = [
-                _mm256_and_si256(packed, n),
-                _mm256_and_si256(_mm256_srli_epi32::<8>(packed), n),
-                _mm256_and_si256(_mm256_srli_epi32::<16>(packed), n),
-                _mm256_srli_epi32::<24>(packed),
-            ];
-            let mut corners = [[0u32; 8]; 4];
-            for (c, b) in corners.iter_mut().zip(bytes) {
-                _mm256_storeu_si256(c.as_mut_ptr().cast(), _mm256_add_epi32(i, b));
-            }
-            let rows = self.gradient_of.as_ptr();
             let one = _mm256_set1_ps(1.0);
             let (u, v, w) = (
                 _mm256_sub_ps(x, fx),
@@ -402,38 +388,111 @@ impl Noise {
             let wx = [omega8(xs[0]), omega8(xs[1])];
             let wy = [omega8(ys[0]), omega8(ys[1])];
             let wz = [omega8(zs[0]), omega8(zs[1])];
-            let mut sum = _mm256_setzero_ps();
-            for dk in 0..2 {
-                for dj in 0..2 {
-                    let wyz = _mm256_mul_ps(wy[dj], wz[dk]);
-                    for di in 0..2 {
-                        // SAFETY: `corners` are < 511, so the row is in the table.
-                        let row = |l: usize| {
-                            let m = corners[dj + 2 * dk][l] as usize;
-                            _mm_load_ps((*rows.add(m + di)).0.as_ptr())
-                        };
-                        let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
-                        let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
-                        let (lo01, lo23) = (
-                            _mm256_castps_pd(_mm256_unpacklo_ps(r0, r1)),
-                            _mm256_castps_pd(_mm256_unpacklo_ps(r2, r3)),
-                        );
-                        let (hi01, hi23) = (
-                            _mm256_castps_pd(_mm256_unpackhi_ps(r0, r1)),
-                            _mm256_castps_pd(_mm256_unpackhi_ps(r2, r3)),
-                        );
-                        let gx = _mm256_castpd_ps(_mm256_unpacklo_pd(lo01, lo23));
-                        let gy = _mm256_castpd_ps(_mm256_unpackhi_pd(lo01, lo23));
-                        let gz = _mm256_castpd_ps(_mm256_unpacklo_pd(hi01, hi23));
-                        let dot = _mm256_add_ps(
-                            _mm256_add_ps(_mm256_mul_ps(gx, xs[di]), _mm256_mul_ps(gy, ys[dj])),
-                            _mm256_mul_ps(gz, zs[dk]),
-                        );
-                        sum = _mm256_add_ps(sum, _mm256_mul_ps(_mm256_mul_ps(wx[di], wyz), dot));
+            let rows = self.gradient_of.as_ptr();
+            // Σ over the corners of ω ω ω (Γ · offset), Γ's components in
+            // lanes from `$gradient` of the corner (0, dj, dk) and di, in
+            // `noise`'s order. (A macro: a closure's intrinsics are left
+            // as calls, without the target features.)
+            macro_rules! sum {
+                (|$corner:ident, $di:ident| $gradient:expr) => {{
+                    let mut sum = _mm256_setzero_ps();
+                    for dk in 0..2 {
+                        for dj in 0..2 {
+                            let wyz = _mm256_mul_ps(wy[dj], wz[dk]);
+                            for $di in 0..2 {
+                                let $corner = dj + 2 * dk;
+                                let (gx, gy, gz) = $gradient;
+                                let dot = _mm256_add_ps(
+                                    _mm256_add_ps(
+                                        _mm256_mul_ps(gx, xs[$di]),
+                                        _mm256_mul_ps(gy, ys[dj]),
+                                    ),
+                                    _mm256_mul_ps(gz, zs[dk]),
+                                );
+                                sum = _mm256_add_ps(
+                                    sum,
+                                    _mm256_mul_ps(_mm256_mul_ps(wx[$di], wyz), dot),
+                                );
+                            }
+                        }
                     }
-                }
+                    sum
+                }};
             }
-            sum
+            // Consecutive samples of a ray often lie in at most two cells:
+            // those of lanes 0 and 7. Then the two cells' rows, side by
+            // side in one register, give every lane its gradient by one
+            // permute per component, with no transpose.
+            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
+            let cell = _mm256_or_si256(_mm256_slli_epi32::<16>(i), jk);
+            let first = _mm256_permutevar8x32_epi32(cell, _mm256_setzero_si256());
+            let last = _mm256_permutevar8x32_epi32(cell, _mm256_set1_epi32(7));
+            let in_first = _mm256_cmpeq_epi32(cell, first);
+            let in_last = _mm256_cmpeq_epi32(cell, last);
+            if _mm256_movemask_epi8(_mm256_or_si256(in_first, in_last)) == -1 {
+                let corners_of = |c: i32| {
+                    let c = c as usize;
+                    self.corners(c >> 16, c & 255, (c >> 8) & 255)
+                };
+                let (a, b) = (
+                    corners_of(_mm256_extract_epi32::<0>(cell)),
+                    corners_of(_mm256_extract_epi32::<7>(cell)),
+                );
+                // Component c of a lane's row: element c of the first
+                // cell's row (0..4) or of the last's (4..8).
+                let pick = _mm256_andnot_si256(in_first, _mm256_set1_epi32(4));
+                let picks = [
+                    pick,
+                    _mm256_add_epi32(pick, _mm256_set1_epi32(1)),
+                    _mm256_add_epi32(pick, _mm256_set1_epi32(2)),
+                ];
+                return sum!(|corner, di| {
+                    // SAFETY: `corners` are < 511, so the rows are in the table.
+                    let both = _mm256_set_m128(
+                        _mm_load_ps((*rows.add(b[corner] + di)).0.as_ptr()),
+                        _mm_load_ps((*rows.add(a[corner] + di)).0.as_ptr()),
+                    );
+                    (
+                        _mm256_permutevar8x32_ps(both, picks[0]),
+                        _mm256_permutevar8x32_ps(both, picks[1]),
+                        _mm256_permutevar8x32_ps(both, picks[2]),
+                    )
+                });
+            }
+            // `corners`: the cells' entries gathered, their bytes added to i.
+            let packed = _mm256_i32gather_epi32::<4>(self.cells.as_ptr().cast(), jk);
+            let bytes = [
+                _mm256_and_si256(packed, n),
+                _mm256_and_si256(_mm256_srli_epi32::<8>(packed), n),
+                _mm256_and_si256(_mm256_srli_epi32::<16>(packed), n),
+                _mm256_srli_epi32::<24>(packed),
+            ];
+            let mut corners = [[0u32; 8]; 4];
+            for (c, b) in corners.iter_mut().zip(bytes) {
+                _mm256_storeu_si256(c.as_mut_ptr().cast(), _mm256_add_epi32(i, b));
+            }
+            sum!(|corner, di| {
+                // SAFETY: `corners` are < 511, so the row is in the table.
+                let row = |l: usize| {
+                    let m = corners[corner][l] as usize;
+                    _mm_load_ps((*rows.add(m + di)).0.as_ptr())
+                };
+                let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
+                let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
+                let (lo01, lo23) = (
+                    _mm256_castps_pd(_mm256_unpacklo_ps(r0, r1)),
+                    _mm256_castps_pd(_mm256_unpacklo_ps(r2, r3)),
+                );
+                let (hi01, hi23) = (
+                    _mm256_castps_pd(_mm256_unpackhi_ps(r0, r1)),
+                    _mm256_castps_pd(_mm256_unpackhi_ps(r2, r3)),
+                );
+                (
+                    _mm256_castpd_ps(_mm256_unpacklo_pd(lo01, lo23)),
+                    _mm256_castpd_ps(_mm256_unpackhi_pd(lo01, lo23)),
+                    _mm256_castpd_ps(_mm256_unpacklo_pd(hi01, hi23)),
+                )
+            })
         }
     }
 
@@ -1446,6 +1505,52 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Lanes along short rays, as the marcher's chunks lie: in one cell, in
+    /// the cells of the first and last lanes (in runs or alternating, and a
+    /// cell 256 apart, the same after reduction), or in more.
+    #[test]
+    fn lanes_in_one_or_two_cells_give_the_scalar_noise() {
+        let n = Noise::new(77);
+        let mut r = SplitMix64::new(11);
+        let mut cells = [0usize; 4];
+        for round in 0..20_000u32 {
+            let origin = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 40.0 - 20.0;
+            let direction = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) - 0.5;
+            let step = [0.0, 0.01, 0.05, 0.15, 0.6][round as usize % 5];
+            let points: [Vec3; LANES] = std::array::from_fn(|l| match round % 7 {
+                // Alternating between two points' cells.
+                5 => origin + direction * (step * (l % 2) as f32 * 4.0),
+                // A lane a period away: the same cell mod 256.
+                6 if l == 3 => origin + direction * (step * l as f32) + Vec3::Y * 256.0,
+                _ => origin + direction * (step * l as f32),
+            });
+            let p = [
+                points.map(|x| x.x),
+                points.map(|x| x.y),
+                points.map(|x| x.z),
+            ];
+            let mut distinct: Vec<[i32; 3]> = Vec::new();
+            for x in &points[..8] {
+                let c = x.to_array().map(|a| (a.floor() as i32) & 255);
+                if !distinct.contains(&c) {
+                    distinct.push(c);
+                }
+            }
+            cells[distinct.len().min(4) - 1] += 1;
+            let reference = n.noise_on(Isa::Scalar, &p[0], &p[1], &p[2]);
+            for isa in Isa::available() {
+                let got = n.noise_on(isa, &p[0], &p[1], &p[2]);
+                assert_eq!(
+                    got.map(f32::to_bits),
+                    reference.map(f32::to_bits),
+                    "{isa:?}, round {round}"
+                );
+            }
+        }
+        // Every case came up often.
+        assert!(cells.iter().all(|&c| c > 1_000), "{cells:?}");
     }
 
     #[test]
