@@ -81,6 +81,17 @@ fn each(x: &Points, f: impl Fn(Vec3) -> f32) -> Lanes {
     out
 }
 
+/// `f(a)` lane by lane: always inlined, where `[f32; N]::map` is left a
+/// call compiled without the path's instruction set.
+#[inline(always)]
+pub(super) fn map(a: &Lanes, f: impl Fn(f32) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        out[l] = f(a[l]);
+    }
+    out
+}
+
 /// `f(a, b)` lane by lane.
 #[inline(always)]
 pub(super) fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
@@ -386,7 +397,7 @@ impl Hypertexture {
         ) {
             let c = sphere.centre;
             let settling = SettlingSphere {
-                d2: std::array::from_fn(|l| (x.get(l) - c).length_squared()),
+                d2: each(x, |p| (p - c).length_squared()),
                 falloff: &sphere.falloff,
                 hard: self.solid_core,
             };

@@ -5,7 +5,7 @@ use glam::Vec3;
 use super::{Settling, WarpDmf, octaves_bound};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
-use crate::density::lanes::{Points, zip};
+use crate::density::lanes::{Points, map, zip};
 use crate::dual::{Dual, DualPoint};
 use crate::scene::desc::DmfDesc;
 use crate::simd::{Isa, LANES};
@@ -73,8 +73,8 @@ impl WarpDmf for FractalRadius {
         for octave in 0..self.octaves {
             // s = 1 + a·Σ ends within |a|·(the octaves left) of today's.
             let rest = a.abs() * octaves_bound(f, self.octaves - octave);
-            let s = sum.map(|s| 1.0 + a * s);
-            live &= !settled.settled(&s.map(|s| s - rest), &s.map(|s| s + rest));
+            let s = map(&sum, |s| 1.0 + a * s);
+            live &= !settled.settled(&map(&s, |s| s - rest), &map(&s, |s| s + rest));
             if live == 0 {
                 break;
             }
@@ -82,7 +82,7 @@ impl WarpDmf for FractalRadius {
             sum = zip(&sum, &n, |s, n| s + n / f);
             f *= 2.0;
         }
-        x.scale_about(self.centre, &sum.map(|s| 1.0 + a * s))
+        x.scale_about(self.centre, &map(&sum, |s| 1.0 + a * s))
     }
 
     fn scale_range(&self) -> Option<(Vec3, f32, f32)> {

@@ -5,7 +5,7 @@ use glam::Vec3;
 use super::{Settling, WarpDmf};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
-use crate::density::lanes::Points;
+use crate::density::lanes::{Points, map};
 use crate::dual::DualPoint;
 use crate::scene::desc::DmfDesc;
 use crate::simd::Isa;
@@ -56,7 +56,7 @@ impl WarpDmf for NoisyRadius {
     #[inline(always)]
     fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, _: &impl Settling) -> Points {
         let n = field.noise_at(self.frequency, x, isa);
-        x.scale_about(self.centre, &n.map(|n| 1.0 + self.amplitude * n))
+        x.scale_about(self.centre, &map(&n, |n| 1.0 + self.amplitude * n))
     }
 
     fn scale_range(&self) -> Option<(Vec3, f32, f32)> {

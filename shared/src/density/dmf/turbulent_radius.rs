@@ -5,7 +5,7 @@ use glam::Vec3;
 use super::{Settling, WarpDmf, octaves_bound};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
-use crate::density::lanes::{Points, zip};
+use crate::density::lanes::{Points, map, zip};
 use crate::dual::{Dual, DualPoint};
 use crate::scene::desc::DmfDesc;
 use crate::simd::{Isa, LANES};
@@ -71,9 +71,9 @@ impl WarpDmf for TurbulentRadius {
             // Every octave adds |noise| ≥ 0: s = 1 + a·Σ moves from today's
             // only towards the sign of a, by at most a·(the octaves left).
             let rest = a * octaves_bound(scale, self.octaves - octave);
-            let s = sum.map(|s| 1.0 + a * s);
+            let s = map(&sum, |s| 1.0 + a * s);
             let (lo, hi) = (rest.min(0.0), rest.max(0.0));
-            live &= !settled.settled(&s.map(|s| s + lo), &s.map(|s| s + hi));
+            live &= !settled.settled(&map(&s, |s| s + lo), &map(&s, |s| s + hi));
             if live == 0 {
                 break;
             }
@@ -81,7 +81,7 @@ impl WarpDmf for TurbulentRadius {
             sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
             scale *= 2.0;
         }
-        x.scale_about(self.centre, &sum.map(|t| 1.0 + a * t))
+        x.scale_about(self.centre, &map(&sum, |t| 1.0 + a * t))
     }
 
     fn scale_range(&self) -> Option<(Vec3, f32, f32)> {
