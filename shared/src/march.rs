@@ -17,7 +17,7 @@ use crate::density::{Field, Points, Support};
 use crate::fastmath;
 use crate::film::Sample;
 use crate::pse::surface as pse;
-use crate::scene::{Gradient, Light, Scene};
+use crate::scene::{ColourIndex, Gradient, Light, Scene};
 use crate::shaping::clamp01;
 use crate::simd::{Isa, lane_mask};
 use crate::simd::{LANES, Lanes};
@@ -531,9 +531,24 @@ fn march<const COMMON: bool>(
     // its own takes) are found in the order of the samples
     // ([`Deferred::resolves`]).
     let gradients_wait = defers && matches!(scene.gradient, Gradient::Forward);
+    // The strata's keys wait too, where no colour expression stands in for
+    // the colour map.
+    let keys_wait = !COMMON
+        && defers
+        && matches!(scene.colour_index, ColourIndex::Strata { .. })
+        && scene.expressions.colour.is_none();
     let batch = || Deferred {
         resolves: gradients_wait,
+        keys_wait,
         ..Deferred::default()
+    };
+    // What a waiting sample holds as its base colour.
+    let base_of = |x: Vec3, f: f32| {
+        if keys_wait {
+            field.object_point(x)
+        } else {
+            base_colour::<COMMON>(scene, x, f, field)
+        }
     };
 
     loop {
@@ -616,7 +631,7 @@ fn march<const COMMON: bool>(
                 },
                 None => Own::Found(normal),
             };
-            let base = base_colour::<COMMON>(scene, x, f, field);
+            let base = base_of(x, f);
             deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             alpha += weight;
             weighted_density += f * weight;
@@ -642,7 +657,7 @@ fn march<const COMMON: bool>(
             if defers {
                 let deferred = deferred.get_or_insert_with(batch);
                 let own = Own::Found(Some(shading_normal));
-                let base = base_colour::<COMMON>(scene, x, f, field);
+                let base = base_of(x, f);
                 deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
@@ -1003,9 +1018,13 @@ struct Deferred {
     /// The gradients g and |g|² of the shading normals ([`Normal`]).
     gradient: Points,
     len2: Lanes,
-    /// f and the base colour ([`base_colour`]) of each sample.
+    /// f and the base colour ([`base_colour`]) of each sample; where
+    /// `keys_wait`, its object point until the flush finds its colour.
     f: Lanes,
     base: Points,
+    /// Whether the colour map's keys (the strata) wait for the flush, to
+    /// be found together ([`Scene::colour_keys`]).
+    keys_wait: bool,
     weight: Lanes,
     len: usize,
     /// Whether samples come with their own normals, to be resolved here.
@@ -1038,6 +1057,7 @@ impl Default for Deferred {
             len2: [1.0; LANES],
             f: [0.0; LANES],
             base: Points::default(),
+            keys_wait: false,
             weight: [0.0; LANES],
             len: 0,
             resolves: false,
@@ -1156,6 +1176,21 @@ impl Deferred {
             }
         }
         self.found = 0;
+        if self.keys_wait {
+            let keys = scene.colour_keys(&self.base, &self.f, self.len, field);
+            for (l, &key) in keys[..self.len].iter().enumerate() {
+                let object_x = self.base.get(l);
+                let base = pse::surface_colour(
+                    &scene.expressions,
+                    &scene.colour_map,
+                    object_x,
+                    self.f[l],
+                    key,
+                    field,
+                );
+                self.base.set(l, base);
+            }
+        }
         if self.len <= LANES / 2 {
             self.shade::<{ LANES / 2 }>(scene, basis, colour);
         } else {
@@ -1407,6 +1442,47 @@ mod tests {
                     TOOK_LAST.load(Ordering::Relaxed) > before,
                     "{what}: some sample took the last normal"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn the_strata_keys_found_together_are_each_points_key() {
+        // `Scene::colour_keys` packs every point's octaves into the noise
+        // kernel's lanes; each key must have the bits of `colour_key`, for
+        // any count of points and octaves, on every path.
+        let mut r = crate::random::SplitMix64::new(5);
+        for octaves in [1, 3, 5, 8, 13, 16] {
+            let text = format!(
+                "Scene(image: (width: 8, height: 8),
+                  camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
+                  march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Diagonal(120), opacity: 2.0),
+                  object: Sphere(radius: 0.6, softness: 0.8),
+                  colour_index: Strata(frequency: 9.0, amplitude: 4.0, octaves: {octaves}),
+                  colour_map: (points: [(0.0, (0.1, 0.2, 0.9)), (1.0, (0.9, 0.9, 1.0))]),
+                  flow: (0.1, 0.2, 0.0))"
+            );
+            let mut scene = Scene::from_text(&text, "test", crate::Overrides::default()).unwrap();
+            for isa in Isa::available() {
+                assert!(scene.set_isa(isa));
+                let field = scene.field(3);
+                for len in 1..=LANES {
+                    let mut x = Points::default();
+                    let mut f = [0.0; LANES];
+                    for (l, f) in f[..len].iter_mut().enumerate() {
+                        let p = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 6.0 - 3.0;
+                        x.set(l, p);
+                        *f = r.next_f32();
+                    }
+                    let keys = scene.colour_keys(&x, &f, len, &field);
+                    for l in 0..len {
+                        assert_eq!(
+                            keys[l].to_bits(),
+                            scene.colour_key(x.get(l), f[l], &field).to_bits(),
+                            "{octaves} octaves, {isa:?}, point {l} of {len}"
+                        );
+                    }
+                }
             }
         }
     }

@@ -821,6 +821,65 @@ impl Scene {
         }
     }
 
+    /// [`Scene::colour_key`] of the first `len` of `object_x`, f being `f`:
+    /// the same bits. The strata's octaves of all the points go to the
+    /// noise kernel together, a register's worth of (point, octave) pairs a
+    /// call, where one point's few octaves would leave lanes empty; each
+    /// point's sum is then taken in `turbulence`'s order.
+    pub(crate) fn colour_keys(
+        &self,
+        object_x: &crate::density::Points,
+        f: &crate::simd::Lanes,
+        len: usize,
+        field: &crate::density::Field,
+    ) -> crate::simd::Lanes {
+        let ColourIndex::Strata {
+            frequency,
+            amplitude,
+            octaves,
+        } = self.colour_index
+        else {
+            return *f;
+        };
+        let octaves = octaves as usize;
+        // Whole registers of pairs (the AVX2 kernel's 8), of as many
+        // points as fit in `BATCH`.
+        const BATCH: usize = 64;
+        let per_call = (BATCH / octaves).max(1);
+        let mut keys = [0.0; crate::simd::LANES];
+        let mut start = 0;
+        while start < len {
+            let end = (start + per_call).min(len);
+            let mut points = [Vec3::ZERO; BATCH];
+            let mut i = 0;
+            for l in start..end {
+                let q = object_x.get(l) - field.offset;
+                let mut scale = 1.0f32;
+                for _ in 0..octaves {
+                    points[i] = q * scale;
+                    scale *= 2.0;
+                    i += 1;
+                }
+            }
+            let count = i.next_multiple_of(8);
+            let mut values = [0.0f32; BATCH];
+            field
+                .noise
+                .noise_batch(self.isa, &points[..count], &mut values[..count]);
+            for (l, v) in (start..end).zip(values.chunks_exact(octaves)) {
+                let (mut turb, mut scale) = (0.0f32, 1.0f32);
+                for n in v {
+                    turb += n.abs() / scale;
+                    scale *= 2.0;
+                }
+                let q = object_x.get(l) - field.offset;
+                keys[l] = 0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb);
+            }
+            start = end;
+        }
+        keys
+    }
+
     /// H(x) for `frame` and its gradient ∇H(x), by forward-mode
     /// differentiation ([`crate::dual`]), as `gradient: Dual` shades.
     pub fn density_gradient_at(&self, x: Vec3, frame: u32) -> (f32, Vec3) {
