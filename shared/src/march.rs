@@ -542,14 +542,6 @@ fn march<const COMMON: bool>(
         keys_wait,
         ..Deferred::default()
     };
-    // What a waiting sample holds as its base colour.
-    let base_of = |x: Vec3, f: f32| {
-        if keys_wait {
-            field.object_point(x)
-        } else {
-            base_colour::<COMMON>(scene, x, f, field)
-        }
-    };
 
     loop {
         if k < basis.first {
@@ -631,7 +623,12 @@ fn march<const COMMON: bool>(
                 },
                 None => Own::Found(normal),
             };
-            let base = base_of(x, f);
+            // What a waiting sample holds as its base colour.
+            let base = if keys_wait {
+                field.object_point(x)
+            } else {
+                base_colour::<COMMON>(scene, x, f, field)
+            };
             deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             alpha += weight;
             weighted_density += f * weight;
@@ -657,7 +654,12 @@ fn march<const COMMON: bool>(
             if defers {
                 let deferred = deferred.get_or_insert_with(batch);
                 let own = Own::Found(Some(shading_normal));
-                let base = base_of(x, f);
+                // What a waiting sample holds as its base colour.
+                let base = if keys_wait {
+                    field.object_point(x)
+                } else {
+                    base_colour::<COMMON>(scene, x, f, field)
+                };
                 deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
