@@ -304,6 +304,23 @@ impl Noise {
         py: &Lanes,
         pz: &Lanes,
     ) -> Lanes {
+        self.noise_lanes_along(isa, live, false, px, py, pz)
+    }
+
+    /// [`Noise::noise_lanes_live`]; with `runs` (points along a ray at a
+    /// step fine for the frequency, [`runs`]), the AVX2 kernel tries the
+    /// cells of a register's first and last lanes first
+    /// ([`Noise::noise8_on`]).
+    #[inline(always)]
+    pub(crate) fn noise_lanes_along(
+        &self,
+        isa: Isa,
+        live: u32,
+        runs: bool,
+        px: &Lanes,
+        py: &Lanes,
+        pz: &Lanes,
+    ) -> Lanes {
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx512 {
             use std::arch::x86_64::*;
@@ -339,17 +356,18 @@ impl Noise {
                 // into that path's copy; the loads and stores are of 8 f32
                 // within arrays of LANES.
                 unsafe {
-                    let n = self.noise8(
+                    let n = self.noise8_on(
                         _mm256_loadu_ps(px.as_ptr().add(8 * h)),
                         _mm256_loadu_ps(py.as_ptr().add(8 * h)),
                         _mm256_loadu_ps(pz.as_ptr().add(8 * h)),
+                        runs,
                     );
                     _mm256_storeu_ps(out.as_mut_ptr().add(8 * h), n);
                 }
             }
             return out;
         }
-        let _ = isa;
+        let _ = (isa, runs);
         self.noise_lanes(px, py, pz)
     }
 
@@ -366,6 +384,26 @@ impl Noise {
         x: std::arch::x86_64::__m256,
         y: std::arch::x86_64::__m256,
         z: std::arch::x86_64::__m256,
+    ) -> std::arch::x86_64::__m256 {
+        // SAFETY: the caller's contract.
+        unsafe { self.noise8_on(x, y, z, false) }
+    }
+
+    /// [`Noise::noise8`]; with `runs`, lanes in at most two cells (those of
+    /// lanes 0 and 7) take their gradients by permutes, for the same bits.
+    /// For points along a ray at a step fine for the frequency
+    /// ([`runs`]): elsewhere the test of the cells costs more than it saves.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub(crate) unsafe fn noise8_on(
+        &self,
+        x: std::arch::x86_64::__m256,
+        y: std::arch::x86_64::__m256,
+        z: std::arch::x86_64::__m256,
+        runs: bool,
     ) -> std::arch::x86_64::__m256 {
         use std::arch::x86_64::*;
         // SAFETY: AVX2 by the caller's contract; the stores are of 8 i32 into
@@ -429,7 +467,7 @@ impl Noise {
             let last = _mm256_permutevar8x32_epi32(cell, _mm256_set1_epi32(7));
             let in_first = _mm256_cmpeq_epi32(cell, first);
             let in_last = _mm256_cmpeq_epi32(cell, last);
-            if _mm256_movemask_epi8(_mm256_or_si256(in_first, in_last)) == -1 {
+            if runs && _mm256_movemask_epi8(_mm256_or_si256(in_first, in_last)) == -1 {
                 let corners_of = |c: i32| {
                     let c = c as usize;
                     self.corners(c >> 16, c & 255, (c >> 8) & 255)
@@ -762,11 +800,23 @@ impl Noise {
             #[cfg(target_arch = "x86_64")]
             Isa::Sse41 => unsafe { batch::noise_sse41(n, x, y, z) },
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { batch::noise_avx2(n, x, y, z) },
+            Isa::Avx2 => unsafe { batch::noise_avx2(n, x, y, z, false) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx512 => unsafe { batch::noise_avx512(n, x, y, z) },
             #[cfg(not(target_arch = "x86_64"))]
             _ => n.noise_on(Isa::Scalar, x, y, z),
+        }
+    }
+
+    /// [`Noise::noise_on`] for points along a ray ([`runs`]): on AVX2, the
+    /// kernel that tries a register's first and last cells first.
+    #[cfg(test)]
+    fn noise_along_on(&self, isa: Isa, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        match isa {
+            // SAFETY: as in `noise_on`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { batch::noise_avx2(self, x, y, z, true) },
+            _ => self.noise_on(isa, x, y, z),
         }
     }
 
@@ -935,8 +985,8 @@ mod batch {
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        n.noise_lanes_on(Isa::Avx2, x, y, z)
+    pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes, runs: bool) -> Lanes {
+        n.noise_lanes_along(Isa::Avx2, u32::MAX, runs, x, y, z)
     }
 
     #[target_feature(enable = "sse4.1")]
@@ -1124,6 +1174,26 @@ fn omega4(t: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
         );
         _mm_and_ps(_mm_cmplt_ps(t, one), _mm_add_ps(cubic, one))
     }
+}
+
+/// Whether the samples of a ray, `step` apart, mostly lie in at most two
+/// cells of noise at `frequency` eight at a time (an AVX2 register's
+/// worth): eight samples span at most 1.5 lattice units. The noise kernel
+/// then tries those two cells first ([`Noise::noise8_on`]).
+pub(crate) fn runs(frequency: f32, step: f32) -> bool {
+    (frequency * step * 7.0).abs() <= 3.0
+}
+
+/// How many of the first `octaves` of a sum from `frequency` (doubling)
+/// have [`runs`].
+pub(crate) fn octaves_in_runs(frequency: f32, step: f32, octaves: u32) -> u32 {
+    let mut f = frequency;
+    let mut count = 0;
+    while count < octaves && runs(f, step) {
+        f *= 2.0;
+        count += 1;
+    }
+    count
 }
 
 /// The paper's frequency clamping: how many octaves of a sum whose base frequency
@@ -1541,12 +1611,16 @@ mod tests {
             cells[distinct.len().min(4) - 1] += 1;
             let reference = n.noise_on(Isa::Scalar, &p[0], &p[1], &p[2]);
             for isa in Isa::available() {
-                let got = n.noise_on(isa, &p[0], &p[1], &p[2]);
-                assert_eq!(
-                    got.map(f32::to_bits),
-                    reference.map(f32::to_bits),
-                    "{isa:?}, round {round}"
-                );
+                for got in [
+                    n.noise_on(isa, &p[0], &p[1], &p[2]),
+                    n.noise_along_on(isa, &p[0], &p[1], &p[2]),
+                ] {
+                    assert_eq!(
+                        got.map(f32::to_bits),
+                        reference.map(f32::to_bits),
+                        "{isa:?}, round {round}"
+                    );
+                }
             }
         }
         // Every case came up often.

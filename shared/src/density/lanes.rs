@@ -118,16 +118,32 @@ impl Field<'_> {
         self.noise.noise_lanes_live(isa, live, &p.x, &p.y, &p.z)
     }
 
-    /// [`Field::noise`] at each point: `noise((x − offset) · frequency)`.
-    #[inline(always)]
-    pub(super) fn noise_at(&self, frequency: f32, x: &Points, isa: Isa) -> Lanes {
-        self.noise_at_live(frequency, x, isa, u32::MAX)
-    }
-
-    /// [`Field::noise_at`] at the lanes set in `live`.
+    /// [`Field::noise`] at each point set in `live`, `noise((x − offset) ·
+    /// frequency)` (the others come out as anything).
     #[inline(always)]
     pub(super) fn noise_at_live(&self, frequency: f32, x: &Points, isa: Isa, live: u32) -> Lanes {
-        self.noise_lanes_live(&x.map(|p| (p - self.offset) * frequency), isa, live)
+        self.noise_at_along(frequency, x, isa, live, false)
+    }
+
+    /// [`Field::noise_lanes_live`]; `runs`: the points lie along a ray at
+    /// a step fine for the frequency ([`crate::noise::runs`]).
+    #[inline(always)]
+    pub(super) fn noise_lanes_along(&self, p: &Points, isa: Isa, live: u32, runs: bool) -> Lanes {
+        self.noise
+            .noise_lanes_along(isa, live, runs, &p.x, &p.y, &p.z)
+    }
+
+    /// [`Field::noise_at_live`]; `runs` as in [`Field::noise_lanes_along`].
+    #[inline(always)]
+    pub(super) fn noise_at_along(
+        &self,
+        frequency: f32,
+        x: &Points,
+        isa: Isa,
+        live: u32,
+        runs: bool,
+    ) -> Lanes {
+        self.noise_lanes_along(&x.map(|p| (p - self.offset) * frequency), isa, live, runs)
     }
 }
 

@@ -21,6 +21,9 @@ pub struct FractalRadius {
     amplitude: f32,
     /// Centre c of the scaling.
     centre: Vec3,
+    /// The leading octaves whose samples along a ray mostly share their
+    /// noise cells eight at a time ([`crate::noise::runs`]).
+    runs: u32,
 }
 
 impl WarpDmf for FractalRadius {
@@ -39,6 +42,7 @@ impl WarpDmf for FractalRadius {
             octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
             amplitude: amplitude.0,
             centre: centre.0,
+            runs: crate::noise::octaves_in_runs(frequency.0, step, octaves.0),
         })
     }
 
@@ -78,7 +82,7 @@ impl WarpDmf for FractalRadius {
             if live == 0 {
                 break;
             }
-            let n = field.noise_at_live(f, x, isa, live);
+            let n = field.noise_at_along(f, x, isa, live, octave < self.runs);
             sum = zip(&sum, &n, |s, n| s + n / f);
             f *= 2.0;
         }

@@ -19,10 +19,13 @@ pub struct NoisyRadius {
     amplitude: f32,
     /// Centre c of the scaling.
     centre: Vec3,
+    /// Whether a ray's samples mostly share their noise cells eight at a
+    /// time ([`crate::noise::runs`]).
+    runs: bool,
 }
 
 impl WarpDmf for NoisyRadius {
-    fn from_desc(desc: &DmfDesc, _step: f32) -> Option<Self> {
+    fn from_desc(desc: &DmfDesc, step: f32) -> Option<Self> {
         let DmfDesc::NoisyRadius {
             frequency,
             amplitude,
@@ -35,6 +38,7 @@ impl WarpDmf for NoisyRadius {
             frequency: frequency.0,
             amplitude: amplitude.0,
             centre: centre.0,
+            runs: crate::noise::runs(frequency.0, step),
         })
     }
 
@@ -44,6 +48,7 @@ impl WarpDmf for NoisyRadius {
             frequency,
             amplitude,
             centre,
+            ..
         } = *self;
         centre + (x - centre) * (1.0 + amplitude * field.noise(frequency, x))
     }
@@ -55,7 +60,7 @@ impl WarpDmf for NoisyRadius {
 
     #[inline(always)]
     fn apply_lanes(&self, x: &Points, field: &Field, isa: Isa, _: &impl Settling) -> Points {
-        let n = field.noise_at(self.frequency, x, isa);
+        let n = field.noise_at_along(self.frequency, x, isa, u32::MAX, self.runs);
         x.scale_about(self.centre, &map(&n, |n| 1.0 + self.amplitude * n))
     }
 

@@ -21,6 +21,9 @@ pub struct TurbulentRadius {
     octaves: u32,
     /// Centre c of the scaling.
     centre: Vec3,
+    /// The leading octaves whose samples along a ray mostly share their
+    /// noise cells eight at a time ([`crate::noise::runs`]).
+    runs: u32,
 }
 
 impl WarpDmf for TurbulentRadius {
@@ -39,6 +42,7 @@ impl WarpDmf for TurbulentRadius {
             amplitude: amplitude.0,
             octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
             centre: centre.0,
+            runs: crate::noise::octaves_in_runs(frequency.0, step, octaves.0),
         })
     }
 
@@ -77,7 +81,7 @@ impl WarpDmf for TurbulentRadius {
             if live == 0 {
                 break;
             }
-            let n = field.noise_lanes_live(&q.map(|p| p * scale), isa, live);
+            let n = field.noise_lanes_along(&q.map(|p| p * scale), isa, live, octave < self.runs);
             sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
             scale *= 2.0;
         }
