@@ -24,7 +24,7 @@ pub struct Curve<const N: usize> {
     /// 2p₀ − 5p₁ + 4p₂ − p₃ and 3p₁ − p₀ − 3p₂ + p₃ (p₀ and p₃ the
     /// neighbouring values, repeated at the ends), computed once: the same
     /// bits as at each evaluation.
-    spline: Vec<[[f32; N]; 4]>,
+    spline: Vec<[glam::Vec4; 4]>,
     /// The one value of a linear or step curve whose points all hold it
     /// (none −0 or NaN): what every evaluation gives, `p₁ + 0·u = p₁`.
     flat: Option<[f32; N]>,
@@ -44,11 +44,12 @@ impl<const N: usize> Curve<N> {
             .map(|v| std::array::from_fn(|c| v[1][c] - v[0][c]))
             .collect();
         let n = values.len();
+        assert!(N <= 4, "a curve has at most four channels");
         let spline = (0..n.saturating_sub(1))
             .map(|i| {
                 let (p0, p1) = (values[i.saturating_sub(1)], values[i]);
                 let (p2, p3) = (values[i + 1], values[(i + 2).min(n - 1)]);
-                let mut c = [[0.0; N]; 4];
+                let mut c = [[0.0; 4]; 4];
                 for ch in 0..N {
                     let (a, b, d, e) = (p0[ch], p1[ch], p2[ch], p3[ch]);
                     c[0][ch] = 2.0 * b;
@@ -56,7 +57,7 @@ impl<const N: usize> Curve<N> {
                     c[2][ch] = 2.0 * a - 5.0 * b + 4.0 * d - e;
                     c[3][ch] = 3.0 * b - a - 3.0 * d + e;
                 }
-                c
+                c.map(glam::Vec4::from_array)
             })
             .collect();
         let same = |v: &[f32; N]| v.map(f32::to_bits) == values[0].map(f32::to_bits);
@@ -112,11 +113,12 @@ impl<const N: usize> Curve<N> {
                 }
             }
             Interpolation::Spline => {
+                // Four channels at once (the unused ones 0), so that the
+                // channels share one register.
                 let [c0, c1, c2, c3] = &self.spline[i];
                 let (u2, u3) = (u * u, u * u * u);
-                for c in 0..N {
-                    out[c] = 0.5 * (c0[c] + c1[c] * u + c2[c] * u2 + c3[c] * u3);
-                }
+                let v = 0.5 * (*c0 + *c1 * u + *c2 * u2 + *c3 * u3);
+                out.copy_from_slice(&v.to_array()[..N]);
             }
         }
         out
