@@ -89,7 +89,9 @@ impl<const N: usize> Curve<N> {
             return value;
         }
         let n = self.keys.len();
-        if n == 1 || t.is_nan() || t <= self.keys[0] {
+        // At or below the first key, or NaN; at or past the last (a single
+        // point is both).
+        if !(t > self.keys[0]) {
             return self.values[0];
         }
         if t >= self.keys[n - 1] {
