@@ -91,7 +91,7 @@ impl<const N: usize> Curve<N> {
         let n = self.keys.len();
         // At or below the first key, or NaN; at or past the last (a single
         // point is both).
-        if !(t > self.keys[0]) {
+        if t.is_nan() || t <= self.keys[0] {
             return self.values[0];
         }
         if t >= self.keys[n - 1] {
