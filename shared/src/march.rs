@@ -402,7 +402,8 @@ fn outside(field: &Field) -> Option<Vec3> {
     field.support.map(|s| s.aabb.1 + Vec3::ONE)
 }
 
-/// The copies of [`Chunk::fill`]'s work per instruction set.
+/// The copies of [`Chunk::fill`]'s and [`Deferred::flush`]'s work per
+/// instruction set.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
@@ -420,6 +421,39 @@ mod x86 {
     #[target_feature(enable = "sse4.1")]
     pub(super) fn fill_sse41(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
         chunk.fill_on(k, b, scene, field, true);
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+    pub(super) fn flush_avx512(
+        batch: &mut Deferred,
+        scene: &Scene,
+        b: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+    ) {
+        batch.flush_on(scene, b, field, colour, true);
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn flush_avx2(
+        batch: &mut Deferred,
+        scene: &Scene,
+        b: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+    ) {
+        batch.flush_on(scene, b, field, colour, true);
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn flush_sse41(
+        batch: &mut Deferred,
+        scene: &Scene,
+        b: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+    ) {
+        batch.flush_on(scene, b, field, colour, true);
     }
 }
 
@@ -1156,6 +1190,32 @@ impl Deferred {
         if self.len == 0 {
             return;
         }
+        match scene.isa {
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::flush_sse41(self, scene, basis, field, colour) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::flush_avx2(self, scene, basis, field, colour) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::flush_avx512(self, scene, basis, field, colour) },
+            _ => self.flush_on(scene, basis, field, colour, false),
+        }
+    }
+
+    /// [`Deferred::flush`]'s work; with `simd` (a constant where it is
+    /// inlined: into the copies per instruction set in [`x86`]) the
+    /// normals, the light and the highlights' powers are compiled for that
+    /// set.
+    #[inline(always)]
+    fn flush_on(
+        &mut self,
+        scene: &Scene,
+        basis: &Basis,
+        field: &Field,
+        colour: &mut Vec3,
+        simd: bool,
+    ) {
         if self.resolves {
             self.find_waiting(scene, basis, field);
             for l in 0..self.len {
@@ -1194,9 +1254,9 @@ impl Deferred {
             }
         }
         if self.len <= LANES / 2 {
-            self.shade::<{ LANES / 2 }>(scene, basis, colour);
+            self.shade::<{ LANES / 2 }>(scene, basis, colour, simd);
         } else {
-            self.shade::<LANES>(scene, basis, colour);
+            self.shade::<LANES>(scene, basis, colour, simd);
         }
         self.len = 0;
     }
@@ -1204,7 +1264,7 @@ impl Deferred {
     /// Adds the colours of the held samples (at most W) to `colour`, in
     /// order, their normals and light found W lanes at a time.
     #[inline(always)]
-    fn shade<const W: usize>(&self, scene: &Scene, basis: &Basis, colour: &mut Vec3) {
+    fn shade<const W: usize>(&self, scene: &Scene, basis: &Basis, colour: &mut Vec3, simd: bool) {
         // `Normal::unit` lane by lane: the same operations, so the same bits.
         let mut normal = [[0.0; W]; 3];
         #[allow(clippy::needless_range_loop)] // lane l of four arrays
@@ -1214,7 +1274,7 @@ impl Deferred {
             normal[1][l] = -self.gradient.y[l] / length;
             normal[2][l] = -self.gradient.z[l] / length;
         }
-        let [r, g, b] = shade_lanes(scene, &normal, basis);
+        let [r, g, b] = shade_lanes(scene, &normal, basis, simd);
         for l in 0..self.len {
             *colour += (self.base.get(l) * Vec3::new(r[l], g[l], b[l])) * self.weight[l];
         }
@@ -1226,7 +1286,12 @@ impl Deferred {
 /// only: each lane's red, green and blue have the bits `shade` gives, the
 /// powers of the highlights taken on the scene's instruction-set path.
 #[inline(always)]
-fn shade_lanes<const W: usize>(scene: &Scene, n: &[[f32; W]; 3], basis: &Basis) -> [[f32; W]; 3] {
+fn shade_lanes<const W: usize>(
+    scene: &Scene,
+    n: &[[f32; W]; 3],
+    basis: &Basis,
+    simd: bool,
+) -> [[f32; W]; 3] {
     let mut light = scene.ambient.to_array().map(|a| [a; W]);
     for (i, source) in scene.lights.iter().enumerate() {
         let Light::Directional {
@@ -1250,7 +1315,11 @@ fn shade_lanes<const W: usize>(scene: &Scene, n: &[[f32; W]; 3], basis: &Basis) 
                 nh[j] = (n[0][j] * h.x) + (n[1][j] * h.y) + (n[2][j] * h.z);
             }
             let live = u32::MAX >> (32 - W);
-            let power = fastmath::pow01_on_live(scene.isa, &nh, scene.shininess, live);
+            let power = if simd {
+                fastmath::pow01_lanes_live(&nh, scene.shininess, live)
+            } else {
+                fastmath::pow01_on_live(scene.isa, &nh, scene.shininess, live)
+            };
             for j in 0..W {
                 if nh[j] > 0.0 {
                     response[j] += scene.specular * power[j];
