@@ -408,52 +408,31 @@ fn outside(field: &Field) -> Option<Vec3> {
 mod x86 {
     use super::*;
 
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn fill_avx512(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
-        chunk.fill_on(k, b, scene, field, true);
+    /// For each instruction set, its copies of the two.
+    macro_rules! copies {
+        ($($feature:literal => $fill:ident, $flush:ident;)*) => {$(
+            #[target_feature(enable = $feature)]
+            pub(super) fn $fill(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
+                chunk.fill_on(k, b, scene, field, true);
+            }
+
+            #[target_feature(enable = $feature)]
+            pub(super) fn $flush(
+                batch: &mut Deferred,
+                scene: &Scene,
+                b: &Basis,
+                field: &Field,
+                colour: &mut Vec3,
+            ) {
+                batch.flush_on(scene, b, field, colour, true);
+            }
+        )*};
     }
 
-    #[target_feature(enable = "avx2")]
-    pub(super) fn fill_avx2(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
-        chunk.fill_on(k, b, scene, field, true);
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn fill_sse41(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
-        chunk.fill_on(k, b, scene, field, true);
-    }
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn flush_avx512(
-        batch: &mut Deferred,
-        scene: &Scene,
-        b: &Basis,
-        field: &Field,
-        colour: &mut Vec3,
-    ) {
-        batch.flush_on(scene, b, field, colour, true);
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn flush_avx2(
-        batch: &mut Deferred,
-        scene: &Scene,
-        b: &Basis,
-        field: &Field,
-        colour: &mut Vec3,
-    ) {
-        batch.flush_on(scene, b, field, colour, true);
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn flush_sse41(
-        batch: &mut Deferred,
-        scene: &Scene,
-        b: &Basis,
-        field: &Field,
-        colour: &mut Vec3,
-    ) {
-        batch.flush_on(scene, b, field, colour, true);
+    copies! {
+        "avx512f,avx512bw,avx512vbmi" => fill_avx512, flush_avx512;
+        "avx2" => fill_avx2, flush_avx2;
+        "sse4.1" => fill_sse41, flush_sse41;
     }
 }
 
