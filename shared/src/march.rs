@@ -636,12 +636,7 @@ fn march<const COMMON: bool>(
                 },
                 None => Own::Found(normal),
             };
-            // What a waiting sample holds as its base colour.
-            let base = if keys_wait {
-                field.object_point(x)
-            } else {
-                base_colour::<COMMON>(scene, x, f, field)
-            };
+            let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
             deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             alpha += weight;
             weighted_density += f * weight;
@@ -667,12 +662,7 @@ fn march<const COMMON: bool>(
             if defers {
                 let deferred = deferred.get_or_insert_with(batch);
                 let own = Own::Found(Some(shading_normal));
-                // What a waiting sample holds as its base colour.
-                let base = if keys_wait {
-                    field.object_point(x)
-                } else {
-                    base_colour::<COMMON>(scene, x, f, field)
-                };
+                let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
                 deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
             } else {
                 // Without a normal of its own a sample takes the last one, and
@@ -828,6 +818,25 @@ fn base_colour<const COMMON: bool>(scene: &Scene, x: Vec3, f: f32, field: &Field
         Vec3::from_array(scene.colour_map.eval(f))
     } else {
         object_colour(scene, field.object_point(x), f, field)
+    }
+}
+
+/// What a waiting sample holds as its base colour ([`Deferred::base`]):
+/// [`base_colour`], or where `keys_wait` the object's point, whose colour
+/// the flush finds. (A function, always inlined: as a closure it was left
+/// a call in the common copy.)
+#[inline(always)]
+fn waiting_base<const COMMON: bool>(
+    scene: &Scene,
+    x: Vec3,
+    f: f32,
+    field: &Field,
+    keys_wait: bool,
+) -> Vec3 {
+    if keys_wait {
+        field.object_point(x)
+    } else {
+        base_colour::<COMMON>(scene, x, f, field)
     }
 }
 
