@@ -419,6 +419,13 @@ pub(crate) enum ColourIndex {
     },
 }
 
+/// The marble strata's key (Perlin 1985) at the noise-space point q
+/// (`x − offset`) whose turbulence is `turb`: `½ + ½ sin(f·q_y + a·turb)`.
+#[inline]
+fn strata(frequency: f32, amplitude: f32, q: Vec3, turb: f32) -> f32 {
+    0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
+}
+
 /// A scene ready to render: immutable, shared by every thread.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -816,7 +823,7 @@ impl Scene {
             } => {
                 let q = object_x - field.offset;
                 let turb = field.noise.turbulence_on(self.isa, q, octaves);
-                0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb)
+                strata(frequency, amplitude, q, turb)
             }
         }
     }
@@ -872,8 +879,7 @@ impl Scene {
                     turb += n.abs() / scale;
                     scale *= 2.0;
                 }
-                let q = object_x.get(l) - field.offset;
-                keys[l] = 0.5 + 0.5 * libm::sinf(frequency * q.y + amplitude * turb);
+                keys[l] = strata(frequency, amplitude, object_x.get(l) - field.offset, turb);
             }
             start = end;
         }
