@@ -44,7 +44,7 @@ impl<const N: usize> Curve<N> {
             .map(|v| std::array::from_fn(|c| v[1][c] - v[0][c]))
             .collect();
         let n = values.len();
-        assert!(N <= 4, "a curve has at most four channels");
+        const { assert!(N <= 4, "a curve has at most four channels (one Vec4)") };
         let spline = (0..n.saturating_sub(1))
             .map(|i| {
                 let (p0, p1) = (values[i.saturating_sub(1)], values[i]);
