@@ -1180,7 +1180,7 @@ fn omega4(t: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
 /// two cells of noise at `frequency` eight at a time (an AVX2 register's
 /// worth) for the noise kernel to try those two cells first
 /// ([`Noise::noise8_on`]): eight samples span at most 3 lattice units.
-/// (At 1.1 units, 65% of the high amplitude sphere's registers lie in two cells.
+/// (At 1.1 units, 65% of the high amplitude sphere's registers lie in one or two cells.
 /// Of the bounds 1.5, 3 and 6, 3 gave the fractal sphere and the eroded
 /// cube the fewest instructions, and the fire ball within 0.1%.)
 pub(crate) fn runs(frequency: f32, step: f32) -> bool {
