@@ -189,9 +189,9 @@ impl Noise {
         let (i, j, k) = (lattice(fx), lattice(fy), lattice(fz));
         let (u, v, w) = (p.x - fx, p.y - fy, p.z - fz);
         // ω for the near (t) and far (t − 1) knot along each axis.
-        let wx = [omega(u), omega(u - 1.0)];
-        let wy = [omega(v), omega(v - 1.0)];
-        let wz = [omega(w), omega(w - 1.0)];
+        let wx = [knot(u), knot(1.0 - u)];
+        let wy = [knot(v), knot(1.0 - v)];
+        let wz = [knot(w), knot(1.0 - w)];
         let corners = self.corners(i as usize, j as usize, k as usize);
         let mut sum = 0.0;
         for dk in 0..2 {
@@ -219,9 +219,9 @@ impl Noise {
         let (fx, fy, fz) = (floor(p.x), floor(p.y), floor(p.z));
         let (i, j, k) = (lattice(fx), lattice(fy), lattice(fz));
         let (u, v, w) = (p.x - fx, p.y - fy, p.z - fz);
-        let wx = [omega(u), omega(u - 1.0)];
-        let wy = [omega(v), omega(v - 1.0)];
-        let wz = [omega(w), omega(w - 1.0)];
+        let wx = [knot(u), knot(1.0 - u)];
+        let wy = [knot(v), knot(1.0 - v)];
+        let wz = [knot(w), knot(1.0 - w)];
         let sx = [omega_slope(u), omega_slope(u - 1.0)];
         let sy = [omega_slope(v), omega_slope(v - 1.0)];
         let sz = [omega_slope(w), omega_slope(w - 1.0)];
@@ -423,9 +423,9 @@ impl Noise {
             let xs = [u, _mm256_sub_ps(u, one)];
             let ys = [v, _mm256_sub_ps(v, one)];
             let zs = [w, _mm256_sub_ps(w, one)];
-            let wx = [omega8(xs[0]), omega8(xs[1])];
-            let wy = [omega8(ys[0]), omega8(ys[1])];
-            let wz = [omega8(zs[0]), omega8(zs[1])];
+            let wx = knots8(xs[0], one);
+            let wy = knots8(ys[0], one);
+            let wz = knots8(zs[0], one);
             let rows = self.gradient_of.as_ptr();
             // Σ over the corners of ω ω ω (Γ · offset), Γ's components in
             // lanes from `$gradient` of the corner (0, dj, dk) and di, in
@@ -637,9 +637,9 @@ impl Noise {
             let xs = [u, _mm512_sub_ps(u, one)];
             let ys = [v, _mm512_sub_ps(v, one)];
             let zs = [w, _mm512_sub_ps(w, one)];
-            let wx = [omega16(xs[0]), omega16(xs[1])];
-            let wy = [omega16(ys[0]), omega16(ys[1])];
-            let wz = [omega16(zs[0]), omega16(zs[1])];
+            let wx = knots16(xs[0], one);
+            let wy = knots16(ys[0], one);
+            let wz = knots16(zs[0], one);
             let mut sum = _mm512_setzero_ps();
             for dk in 0..2 {
                 for dj in 0..2 {
@@ -724,9 +724,9 @@ impl Noise {
                 let xs = [u, _mm_sub_ps(u, one)];
                 let ys = [v, _mm_sub_ps(v, one)];
                 let zs = [w, _mm_sub_ps(w, one)];
-                let wx = [omega4(xs[0]), omega4(xs[1])];
-                let wy = [omega4(ys[0]), omega4(ys[1])];
-                let wz = [omega4(zs[0]), omega4(zs[1])];
+                let wx = knots4(xs[0], one);
+                let wy = knots4(ys[0], one);
+                let wz = knots4(zs[0], one);
                 let mut sum = _mm_setzero_ps();
                 for dk in 0..2 {
                     for dj in 0..2 {
@@ -995,18 +995,16 @@ mod batch {
     }
 }
 
-/// ω(t) = 2|t|³ − 3|t|² + 1 for |t| < 1, else 0: the knot's cubic drop-off.
+/// The knot's cubic drop-off ω(t) = 2|t|³ − 3|t|² + 1 (0 for |t| ≥ 1) at
+/// t in [−0, 1], where it needs no |t| and no test: (2t − 3)t² + 1. A
+/// point's fraction u lies there, and so does 1 − u = |u − 1| (exactly:
+/// rounding is symmetric about 0); at t = 1 the cubic gives +0, as ω does.
 #[inline(always)]
-fn omega(t: f32) -> f32 {
-    let t = t.abs();
-    if t < 1.0 {
-        (2.0 * t - 3.0) * t * t + 1.0
-    } else {
-        0.0
-    }
+fn knot(t: f32) -> f32 {
+    (2.0 * t - 3.0) * t * t + 1.0
 }
 
-/// ω'(t) = 6t(|t| − 1) for |t| < 1, else 0: the slope of [`omega`].
+/// ω'(t) = 6t(|t| − 1) for |t| < 1, else 0: the slope of [`knot`]'s ω.
 #[inline(always)]
 fn omega_slope(t: f32) -> f32 {
     if t.abs() < 1.0 {
@@ -1073,26 +1071,37 @@ unsafe fn abs8(x: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
     unsafe { _mm256_andnot_ps(_mm256_set1_ps(-0.0), x) }
 }
 
-/// [`omega`] on 8 lanes (AVX), with its operations.
+/// [`knot`] at a fraction u and at 1 − u on 8 lanes (AVX), with its operations:
+/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn omega8(t: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
+unsafe fn knots8(
+    u: std::arch::x86_64::__m256,
+    one: std::arch::x86_64::__m256,
+) -> [std::arch::x86_64::__m256; 2] {
     use std::arch::x86_64::*;
-    // SAFETY: AVX by the caller's contract.
+    // SAFETY: the set's features by the caller's contract.
     unsafe {
-        let t = abs8(t);
-        let one = _mm256_set1_ps(1.0);
-        let cubic = _mm256_mul_ps(
-            _mm256_mul_ps(
-                _mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(2.0), t), _mm256_set1_ps(3.0)),
-                t,
-            ),
-            t,
-        );
-        _mm256_and_ps(
-            _mm256_cmp_ps::<_CMP_LT_OQ>(t, one),
-            _mm256_add_ps(cubic, one),
-        )
+        // (A macro: a closure's intrinsics are left as calls.)
+        macro_rules! cubic {
+            ($t:expr) => {{
+                let t = $t;
+                _mm256_add_ps(
+                    _mm256_mul_ps(
+                        _mm256_mul_ps(
+                            _mm256_sub_ps(
+                                _mm256_mul_ps(_mm256_set1_ps(2.0), t),
+                                _mm256_set1_ps(3.0),
+                            ),
+                            t,
+                        ),
+                        t,
+                    ),
+                    one,
+                )
+            }};
+        }
+        [cubic!(u), cubic!(_mm256_sub_ps(one, u))]
     }
 }
 
@@ -1124,26 +1133,37 @@ unsafe fn lattice16(x: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512i 
     }
 }
 
-/// [`omega`] on 16 lanes (AVX-512), with its operations.
+/// [`knot`] at a fraction u and at 1 − u on 16 lanes (AVX-512F), with its operations:
+/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn omega16(t: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512 {
+unsafe fn knots16(
+    u: std::arch::x86_64::__m512,
+    one: std::arch::x86_64::__m512,
+) -> [std::arch::x86_64::__m512; 2] {
     use std::arch::x86_64::*;
-    // SAFETY: AVX-512F by the caller's contract.
+    // SAFETY: the set's features by the caller's contract.
     unsafe {
-        let t = _mm512_abs_ps(t);
-        let one = _mm512_set1_ps(1.0);
-        let cubic = _mm512_mul_ps(
-            _mm512_mul_ps(
-                _mm512_sub_ps(_mm512_mul_ps(_mm512_set1_ps(2.0), t), _mm512_set1_ps(3.0)),
-                t,
-            ),
-            t,
-        );
-        _mm512_maskz_mov_ps(
-            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t, one),
-            _mm512_add_ps(cubic, one),
-        )
+        // (A macro: a closure's intrinsics are left as calls.)
+        macro_rules! cubic {
+            ($t:expr) => {{
+                let t = $t;
+                _mm512_add_ps(
+                    _mm512_mul_ps(
+                        _mm512_mul_ps(
+                            _mm512_sub_ps(
+                                _mm512_mul_ps(_mm512_set1_ps(2.0), t),
+                                _mm512_set1_ps(3.0),
+                            ),
+                            t,
+                        ),
+                        t,
+                    ),
+                    one,
+                )
+            }};
+        }
+        [cubic!(u), cubic!(_mm512_sub_ps(one, u))]
     }
 }
 
@@ -1156,23 +1176,34 @@ fn abs4(x: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
     unsafe { _mm_andnot_ps(_mm_set1_ps(-0.0), x) }
 }
 
-/// [`omega`] on 4 lanes, with its operations.
+/// [`knot`] at a fraction u and at 1 − u on 4 lanes (SSE), with its operations:
+/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn omega4(t: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
+unsafe fn knots4(
+    u: std::arch::x86_64::__m128,
+    one: std::arch::x86_64::__m128,
+) -> [std::arch::x86_64::__m128; 2] {
     use std::arch::x86_64::*;
-    // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
+    // SAFETY: the set's features by the caller's contract.
     unsafe {
-        let t = abs4(t);
-        let one = _mm_set1_ps(1.0);
-        let cubic = _mm_mul_ps(
-            _mm_mul_ps(
-                _mm_sub_ps(_mm_mul_ps(_mm_set1_ps(2.0), t), _mm_set1_ps(3.0)),
-                t,
-            ),
-            t,
-        );
-        _mm_and_ps(_mm_cmplt_ps(t, one), _mm_add_ps(cubic, one))
+        // (A macro: a closure's intrinsics are left as calls.)
+        macro_rules! cubic {
+            ($t:expr) => {{
+                let t = $t;
+                _mm_add_ps(
+                    _mm_mul_ps(
+                        _mm_mul_ps(
+                            _mm_sub_ps(_mm_mul_ps(_mm_set1_ps(2.0), t), _mm_set1_ps(3.0)),
+                            t,
+                        ),
+                        t,
+                    ),
+                    one,
+                )
+            }};
+        }
+        [cubic!(u), cubic!(_mm_sub_ps(one, u))]
     }
 }
 
@@ -1373,6 +1404,39 @@ mod tests {
         assert!(Arc::ptr_eq(&a.cells, &b.cells));
         assert!(!Arc::ptr_eq(&a.cells, &c.cells));
         assert_ne!(a.cells[..], c.cells[..]);
+    }
+
+    #[test]
+    fn the_knots_give_the_drop_off_of_the_near_and_far_knot() {
+        // ω as defined: |t|, and 0 from |t| = 1 on.
+        let omega = |t: f32| {
+            let t = t.abs();
+            if t < 1.0 {
+                (2.0 * t - 3.0) * t * t + 1.0
+            } else {
+                0.0
+            }
+        };
+        // Fractions x − floor(x): a grid, the ends (−0 from x = −0, 1 from
+        // a tiny negative x), the values next to them, and scattered bits.
+        let ends = [
+            -0.0,
+            0.0,
+            1e-30,
+            f32::EPSILON / 2.0,
+            1.0 - f32::EPSILON / 2.0,
+            1.0,
+        ];
+        let grid = (0..=1 << 16).map(|i| i as f32 / 65536.0);
+        let scattered = (0..100_000u32).map(|i| {
+            let bits = i.wrapping_mul(2_654_435_761) >> 9;
+            f32::from_bits(0x3f80_0000 | bits) - 1.0
+        });
+        for u in ends.into_iter().chain(grid).chain(scattered) {
+            assert_eq!(knot(u).to_bits(), omega(u).to_bits(), "near knot at {u:e}");
+            let far = omega(u - 1.0).to_bits();
+            assert_eq!(knot(1.0 - u).to_bits(), far, "far knot at {u:e}");
+        }
     }
 
     #[test]
