@@ -1412,10 +1412,15 @@ impl UnitOpen {
 #[serde(try_from = "u64")]
 pub struct Octaves(pub u32);
 
+impl Octaves {
+    /// The most octaves a scene may ask for.
+    pub const MOST: usize = 16;
+}
+
 impl TryFrom<u64> for Octaves {
     type Error = String;
     fn try_from(n: u64) -> Result<Self, String> {
-        if (1..=16).contains(&n) {
+        if (1..=Octaves::MOST as u64).contains(&n) {
             Ok(Octaves(n as u32))
         } else {
             Err(format!("expected an octave count from 1 to 16, found {n}"))

@@ -2,12 +2,12 @@
 
 use glam::Vec3;
 
-use super::{Settling, WarpDmf, octaves_bound};
+use super::{Settling, WarpDmf, bounds_left};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::{Points, map, zip};
 use crate::dual::{Dual, DualPoint};
-use crate::scene::desc::DmfDesc;
+use crate::scene::desc::{DmfDesc, Octaves};
 use crate::simd::{Isa, LANES};
 
 /// `c + (x − c)(1 + a · Σ noise(2^i f x) / (2^i f))`.
@@ -24,6 +24,8 @@ pub struct FractalRadius {
     /// The leading octaves whose samples along a ray mostly share their
     /// noise cells eight at a time ([`crate::noise::runs`]).
     runs: u32,
+    /// How far the sum can move after each octave ([`bounds_left`]).
+    left: [f32; Octaves::MOST],
 }
 
 impl WarpDmf for FractalRadius {
@@ -37,12 +39,14 @@ impl WarpDmf for FractalRadius {
         else {
             return None;
         };
+        let clamped = crate::noise::clamped_octaves(frequency.0, step, octaves.0);
         Some(FractalRadius {
             frequency: frequency.0,
-            octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
+            octaves: clamped,
             amplitude: amplitude.0,
             centre: centre.0,
             runs: crate::noise::octaves_in_runs(frequency.0, step, octaves.0),
+            left: bounds_left(frequency.0, clamped),
         })
     }
 
@@ -76,7 +80,7 @@ impl WarpDmf for FractalRadius {
         let mut live = u32::MAX;
         for octave in 0..self.octaves {
             // s = 1 + a·Σ ends within |a|·(the octaves left) of today's.
-            let rest = a.abs() * octaves_bound(f, self.octaves - octave);
+            let rest = a.abs() * self.left[octave as usize];
             let s = map(&sum, |s| 1.0 + a * s);
             live &= !settled.settled(&map(&s, |s| s - rest), &map(&s, |s| s + rest));
             if live == 0 {

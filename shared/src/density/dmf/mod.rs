@@ -15,7 +15,7 @@ use super::bounds::{Aabb, NOISE_BOUND, unscale};
 use super::lanes::Points;
 use super::{Density, Field};
 use crate::dual::{Dual, DualPoint};
-use crate::scene::desc::DmfDesc;
+use crate::scene::desc::{DmfDesc, Octaves};
 use crate::simd::{Isa, Lanes};
 
 mod bias;
@@ -112,13 +112,26 @@ impl Settling for Unsettled {
 
 /// A bound on |Σ noise(·)/w_j| over `count` octaves of weights w, 2w, 4w, …:
 /// [`NOISE_BOUND`] per octave, widened by 0.1% for the sum's rounding.
-pub(super) fn octaves_bound(w: f32, count: u32) -> f32 {
+fn octaves_bound(w: f32, count: u32) -> f32 {
     let (mut bound, mut w) = (0.0, w);
     for _ in 0..count {
         bound += NOISE_BOUND / w;
         w *= 2.0;
     }
     bound * 1.001
+}
+
+/// [`octaves_bound`] of the octaves from each one on, of `octaves`
+/// weighted w, 2w, 4w, …: how far a sum can still move after each octave,
+/// found once per scene rather than at every sample.
+pub(super) fn bounds_left(w: f32, octaves: u32) -> [f32; Octaves::MOST] {
+    let mut left = [0.0; Octaves::MOST];
+    let mut w = w;
+    for (octave, bound) in (0..octaves).zip(&mut left) {
+        *bound = octaves_bound(w, octaves - octave);
+        w *= 2.0;
+    }
+    left
 }
 
 /// The registry of warps: `Variant(Type)`, one line each. Builds the enum

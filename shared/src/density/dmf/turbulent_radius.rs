@@ -2,12 +2,12 @@
 
 use glam::Vec3;
 
-use super::{Settling, WarpDmf, octaves_bound};
+use super::{Settling, WarpDmf, bounds_left};
 use crate::density::Field;
 use crate::density::bounds::NOISE_BOUND;
 use crate::density::lanes::{Points, map, zip};
 use crate::dual::{Dual, DualPoint};
-use crate::scene::desc::DmfDesc;
+use crate::scene::desc::{DmfDesc, Octaves};
 use crate::simd::{Isa, LANES};
 
 /// `c + (x − c)(1 + a · turbulence(f x))`.
@@ -24,6 +24,8 @@ pub struct TurbulentRadius {
     /// The leading octaves whose samples along a ray mostly share their
     /// noise cells eight at a time ([`crate::noise::runs`]).
     runs: u32,
+    /// How far the sum can move after each octave ([`bounds_left`]).
+    left: [f32; Octaves::MOST],
 }
 
 impl WarpDmf for TurbulentRadius {
@@ -37,12 +39,14 @@ impl WarpDmf for TurbulentRadius {
         else {
             return None;
         };
+        let clamped = crate::noise::clamped_octaves(frequency.0, step, octaves.0);
         Some(TurbulentRadius {
             frequency: frequency.0,
             amplitude: amplitude.0,
-            octaves: crate::noise::clamped_octaves(frequency.0, step, octaves.0),
+            octaves: clamped,
             centre: centre.0,
             runs: crate::noise::octaves_in_runs(frequency.0, step, octaves.0),
+            left: bounds_left(1.0, clamped),
         })
     }
 
@@ -74,7 +78,7 @@ impl WarpDmf for TurbulentRadius {
         for octave in 0..self.octaves {
             // Every octave adds |noise| ≥ 0: s = 1 + a·Σ moves from today's
             // only towards the sign of a, by at most a·(the octaves left).
-            let rest = a * octaves_bound(scale, self.octaves - octave);
+            let rest = a * self.left[octave as usize];
             let s = map(&sum, |s| 1.0 + a * s);
             let (lo, hi) = (rest.min(0.0), rest.max(0.0));
             live &= !settled.settled(&map(&s, |s| s + lo), &map(&s, |s| s + hi));
@@ -82,7 +86,10 @@ impl WarpDmf for TurbulentRadius {
                 break;
             }
             let n = field.noise_lanes_along(&q.map(|p| p * scale), isa, live, octave < self.runs);
-            sum = zip(&sum, &n, |s, n| s + n.abs() / scale);
+            // |n| / scale, by the reciprocal: scale is a power of two, so
+            // 1 / scale is exact and the product rounds as the quotient.
+            let weight = 1.0 / scale;
+            sum = zip(&sum, &n, |s, n| s + n.abs() * weight);
             scale *= 2.0;
         }
         x.scale_about(self.centre, &map(&sum, |t| 1.0 + a * t))
