@@ -224,8 +224,11 @@ impl Chunk {
     fn fill_on(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field, simd: bool) {
         self.full = true;
         self.start = k;
-        self.x = sample_points(scene, basis, k, field);
-        (self.f, self.alpha) = samples(scene, &self.x, field, simd);
+        // The density reads the points where they were just written, not
+        // from the chunk's copy.
+        let x = sample_points(scene, basis, k, field);
+        (self.f, self.alpha) = samples(scene, &x, field, simd);
+        self.x = x;
         self.has_gradient = 0;
         self.nonzero = if simd {
             crate::simd::nonzero_mask(scene.isa, &self.f)
