@@ -232,6 +232,15 @@ fn warps_that_settle_give_the_same_bits_along_rays() {
             "Sphere(radius: 0.9, softness: 0.4)",
             "TurbulentRadius(frequency: 2.0, amplitude: 0.3, octaves: 6)",
         ),
+        // The most octaves a scene may ask for, none clamped at this step.
+        (
+            "Sphere(radius: 0.9, softness: 0.4)",
+            "TurbulentRadius(frequency: 0.002, amplitude: 2.0, octaves: 16)",
+        ),
+        (
+            "Sphere(radius: 0.9, softness: 0.4)",
+            "FractalRadius(frequency: 0.002, octaves: 16, amplitude: 0.01)",
+        ),
     ];
     let mut r = SplitMix64::new(41);
     let mut unit = || Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 2.0 - 1.0;

@@ -39,7 +39,9 @@ impl WarpDmf for TurbulentRadius {
         else {
             return None;
         };
-        let clamped = crate::noise::clamped_octaves(frequency.0, step, octaves.0);
+        // At most `Octaves::MOST`, as parsing ensures: the length of `left`.
+        let clamped =
+            crate::noise::clamped_octaves(frequency.0, step, octaves.0).min(Octaves::MOST as u32);
         Some(TurbulentRadius {
             frequency: frequency.0,
             amplitude: amplitude.0,
