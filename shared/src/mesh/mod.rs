@@ -2,7 +2,7 @@
 //! file, with its exact signed distance.
 //!
 //! The distance to the surface is the distance to the closest triangle, found
-//! through a bounding volume hierarchy ([`bvh`]). Its sign comes from the
+//! through a bounding volume hierarchy (the module `bvh`). Its sign comes from the
 //! angle-weighted pseudo-normal of the closest feature (Bærentzen & Aanæs,
 //! "Signed distance computation using the angle weighted pseudonormal", IEEE
 //! TVCG 2005): the face's normal when the closest point lies inside a face, the
