@@ -1004,6 +1004,43 @@ fn knot(t: f32) -> f32 {
     (2.0 * t - 3.0) * t * t + 1.0
 }
 
+/// [`knot`] at a fraction u and at 1 − u on a register of lanes, with its
+/// operations: the weights ω(u), ω(u − 1) of a cell's near and far knots.
+/// One copy per register width, from that width's intrinsics.
+macro_rules! knots {
+    ($($(#[$attr:meta])* $name:ident: $ty:ident, $add:ident, $sub:ident, $mul:ident, $set1:ident;)*) => {$(
+        $(#[$attr])*
+        #[cfg(target_arch = "x86_64")]
+        #[inline(always)]
+        unsafe fn $name(
+            u: std::arch::x86_64::$ty,
+            one: std::arch::x86_64::$ty,
+        ) -> [std::arch::x86_64::$ty; 2] {
+            use std::arch::x86_64::*;
+            // SAFETY: the width's features by the caller's contract. (A
+            // macro, not a closure: a closure's intrinsics are left as calls.)
+            unsafe {
+                macro_rules! cubic {
+                    ($t:expr) => {{
+                        let t = $t;
+                        $add($mul($mul($sub($mul($set1(2.0), t), $set1(3.0)), t), t), one)
+                    }};
+                }
+                [cubic!(u), cubic!($sub(one, u))]
+            }
+        }
+    )*};
+}
+
+knots! {
+    /// 4 lanes (SSE).
+    knots4: __m128, _mm_add_ps, _mm_sub_ps, _mm_mul_ps, _mm_set1_ps;
+    /// 8 lanes (AVX).
+    knots8: __m256, _mm256_add_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_set1_ps;
+    /// 16 lanes (AVX-512F).
+    knots16: __m512, _mm512_add_ps, _mm512_sub_ps, _mm512_mul_ps, _mm512_set1_ps;
+}
+
 /// ω'(t) = 6t(|t| − 1) for |t| < 1, else 0: the slope of [`knot`]'s ω.
 #[inline(always)]
 fn omega_slope(t: f32) -> f32 {
@@ -1071,40 +1108,6 @@ unsafe fn abs8(x: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
     unsafe { _mm256_andnot_ps(_mm256_set1_ps(-0.0), x) }
 }
 
-/// [`knot`] at a fraction u and at 1 − u on 8 lanes (AVX), with its operations:
-/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn knots8(
-    u: std::arch::x86_64::__m256,
-    one: std::arch::x86_64::__m256,
-) -> [std::arch::x86_64::__m256; 2] {
-    use std::arch::x86_64::*;
-    // SAFETY: the set's features by the caller's contract.
-    unsafe {
-        // (A macro: a closure's intrinsics are left as calls.)
-        macro_rules! cubic {
-            ($t:expr) => {{
-                let t = $t;
-                _mm256_add_ps(
-                    _mm256_mul_ps(
-                        _mm256_mul_ps(
-                            _mm256_sub_ps(
-                                _mm256_mul_ps(_mm256_set1_ps(2.0), t),
-                                _mm256_set1_ps(3.0),
-                            ),
-                            t,
-                        ),
-                        t,
-                    ),
-                    one,
-                )
-            }};
-        }
-        [cubic!(u), cubic!(_mm256_sub_ps(one, u))]
-    }
-}
-
 /// [`floor`] on 16 lanes (AVX-512), with its operations: rounding towards
 /// −∞, plus +0.0 (so that −0 gives +0).
 #[cfg(target_arch = "x86_64")]
@@ -1133,40 +1136,6 @@ unsafe fn lattice16(x: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512i 
     }
 }
 
-/// [`knot`] at a fraction u and at 1 − u on 16 lanes (AVX-512F), with its operations:
-/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn knots16(
-    u: std::arch::x86_64::__m512,
-    one: std::arch::x86_64::__m512,
-) -> [std::arch::x86_64::__m512; 2] {
-    use std::arch::x86_64::*;
-    // SAFETY: the set's features by the caller's contract.
-    unsafe {
-        // (A macro: a closure's intrinsics are left as calls.)
-        macro_rules! cubic {
-            ($t:expr) => {{
-                let t = $t;
-                _mm512_add_ps(
-                    _mm512_mul_ps(
-                        _mm512_mul_ps(
-                            _mm512_sub_ps(
-                                _mm512_mul_ps(_mm512_set1_ps(2.0), t),
-                                _mm512_set1_ps(3.0),
-                            ),
-                            t,
-                        ),
-                        t,
-                    ),
-                    one,
-                )
-            }};
-        }
-        [cubic!(u), cubic!(_mm512_sub_ps(one, u))]
-    }
-}
-
 /// |x| on 4 lanes.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
@@ -1174,37 +1143,6 @@ fn abs4(x: std::arch::x86_64::__m128) -> std::arch::x86_64::__m128 {
     use std::arch::x86_64::*;
     // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
     unsafe { _mm_andnot_ps(_mm_set1_ps(-0.0), x) }
-}
-
-/// [`knot`] at a fraction u and at 1 − u on 4 lanes (SSE), with its operations:
-/// the weights ω(u), ω(u − 1) of a cell's near and far knots.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn knots4(
-    u: std::arch::x86_64::__m128,
-    one: std::arch::x86_64::__m128,
-) -> [std::arch::x86_64::__m128; 2] {
-    use std::arch::x86_64::*;
-    // SAFETY: the set's features by the caller's contract.
-    unsafe {
-        // (A macro: a closure's intrinsics are left as calls.)
-        macro_rules! cubic {
-            ($t:expr) => {{
-                let t = $t;
-                _mm_add_ps(
-                    _mm_mul_ps(
-                        _mm_mul_ps(
-                            _mm_sub_ps(_mm_mul_ps(_mm_set1_ps(2.0), t), _mm_set1_ps(3.0)),
-                            t,
-                        ),
-                        t,
-                    ),
-                    one,
-                )
-            }};
-        }
-        [cubic!(u), cubic!(_mm_sub_ps(one, u))]
-    }
 }
 
 /// Whether the samples of a ray, `step` apart, lie often enough in at most
