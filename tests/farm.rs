@@ -88,12 +88,13 @@ fn any_number_of_workers_gives_the_in_process_bytes() {
 fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
     let dir = scratch("farm-kill");
     let reference = dir.join("reference.png");
-    // Big enough that one render thread is still busy when it is killed.
-    in_process("fur", 256, &reference);
+    // Big enough that one render thread is still busy when it is killed
+    // (about 0.4 s of rendering on one thread of a fast machine).
+    in_process("fur", 512, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only(
         "fur",
-        256,
+        512,
         &out,
         &["--lease-timeout", "1", "--worker-timeout", "30"],
     );

@@ -1583,7 +1583,7 @@ async fn run_checks(shared: Arc<Shared>) {
 
 /// Renders the unit of a check on the check thread, within [`CHECK_TIMEOUT`]
 /// (a render still going then, or when the farm closes, stops before its
-/// next pixel).
+/// next group of pixels, [`hypertexture::render::render_pixels_until`]).
 async fn render_check(
     shared: &Arc<Shared>,
     pool: &Arc<rayon::ThreadPool>,

@@ -295,7 +295,7 @@ impl WorkerState {
         format!("w{number}-{secret:016x}")
     }
 
-    /// [`WorkerState::wire_id_of`] this worker.
+    /// The id this worker presents on its calls: its number and its secret.
     pub fn wire_id(&self) -> String {
         let number = self.id.trim_start_matches('w').parse().unwrap_or(0);
         WorkerState::wire_id_of(number, self.secret)

@@ -111,6 +111,49 @@ impl Camera {
         }
     }
 
+    /// [`Camera::ray`] through the centres of `pixels` (N at most; the
+    /// other rays are through pixel (0, 0)): the same rays, found lane by
+    /// lane in arrays so that the divisions and square roots vectorise.
+    #[inline]
+    pub fn centre_rays<const N: usize>(&self, pixels: &[(u32, u32)]) -> [Ray; N] {
+        let (mut sx, mut sy) = ([0.0f32; N], [0.0f32; N]);
+        for (i, &(x, y)) in pixels.iter().take(N).enumerate() {
+            sx[i] = x as f32;
+            sy[i] = y as f32;
+        }
+        for i in 0..N {
+            sx[i] = 2.0 * (sx[i] + 0.5) / self.width - 1.0;
+            sy[i] = 1.0 - 2.0 * (sy[i] + 0.5) / self.height;
+        }
+        // `Vec3` arithmetic coordinate by coordinate: the same operations.
+        let (r, u, f) = (self.right, self.up, self.forward);
+        let mut d = [[0.0f32; N]; 3];
+        for i in 0..N {
+            d[0][i] = r.x * sx[i] + u.x * sy[i];
+            d[1][i] = r.y * sx[i] + u.y * sy[i];
+            d[2][i] = r.z * sx[i] + u.z * sy[i];
+        }
+        if !self.perspective {
+            return std::array::from_fn(|i| Ray {
+                origin: self.eye + Vec3::new(d[0][i], d[1][i], d[2][i]),
+                direction: self.forward,
+            });
+        }
+        let mut recip = [0.0f32; N];
+        for i in 0..N {
+            d[0][i] += f.x;
+            d[1][i] += f.y;
+            d[2][i] += f.z;
+            // `normalize`: the direction times 1 / √(d · d).
+            let dot = d[0][i] * d[0][i] + d[1][i] * d[1][i] + d[2][i] * d[2][i];
+            recip[i] = 1.0 / dot.sqrt();
+        }
+        std::array::from_fn(|i| Ray {
+            origin: self.eye,
+            direction: Vec3::new(d[0][i], d[1][i], d[2][i]) * recip[i],
+        })
+    }
+
     /// OpenEXR's `worldToCamera`: the matrix, row-major, by which a world point
     /// as a row vector `(x, y, z, 1)` is multiplied to give camera coordinates
     /// (x right, y up, the camera looking down −z, the eye at the origin).
@@ -201,6 +244,49 @@ mod tests {
         // Top-left pixel centre of a 2×2 image at 90°: direction (-0.5, 0.5, -1) normalised.
         let r = cam.ray(0, 0, (0.5, 0.5));
         assert!((r.direction - Vec3::new(-0.5, 0.5, -1.0).normalize()).length() < 1e-6);
+    }
+
+    #[test]
+    fn the_centre_rays_are_each_pixels_ray() {
+        let mut odd = desc(ProjectionDesc::Orthographic {
+            height: Positive(2.5),
+        });
+        odd.eye = V3(Vec3::new(0.3, 1.7, 2.9));
+        odd.look_at = V3(Vec3::new(-0.2, 0.1, 0.4));
+        let perspective = desc(ProjectionDesc::Perspective {
+            fov_y: FieldOfView(37.0),
+        });
+        let tilted = CameraDesc {
+            projection: perspective.projection,
+            ..odd
+        };
+        for (what, d) in [
+            ("perspective", perspective),
+            ("tilted", tilted),
+            ("orthographic", odd),
+        ] {
+            let cam = Camera::new(&d, 641, 359);
+            let pixels: Vec<(u32, u32)> = (0..641u32)
+                .flat_map(|x| [(x, (x * 7) % 359), (x, 358 - (x * 3) % 359)])
+                .collect();
+            for group in pixels.chunks(5) {
+                let rays: [Ray; 8] = cam.centre_rays(group);
+                for (&(x, y), r) in group.iter().zip(&rays) {
+                    let one = cam.ray(x, y, (0.5, 0.5));
+                    assert_eq!(
+                        (
+                            r.origin.to_array().map(f32::to_bits),
+                            r.direction.to_array().map(f32::to_bits)
+                        ),
+                        (
+                            one.origin.to_array().map(f32::to_bits),
+                            one.direction.to_array().map(f32::to_bits)
+                        ),
+                        "{what}: pixel ({x}, {y})"
+                    );
+                }
+            }
+        }
     }
 
     /// `p` (a row vector) times the row-major matrix `m`.

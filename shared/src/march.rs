@@ -48,6 +48,7 @@ fn perpendiculars(d: Vec3, step: f32) -> (Vec3, Vec3) {
 }
 
 /// The marching state along one (possibly bent) ray.
+#[derive(Clone, Copy)]
 struct Basis {
     ray: Ray,
     /// Δx_μ, Δx_ν, Δx_ω.
@@ -117,7 +118,9 @@ impl Basis {
                     };
                 }
                 Some((a, b)) => {
-                    let skip = ((a - t0) / step - phase).floor() - 1.0;
+                    // (`fastmath::floor`, not libm's call: −0 gives +0,
+                    // and either skips nothing.)
+                    let skip = fastmath::floor((a - t0) / step - phase) - 1.0;
                     let first = if skip > 0.0 { skip as u32 } else { 0 };
                     (first, b)
                 }
@@ -447,10 +450,240 @@ pub fn trace(scene: &Scene, ray: Ray, field: &Field) -> Sample {
 /// [`trace`] with the samples shifted by `phase` steps (in [0, 1)) along the ray:
 /// at `t0 + (k + phase)·step` (jittered supersampling, [`crate::sampling`]).
 pub fn trace_with_phase(scene: &Scene, ray: Ray, field: &Field, phase: f32) -> Sample {
+    let (mut deferred, mut waiting) = (None, None);
+    let done = march_any(scene, ray, field, phase, &mut deferred, &mut waiting);
+    match (done, &waiting) {
+        (Some(sample), _) => sample,
+        (None, Some(w)) => finish(w, scene, field, &mut deferred),
+        (None, None) => unreachable!("a ray that is not done waits"),
+    }
+}
+
+/// The rays that [`trace_group`] traces together, at most.
+pub const GROUP: usize = 8;
+
+/// [`trace`] of each of `rays` (at most [`GROUP`]) into `out`, the same
+/// samples: the rays are marched one after another, and the gradient
+/// neighbours of the samples whose light waits (a `Deferred` batch) at their
+/// ends are evaluated together, [`LANES`] / 2 samples a call across the
+/// rays, before each ray's colour is found.
+///
+/// # Panics
+/// If `rays` are more than [`GROUP`], or `out` is not as long.
+pub fn trace_group(scene: &Scene, rays: &[Ray], field: &Field, out: &mut [Sample]) {
+    assert!(rays.len() <= GROUP && out.len() == rays.len());
+    let mut deferred: [Option<Deferred>; GROUP] = std::array::from_fn(|_| None);
+    let mut waiting: [Option<Waiting>; GROUP] = [None; GROUP];
+    for (i, &ray) in rays.iter().enumerate() {
+        if let Some(sample) = march_any(scene, ray, field, 0.0, &mut deferred[i], &mut waiting[i]) {
+            out[i] = sample;
+        }
+    }
+    let mut batches: [Option<(&Basis, &mut Deferred)>; GROUP] = Default::default();
+    for ((batch, waiting), deferred) in batches.iter_mut().zip(&waiting).zip(&mut deferred) {
+        if let (Some(w), Some(d)) = (waiting, deferred) {
+            *batch = Some((&w.basis, d));
+        }
+    }
+    find_waiting(&mut batches, scene, field);
+    for (i, out) in out.iter_mut().enumerate() {
+        if let Some(w) = &waiting[i] {
+            *out = finish(w, scene, field, &mut deferred[i]);
+        }
+    }
+}
+
+/// [`march`] in the copy the scene's `common_case` chooses.
+#[inline(always)]
+fn march_any(
+    scene: &Scene,
+    ray: Ray,
+    field: &Field,
+    phase: f32,
+    deferred: &mut Option<Deferred>,
+    waiting: &mut Option<Waiting>,
+) -> Option<Sample> {
     if scene.common_case {
-        march::<true>(scene, ray, field, phase, true)
+        march::<true>(scene, ray, field, phase, true, deferred, waiting)
     } else {
-        march::<false>(scene, ray, field, phase, true)
+        march::<false>(scene, ray, field, phase, true, deferred, waiting)
+    }
+}
+
+/// What a ray marched to its end holds until its colour is found
+/// ([`finish`]), with the samples whose light waits: its basis
+/// and what it gathered.
+#[derive(Clone, Copy)]
+struct Waiting {
+    basis: Basis,
+    colour: Vec3,
+    alpha: f32,
+    weighted_density: f32,
+    depth: f32,
+    first_normal: Option<Normal>,
+}
+
+/// The sample of a ray that `w` holds ([`march`]'s): the light of
+/// the samples waiting in `deferred` added to its colour, then the
+/// background behind it.
+#[inline(always)]
+fn finish(w: &Waiting, scene: &Scene, field: &Field, deferred: &mut Option<Deferred>) -> Sample {
+    let mut colour = w.colour;
+    let mut first_normal = w.first_normal;
+    let alpha = w.alpha;
+    if let Some(deferred) = deferred {
+        deferred.flush(scene, &w.basis, field, &mut colour);
+        if deferred.resolves {
+            first_normal = deferred.first;
+        }
+    }
+    let (bg, bg_alpha) = scene.background.sample(w.basis.ray.direction);
+    let rgb = colour + bg * (1.0 - alpha);
+    let normal = first_normal.map_or(Vec3::ZERO, Normal::unit);
+    Sample {
+        rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
+        density: if alpha > 0.0 {
+            w.weighted_density / alpha
+        } else {
+            0.0
+        },
+        depth: w.depth,
+        normal: normal.to_array(),
+    }
+}
+
+/// The own normals of the samples waiting in `batches` (each with its
+/// ray's basis): [`gradient_normal`]'s differences, their neighbours
+/// evaluated [`LANES`] / 2 samples a call, across the batches (the other
+/// lanes at a point outside the support, or else the first point again);
+/// then the hard regions' central differences of the object's D, two
+/// stencils a call.
+fn find_waiting(batches: &mut [Option<(&Basis, &mut Deferred)>], scene: &Scene, field: &Field) {
+    let mut x = Points::default();
+    gather(
+        batches,
+        &mut x,
+        |d| &mut d.waiting,
+        LANES / 2,
+        |x, n, (dv, dw), p| {
+            x.set(2 * n, p + dv);
+            x.set(2 * n + 1, p + dw);
+        },
+        |batches, x, which| hold_found(batches, x, which, scene, field),
+    );
+    let h = 2.0 * scene.step;
+    gather(
+        batches,
+        &mut x,
+        |d| &mut d.hard,
+        2,
+        |x, n, _, p| {
+            for (i, q) in stencil(p, h).into_iter().enumerate() {
+                x.set(6 * n + i, q);
+            }
+        },
+        |batches, x, which| hold_hard(batches, x, which, scene, field),
+    );
+}
+
+/// The samples of `batches` whose bits are set in the mask that `mask`
+/// picks (the bits cleared), `per` a call (at most [`LANES`] / 2): `place`
+/// sets in `x` the lanes of the n-th of a call from its batch's offsets
+/// (Δx_ν, Δx_ω) and its point; `hold` evaluates those placed.
+#[inline(always)]
+fn gather(
+    batches: &mut [Option<(&Basis, &mut Deferred)>],
+    x: &mut Points,
+    mask: fn(&mut Deferred) -> &mut u32,
+    per: usize,
+    mut place: impl FnMut(&mut Points, usize, (Vec3, Vec3), Vec3),
+    mut hold: impl FnMut(&mut [Option<(&Basis, &mut Deferred)>], &mut Points, &[(usize, usize)]),
+) {
+    let mut which = [(0, 0); LANES / 2];
+    let mut n = 0;
+    for r in 0..batches.len() {
+        let Some((basis, d)) = &mut batches[r] else {
+            continue;
+        };
+        let offsets = (basis.dv, basis.dw);
+        let mut bits = std::mem::take(mask(d));
+        while bits != 0 {
+            let l = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let Some((_, d)) = &batches[r] else {
+                unreachable!("the batch taken above")
+            };
+            place(x, n, offsets, d.x.get(l));
+            which[n] = (r, l);
+            n += 1;
+            if n == per {
+                hold(batches, x, &which[..n]);
+                n = 0;
+            }
+        }
+    }
+    if n > 0 {
+        hold(batches, x, &which[..n]);
+    }
+}
+
+/// The stencils `x` ([`stencil`]) of the hard regions' samples `which`
+/// (batch, lane), six lanes each (the other lanes at the point outside the
+/// support, or else the first sample's point), evaluated together on the
+/// object's D, and the normals they give held.
+#[inline(always)]
+fn hold_hard(
+    batches: &mut [Option<(&Basis, &mut Deferred)>],
+    x: &mut Points,
+    which: &[(usize, usize)],
+    scene: &Scene,
+    field: &Field,
+) {
+    let Some((_, d)) = &batches[which[0].0] else {
+        unreachable!("only the batches' samples are held")
+    };
+    let pad = outside(field).unwrap_or(d.x.get(which[0].1));
+    for l in 6 * which.len()..LANES {
+        x.set(l, pad);
+    }
+    let v = scene.object.eval_object_lanes(x, field, scene.isa);
+    for (i, &(r, l)) in which.iter().enumerate() {
+        let Some((_, d)) = &mut batches[r] else {
+            unreachable!("only the batches' samples are held")
+        };
+        if let Some(normal) = central_normal_of(&v[6 * i..6 * i + 6]) {
+            d.hold(l, normal);
+        }
+    }
+}
+
+/// The neighbours `x` of the waiting samples `which` (batch, lane), two
+/// lanes each, evaluated together, and the normals they give held.
+#[inline(always)]
+fn hold_found(
+    batches: &mut [Option<(&Basis, &mut Deferred)>],
+    x: &mut Points,
+    which: &[(usize, usize)],
+    scene: &Scene,
+    field: &Field,
+) {
+    for l in 2 * which.len()..LANES {
+        x.set(l, outside(field).unwrap_or(x.get(l % 2)));
+    }
+    #[cfg(test)]
+    if which.iter().any(|&(r, _)| r != which[0].0) {
+        tests::ACROSS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+    let v = scene.density.eval_lanes(x, field, scene.isa);
+    for (i, &(r, l)) in which.iter().enumerate() {
+        let Some((basis, d)) = &mut batches[r] else {
+            unreachable!("only the batches' samples are held")
+        };
+        let (f, fv, fw) = (d.f[l], v[2 * i], v[2 * i + 1]);
+        let g = basis.du * (f - d.behind[l]) + basis.dv * (fv - f) + basis.dw * (fw - f);
+        if let Some(normal) = Normal::of_gradient(g) {
+            d.hold(l, normal);
+        }
     }
 }
 
@@ -470,14 +703,16 @@ fn march<const COMMON: bool>(
     field: &Field,
     phase: f32,
     shortcuts: bool,
-) -> Sample {
+    deferred: &mut Option<Deferred>,
+    waiting: &mut Option<Waiting>,
+) -> Option<Sample> {
     let (min, max) = scene.bounds;
     let Some((t0, t1)) = slab(&ray, min, max) else {
         let (bg, bg_alpha) = scene.background.sample(ray.direction);
-        return Sample {
+        return Some(Sample {
             rgba: [bg.x, bg.y, bg.z, bg_alpha],
             ..Sample::default()
-        };
+        });
     };
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
@@ -490,10 +725,10 @@ fn march<const COMMON: bool>(
         let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
         let (colour, alpha) = (Vec3::ZERO, 0.0f32);
         let rgb = colour + bg * (1.0 - alpha);
-        return Sample {
+        return Some(Sample {
             rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
             ..Sample::default()
-        };
+        });
     }
     let mut chunk = Chunk::empty();
     // Distance travelled along the path before the current ray segment.
@@ -539,7 +774,6 @@ fn march<const COMMON: bool>(
     // a time ([`Deferred`]); their base colours are found as they come. The
     // batch is set up at the ray's first sample that adds colour.
     let defers = shortcuts && scene.light_waits;
-    let mut deferred: Option<Deferred> = None;
     // With the paper's forward differences, the gradients wait too: a
     // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
     // with the other waiting samples', [`LANES`] / 2 samples a call across
@@ -580,8 +814,10 @@ fn march<const COMMON: bool>(
         let (f, alpha_k) = chunk.density(k, &basis, scene, field);
 
         let mut normal = None;
-        // f(x − Δx_μ) of a soft sample whose gradient waits.
+        // f(x − Δx_μ) of a soft sample whose gradient waits; whether the
+        // normal of a hard region's first sample waits.
         let mut waits = None;
+        let mut hard_waits = false;
         let soft = f > 0.0 && f < 1.0;
         let pass = lazy && soft && alpha_k == 0.0 && first_normal.is_some();
         // Without lights the shading ignores the normal: only the first one is
@@ -621,9 +857,14 @@ fn march<const COMMON: bool>(
             // The ray reaches a hard region, where f = 1 and ∇f = 0: the
             // object's own D gives the normal, over a stencil wide enough to
             // reach the soft region from a sample up to a step inside.
-            normal = central_normal_lanes(x, 2.0 * step, field, |p| {
-                scene.object.eval_object_lanes(p, field, scene.isa)
-            });
+            // Where the gradients wait, so does this one.
+            if gradients_wait {
+                hard_waits = true;
+            } else {
+                normal = central_normal_lanes(x, 2.0 * step, field, |p| {
+                    scene.object.eval_object_lanes(p, field, scene.isa)
+                });
+            }
         }
 
         if f > 0.0 && depth == 0.0 {
@@ -632,12 +873,13 @@ fn march<const COMMON: bool>(
         if f > 0.0 && gradients_wait {
             let deferred = deferred.get_or_insert_with(batch);
             let weight = alpha_k * (1.0 - alpha);
-            let own = match waits {
-                Some(behind) => Own::Waiting {
+            let own = match (waits, hard_waits) {
+                (Some(behind), _) => Own::Waiting {
                     x: chunk.x.get((k - chunk.start) as usize),
                     behind,
                 },
-                None => Own::Found(normal),
+                (None, true) => Own::Hard { x },
+                (None, false) => Own::Found(normal),
             };
             let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
             deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
@@ -763,25 +1005,15 @@ fn march<const COMMON: bool>(
         }
     }
 
-    if let Some(deferred) = &mut deferred {
-        deferred.flush(scene, &basis, field, &mut colour);
-        if deferred.resolves {
-            first_normal = deferred.first;
-        }
-    }
-    let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
-    let rgb = colour + bg * (1.0 - alpha);
-    let normal = first_normal.map_or(Vec3::ZERO, Normal::unit);
-    Sample {
-        rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
-        density: if alpha > 0.0 {
-            weighted_density / alpha
-        } else {
-            0.0
-        },
+    *waiting = Some(Waiting {
+        basis,
+        colour,
+        alpha,
+        weighted_density,
         depth,
-        normal: normal.to_array(),
-    }
+        first_normal,
+    });
+    None
 }
 
 /// The colour a sample at x of density f contributes per unit of opacity:
@@ -924,13 +1156,33 @@ fn central_normal_lanes(
     for l in 6..LANES {
         p.set(l, spare);
     }
-    for (axis, e) in [Vec3::X, Vec3::Y, Vec3::Z].into_iter().enumerate() {
-        p.set(2 * axis, x + e * h);
-        p.set(2 * axis + 1, x - e * h);
+    for (l, q) in stencil(x, h).into_iter().enumerate() {
+        p.set(l, q);
     }
     let f = eval(&p);
-    let g = Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]);
-    Normal::of_gradient(g)
+    central_normal_of(&f[..6])
+}
+
+/// The six points of [`central_normal_lanes`]' stencil: x ± h along x, y
+/// and z in turn.
+#[inline(always)]
+fn stencil(x: Vec3, h: f32) -> [Vec3; 6] {
+    let [a, b, c] = [Vec3::X, Vec3::Y, Vec3::Z];
+    [
+        x + a * h,
+        x - a * h,
+        x + b * h,
+        x - b * h,
+        x + c * h,
+        x - c * h,
+    ]
+}
+
+/// The normal of the central differences of the field at the six points of
+/// a [`stencil`].
+#[inline(always)]
+fn central_normal_of(f: &[f32]) -> Option<Normal> {
+    Normal::of_gradient(Vec3::new(f[0] - f[1], f[2] - f[3], f[4] - f[5]))
 }
 
 /// The unit outward normal at x from the derivative of the density
@@ -1061,6 +1313,9 @@ struct Deferred {
     /// found from the point x and f(x − Δx_μ) held for it.
     found: u32,
     waiting: u32,
+    /// Bit l: sample l's normal is found from the central differences of
+    /// the object's D about its point x ([`Own::Hard`]).
+    hard: u32,
     x: Points,
     behind: Lanes,
     /// The first and the last normal found on the ray.
@@ -1074,6 +1329,9 @@ enum Own {
     Found(Option<Normal>),
     /// From the forward differences at point x, f(x − Δx_μ) being `behind`.
     Waiting { x: Vec3, behind: f32 },
+    /// From the central differences of the object's D about point x, where
+    /// the ray reaches a hard region ([`central_normal_lanes`]).
+    Hard { x: Vec3 },
 }
 
 impl Default for Deferred {
@@ -1090,6 +1348,7 @@ impl Default for Deferred {
             resolves: false,
             found: 0,
             waiting: 0,
+            hard: 0,
             x: Points::default(),
             behind: [0.0; LANES],
             first: None,
@@ -1123,6 +1382,10 @@ impl Deferred {
                 self.behind[self.len] = behind;
                 self.waiting |= 1 << self.len;
             }
+            Own::Hard { x } => {
+                self.x.set(self.len, x);
+                self.hard |= 1 << self.len;
+            }
         }
         self.f[self.len] = f;
         self.base.set(self.len, base);
@@ -1139,40 +1402,6 @@ impl Deferred {
         self.gradient.set(l, normal.g);
         self.len2[l] = normal.len2;
         self.found |= 1 << l;
-    }
-
-    /// The own normals of the waiting samples: [`gradient_normal`]'s
-    /// differences, their neighbours evaluated [`LANES`] / 2 samples a call
-    /// (the other lanes at a point outside the support, or else the first
-    /// point again).
-    fn find_waiting(&mut self, scene: &Scene, basis: &Basis, field: &Field) {
-        let mut waiting = self.waiting;
-        while waiting != 0 {
-            let mut x = Points::default();
-            let mut which = [0; LANES / 2];
-            let mut n = 0;
-            while waiting != 0 && n < LANES / 2 {
-                let l = waiting.trailing_zeros() as usize;
-                waiting &= waiting - 1;
-                let p = self.x.get(l);
-                x.set(2 * n, p + basis.dv);
-                x.set(2 * n + 1, p + basis.dw);
-                which[n] = l;
-                n += 1;
-            }
-            for l in 2 * n..LANES {
-                x.set(l, outside(field).unwrap_or(x.get(l % 2)));
-            }
-            let v = scene.density.eval_lanes(&x, field, scene.isa);
-            for (i, &l) in which[..n].iter().enumerate() {
-                let (f, fv, fw) = (self.f[l], v[2 * i], v[2 * i + 1]);
-                let g = basis.du * (f - self.behind[l]) + basis.dv * (fv - f) + basis.dw * (fw - f);
-                if let Some(normal) = Normal::of_gradient(g) {
-                    self.hold(l, normal);
-                }
-            }
-        }
-        self.waiting = 0;
     }
 
     /// Adds the held samples' colours to `colour`, in order.
@@ -1208,7 +1437,9 @@ impl Deferred {
         simd: bool,
     ) {
         if self.resolves {
-            self.find_waiting(scene, basis, field);
+            if self.waiting | self.hard != 0 {
+                find_waiting(&mut [Some((basis, self))], scene, field);
+            }
             for l in 0..self.len {
                 if self.found & (1 << l) != 0 {
                     let own = Normal {
@@ -1349,6 +1580,31 @@ fn refract(d: Vec3, n: Vec3, eta: f32) -> Vec3 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// [`march`]'s sample of one ray.
+    fn sample<const COMMON: bool>(
+        scene: &Scene,
+        ray: Ray,
+        field: &Field,
+        phase: f32,
+        shortcuts: bool,
+    ) -> Sample {
+        let (mut deferred, mut waiting) = (None, None);
+        let done = march::<COMMON>(
+            scene,
+            ray,
+            field,
+            phase,
+            shortcuts,
+            &mut deferred,
+            &mut waiting,
+        );
+        match (done, &waiting) {
+            (Some(sample), _) => sample,
+            (None, Some(w)) => finish(w, scene, field, &mut deferred),
+            (None, None) => unreachable!("a ray that is not done waits"),
+        }
+    }
     use std::sync::atomic::{AtomicUsize, Ordering};
 
     /// How often a vanishing normal fell back on samples passed without one.
@@ -1362,8 +1618,8 @@ mod tests {
         for y in 0..24 {
             for x in 0..24 {
                 let ray = scene.camera.ray(x, y, (0.5, 0.5));
-                let fast = march::<false>(scene, ray, &field, 0.25, true);
-                let every = march::<false>(scene, ray, &field, 0.25, false);
+                let fast = sample::<false>(scene, ray, &field, 0.25, true);
+                let every = sample::<false>(scene, ray, &field, 0.25, false);
                 assert_eq!(
                     fast.to_array().map(f32::to_bits),
                     every.to_array().map(f32::to_bits),
@@ -1377,6 +1633,64 @@ mod tests {
 
     /// How many samples took the colour of the one before.
     pub(super) static REUSED: AtomicUsize = AtomicUsize::new(0);
+
+    /// How many calls evaluated the neighbours of more than one ray's
+    /// waiting samples.
+    pub(super) static ACROSS: AtomicUsize = AtomicUsize::new(0);
+
+    #[test]
+    fn a_group_of_rays_gives_each_ray_its_own_sample() {
+        // Fur at a coarse step (a few soft samples a ray, the hard region
+        // solid) and faint noisy matter (rays that flush on their own),
+        // each row traced in groups of every size up to GROUP.
+        let fur = "Scene(image: (width: 24, height: 24),
+              camera: (eye: (0.0, 2.3, 2.9), look_at: (0.0, -0.15, 0.0), projection: Perspective(fov_y: 50.0)),
+              lights: (ambient: (0.12, 0.12, 0.12), sources: [Directional(direction: (0.4, 0.9, 0.5), colour: (1.0, 1.0, 1.0))]),
+              march: (bounds: (min: (-1.6, -0.6, -1.6), max: (1.6, 0.6, 1.6)), step: Diagonal(50), opacity: 40.0, threshold: 0.99),
+              object: Torus(major_radius: 1.0, minor_radius: 0.475, softness: 0.25),
+              modulation: [Fur(frequency: 40.0, bias: 0.3, gain: 0.9)],
+              colour_map: (points: [(0.0, (0.55, 0.38, 0.22)), (1.0, (0.95, 0.85, 0.70))]))";
+        let faint = "Scene(image: (width: 24, height: 24),
+              camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 40.0)),
+              lights: (ambient: (0.1, 0.1, 0.1), sources: [Directional(direction: (-0.5, 0.7, 0.6), colour: (0.8, 0.8, 0.8))]),
+              march: (bounds: (min: (-1.2, -1.2, -1.2), max: (1.2, 1.2, 1.2)), step: Diagonal(120), opacity: 2.0),
+              object: Sphere(radius: 0.6, softness: 0.8),
+              modulation: [NoisyRadius(frequency: 3.0, amplitude: 0.15)],
+              shading: (specular: 0.4, shininess: 20.0))";
+        for (what, text) in [("fur", fur), ("faint", faint)] {
+            let mut scene = Scene::from_text(text, "test", crate::Overrides::default()).unwrap();
+            assert!(scene.light_waits, "{what}");
+            let before = ACROSS.load(Ordering::Relaxed);
+            for isa in Isa::available() {
+                assert!(scene.set_isa(isa));
+                let field = scene.field(0);
+                for y in 0..24 {
+                    let rays: Vec<Ray> = (0..24)
+                        .map(|x| scene.camera.ray(x, y, (0.5, 0.5)))
+                        .collect();
+                    let alone: Vec<Sample> =
+                        rays.iter().map(|&r| trace(&scene, r, &field)).collect();
+                    for size in 1..=GROUP {
+                        let mut grouped = vec![Sample::default(); rays.len()];
+                        for (rays, out) in rays.chunks(size).zip(grouped.chunks_mut(size)) {
+                            trace_group(&scene, rays, &field, out);
+                        }
+                        for (x, (a, b)) in alone.iter().zip(&grouped).enumerate() {
+                            assert_eq!(
+                                a.to_array().map(f32::to_bits),
+                                b.to_array().map(f32::to_bits),
+                                "{what}, {isa:?}, groups of {size}: pixel ({x}, {y})"
+                            );
+                        }
+                    }
+                }
+            }
+            assert!(
+                ACROSS.load(Ordering::Relaxed) > before,
+                "{what}: some call held more than one ray's samples"
+            );
+        }
+    }
 
     /// How many samples whose normal was resolved by a [`Deferred`] took the
     /// last one (or −d).
@@ -1481,11 +1795,11 @@ mod tests {
                     for x in 0..24 {
                         let ray = scene.camera.ray(x, y, (0.5, 0.5));
                         let deferred = if common {
-                            march::<true>(&scene, ray, &field, 0.25, true)
+                            sample::<true>(&scene, ray, &field, 0.25, true)
                         } else {
-                            march::<false>(&scene, ray, &field, 0.25, true)
+                            sample::<false>(&scene, ray, &field, 0.25, true)
                         };
-                        let each = march::<false>(&scene, ray, &field, 0.25, false);
+                        let each = sample::<false>(&scene, ray, &field, 0.25, false);
                         assert_eq!(
                             deferred.to_array().map(f32::to_bits),
                             each.to_array().map(f32::to_bits),

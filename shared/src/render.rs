@@ -8,6 +8,8 @@
 use rayon::prelude::*;
 
 use crate::film::{Film, Sample};
+use crate::march::GROUP;
+use crate::sampling::render_pixels_into;
 use crate::scene::Scene;
 
 /// The value of pixel (x, y) of `frame`: one ray through the pixel centre, or the
@@ -26,37 +28,49 @@ pub fn render(scene: &Scene, frame: u32, progress: &(dyn Fn(u64) + Sync)) -> Fil
         .par_chunks_mut(width)
         .enumerate()
         .for_each(|(y, row)| {
-            for (x, out) in row.iter_mut().enumerate() {
-                *out = render_pixel(scene, x as u32, y as u32, frame);
+            let mut pixels = [(0, 0); GROUP];
+            for (x0, out) in row.chunks_mut(GROUP).enumerate() {
+                let pixels = &mut pixels[..out.len()];
+                for (i, p) in pixels.iter_mut().enumerate() {
+                    *p = ((x0 * GROUP + i) as u32, y as u32);
+                }
+                render_pixels_into(scene, pixels, frame, out);
             }
             progress(1);
         });
     film
 }
 
-/// Renders the listed pixels of `frame` on the current rayon pool, in the order given.
+/// Renders the listed pixels of `frame` on the current rayon pool, in the
+/// order given, [`GROUP`] at a time.
 pub fn render_pixels(scene: &Scene, frame: u32, pixels: &[(u32, u32)]) -> Vec<Sample> {
-    pixels
-        .par_iter()
-        .map(|&(x, y)| render_pixel(scene, x, y, frame))
-        .collect()
+    let mut out = vec![Sample::default(); pixels.len()];
+    out.par_chunks_mut(GROUP)
+        .zip(pixels.par_chunks(GROUP))
+        .for_each(|(out, pixels)| render_pixels_into(scene, pixels, frame, out));
+    out
 }
 
 /// [`render_pixels`], given up as soon as `stop` is set (checked before each
-/// pixel): `None` then. The pixels it returns are [`render_pixels`]' own.
+/// group of [`GROUP`] pixels): `None` then. The pixels it returns are [`render_pixels`]' own.
 pub fn render_pixels_until(
     scene: &Scene,
     frame: u32,
     pixels: &[(u32, u32)],
     stop: &std::sync::atomic::AtomicBool,
 ) -> Option<Vec<Sample>> {
-    pixels
-        .par_iter()
-        .map(|&(x, y)| {
-            (!stop.load(std::sync::atomic::Ordering::Relaxed))
-                .then(|| render_pixel(scene, x, y, frame))
-        })
-        .collect()
+    let mut out = vec![Sample::default(); pixels.len()];
+    let done = out
+        .par_chunks_mut(GROUP)
+        .zip(pixels.par_chunks(GROUP))
+        .all(|(out, pixels)| {
+            let go = !stop.load(std::sync::atomic::Ordering::Relaxed);
+            if go {
+                render_pixels_into(scene, pixels, frame, out);
+            }
+            go
+        });
+    done.then_some(out)
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@
 //! With one sample per pixel nothing is jittered: the ray goes through the pixel
 //! centre at the frame's time, exactly as without supersampling.
 
+use crate::camera::Ray;
 use crate::film::Sample;
 use crate::march;
 use crate::random::{SplitMix64, hash};
@@ -83,6 +84,27 @@ pub fn render_pixel(scene: &Scene, x: u32, y: u32, frame: u32) -> Sample {
     }
     let n = spp as f32;
     Sample::from_array(sum.map(|v| v / n))
+}
+
+/// [`render_pixel`] of each of `pixels` into `out` (as many), the same
+/// samples: with one sample per pixel, [`march::GROUP`] rays at a time
+/// ([`march::trace_group`]).
+pub fn render_pixels_into(scene: &Scene, pixels: &[(u32, u32)], frame: u32, out: &mut [Sample]) {
+    assert_eq!(pixels.len(), out.len());
+    if scene.spp > 1 {
+        for (&(x, y), out) in pixels.iter().zip(out) {
+            *out = render_pixel(scene, x, y, frame);
+        }
+        return;
+    }
+    let field = scene.field(frame);
+    for (pixels, out) in pixels
+        .chunks(march::GROUP)
+        .zip(out.chunks_mut(march::GROUP))
+    {
+        let rays: [Ray; march::GROUP] = scene.camera.centre_rays(pixels);
+        march::trace_group(scene, &rays[..pixels.len()], &field, out);
+    }
 }
 
 #[cfg(test)]
