@@ -503,11 +503,20 @@ fn march_any(
     deferred: &mut Option<Deferred>,
     waiting: &mut Option<Waiting>,
 ) -> Option<Sample> {
-    if scene.common_case {
-        march::<true>(scene, ray, field, phase, true, deferred, waiting)
-    } else {
-        march::<false>(scene, ray, field, phase, true, deferred, waiting)
+    match (scene.common_case, waits(scene, true)) {
+        (true, true) => march::<true, true>(scene, ray, field, phase, true, deferred, waiting),
+        (true, false) => march::<true, false>(scene, ray, field, phase, true, deferred, waiting),
+        (false, true) => march::<false, true>(scene, ray, field, phase, true, deferred, waiting),
+        (false, false) => march::<false, false>(scene, ray, field, phase, true, deferred, waiting),
     }
+}
+
+/// Whether [`march`]'s samples' gradients and light wait ([`Deferred`]),
+/// with `shortcuts`: under directional lights only, with no refraction,
+/// normal expression or shadows, and the paper's forward differences.
+#[inline(always)]
+fn waits(scene: &Scene, shortcuts: bool) -> bool {
+    shortcuts && scene.light_waits && matches!(scene.gradient, Gradient::Forward)
 }
 
 /// What a ray marched to its end holds until its colour is found
@@ -696,8 +705,10 @@ fn hold_found(
 /// `shortcuts` lets it pass transparent samples without their normals,
 /// reuse a sample's colour along a run of samples of the same f and normal,
 /// skip the refraction map where f repeats, and let the samples' light wait
-/// ([`Deferred`]) (the same result; off only to test that).
-fn march<const COMMON: bool>(
+/// ([`Deferred`]) (the same result; off only to test that). `WAIT` is
+/// [`waits`], chosen once per scene too: its copy leaves out the normals
+/// found and the samples shaded in the loop.
+fn march<const COMMON: bool, const WAIT: bool>(
     scene: &Scene,
     ray: Ray,
     field: &Field,
@@ -748,8 +759,7 @@ fn march<const COMMON: bool>(
     };
     // Every sample costs a step of the budget, so a ray bent back and forth inside
     // the volume (total internal reflection) still terminates.
-    let diagonal = (max - min).length();
-    let mut budget = (4.0 * diagonal / step) as u64 + 64;
+    let mut budget = scene.budget;
     let mut k: u32 = 0;
     let lit = !scene.lights.is_empty();
     // A transparent sample (α_k = 0, where an alpha map gives its density no
@@ -759,7 +769,8 @@ fn march<const COMMON: bool>(
     // or shading: `passed` holds the first and last of them since the last
     // normal, whose normals are found only where a later sample's normal
     // vanishes and falls back on the last one ([`latest_normal`]).
-    let lazy = shortcuts
+    let lazy = !WAIT
+        && shortcuts
         && scene.refraction.is_none()
         && matches!(scene.gradient, Gradient::Central | Gradient::Dual);
     let mut passed: Option<(u32, u32)> = None;
@@ -773,14 +784,14 @@ fn march<const COMMON: bool>(
     // or shadows, the samples' light waits and is found [`LANES`] samples at
     // a time ([`Deferred`]); their base colours are found as they come. The
     // batch is set up at the ray's first sample that adds colour.
-    let defers = shortcuts && scene.light_waits;
+    let defers = WAIT || (shortcuts && scene.light_waits);
     // With the paper's forward differences, the gradients wait too: a
     // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
     // with the other waiting samples', [`LANES`] / 2 samples a call across
     // the chunks, and the normals (and the last one, which a sample without
     // its own takes) are found in the order of the samples
     // ([`Deferred::resolves`]).
-    let gradients_wait = defers && matches!(scene.gradient, Gradient::Forward);
+    let gradients_wait = WAIT || (defers && matches!(scene.gradient, Gradient::Forward));
     // The strata's keys wait too, where no colour expression stands in for
     // the colour map.
     let keys_wait = !COMMON
@@ -1590,15 +1601,27 @@ mod tests {
         shortcuts: bool,
     ) -> Sample {
         let (mut deferred, mut waiting) = (None, None);
-        let done = march::<COMMON>(
-            scene,
-            ray,
-            field,
-            phase,
-            shortcuts,
-            &mut deferred,
-            &mut waiting,
-        );
+        let done = if waits(scene, shortcuts) {
+            march::<COMMON, true>(
+                scene,
+                ray,
+                field,
+                phase,
+                shortcuts,
+                &mut deferred,
+                &mut waiting,
+            )
+        } else {
+            march::<COMMON, false>(
+                scene,
+                ray,
+                field,
+                phase,
+                shortcuts,
+                &mut deferred,
+                &mut waiting,
+            )
+        };
         match (done, &waiting) {
             (Some(sample), _) => sample,
             (None, Some(w)) => finish(w, scene, field, &mut deferred),

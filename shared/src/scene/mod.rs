@@ -435,6 +435,10 @@ pub struct Scene {
     pub(crate) bounds: (Vec3, Vec3),
     /// The marching step Δμ.
     pub(crate) step: f32,
+    /// The samples a ray may take in all (its bends included), so that a
+    /// ray bent back and forth inside the volume (total internal
+    /// reflection) still terminates: 4 · diagonal / step + 64.
+    pub(crate) budget: u64,
     /// `c · step`, the exponent of the opacity.
     pub(crate) opacity_exponent: f32,
     pub(crate) threshold: f32,
@@ -660,6 +664,7 @@ impl Scene {
             camera: Camera::new(&desc.camera, desc.image.width, desc.image.height),
             bounds: (min, max),
             step,
+            budget: (4.0 * (max - min).length() / step) as u64 + 64,
             opacity_exponent: desc.march.opacity.0 * step,
             threshold: desc.march.threshold.0,
             density,
