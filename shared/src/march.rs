@@ -503,20 +503,32 @@ fn march_any(
     deferred: &mut Option<Deferred>,
     waiting: &mut Option<Waiting>,
 ) -> Option<Sample> {
-    match (scene.common_case, waits(scene, true)) {
-        (true, true) => march::<true, true>(scene, ray, field, phase, true, deferred, waiting),
-        (true, false) => march::<true, false>(scene, ray, field, phase, true, deferred, waiting),
-        (false, true) => march::<false, true>(scene, ray, field, phase, true, deferred, waiting),
-        (false, false) => march::<false, false>(scene, ray, field, phase, true, deferred, waiting),
+    if scene.common_case {
+        march_waits::<true>(scene, ray, field, phase, true, deferred, waiting)
+    } else {
+        march_waits::<false>(scene, ray, field, phase, true, deferred, waiting)
     }
 }
 
-/// Whether [`march`]'s samples' gradients and light wait ([`Deferred`]),
-/// with `shortcuts`: under directional lights only, with no refraction,
-/// normal expression or shadows, and the paper's forward differences.
+/// [`march`] in the copy where the samples' gradients and light wait
+/// ([`Deferred`]) when they do with `shortcuts`: under directional lights
+/// only, with no refraction, normal expression or shadows, and the paper's
+/// forward differences.
 #[inline(always)]
-fn waits(scene: &Scene, shortcuts: bool) -> bool {
-    shortcuts && scene.light_waits && matches!(scene.gradient, Gradient::Forward)
+fn march_waits<const COMMON: bool>(
+    scene: &Scene,
+    ray: Ray,
+    field: &Field,
+    phase: f32,
+    shortcuts: bool,
+    deferred: &mut Option<Deferred>,
+    waiting: &mut Option<Waiting>,
+) -> Option<Sample> {
+    if shortcuts && scene.light_waits && matches!(scene.gradient, Gradient::Forward) {
+        march::<COMMON, true>(scene, ray, field, phase, shortcuts, deferred, waiting)
+    } else {
+        march::<COMMON, false>(scene, ray, field, phase, shortcuts, deferred, waiting)
+    }
 }
 
 /// What a ray marched to its end holds until its colour is found
@@ -578,7 +590,18 @@ fn find_waiting(batches: &mut [Option<(&Basis, &mut Deferred)>], scene: &Scene, 
             x.set(2 * n, p + dv);
             x.set(2 * n + 1, p + dw);
         },
-        |batches, x, which| hold_found(batches, x, which, scene, field),
+        |batches, x, which| {
+            #[cfg(test)]
+            if which.iter().any(|&(r, _)| r != which[0].0) {
+                tests::ACROSS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            let eval = |x: &Points| scene.density.eval_lanes(x, field, scene.isa);
+            hold_normals(batches, x, which, 2, field, eval, |basis, d, l, v| {
+                let (f, fv, fw) = (d.f[l], v[0], v[1]);
+                let g = basis.du * (f - d.behind[l]) + basis.dv * (fv - f) + basis.dw * (fw - f);
+                Normal::of_gradient(g)
+            })
+        },
     );
     let h = 2.0 * scene.step;
     gather(
@@ -591,7 +614,12 @@ fn find_waiting(batches: &mut [Option<(&Basis, &mut Deferred)>], scene: &Scene, 
                 x.set(6 * n + i, q);
             }
         },
-        |batches, x, which| hold_hard(batches, x, which, scene, field),
+        |batches, x, which| {
+            let eval = |x: &Points| scene.object.eval_object_lanes(x, field, scene.isa);
+            hold_normals(batches, x, which, 6, field, eval, |_, _, _, v| {
+                central_normal_of(v)
+            })
+        },
     );
 }
 
@@ -636,62 +664,30 @@ fn gather(
     }
 }
 
-/// The stencils `x` ([`stencil`]) of the hard regions' samples `which`
-/// (batch, lane), six lanes each (the other lanes at the point outside the
-/// support, or else the first sample's point), evaluated together on the
-/// object's D, and the normals they give held.
+/// Evaluates with `eval` the points `x` of the samples `which` (batch,
+/// lane), `per` lanes each (the lanes after them at the point outside the
+/// support, or else repeating the first sample's), and holds the normal
+/// that `normal` finds from each sample's batch, lane and values.
 #[inline(always)]
-fn hold_hard(
+fn hold_normals(
     batches: &mut [Option<(&Basis, &mut Deferred)>],
     x: &mut Points,
     which: &[(usize, usize)],
-    scene: &Scene,
+    per: usize,
     field: &Field,
+    eval: impl FnOnce(&Points) -> Lanes,
+    normal: impl Fn(&Basis, &Deferred, usize, &[f32]) -> Option<Normal>,
 ) {
-    let Some((_, d)) = &batches[which[0].0] else {
-        unreachable!("only the batches' samples are held")
-    };
-    let pad = outside(field).unwrap_or(d.x.get(which[0].1));
-    for l in 6 * which.len()..LANES {
-        x.set(l, pad);
+    for l in per * which.len()..LANES {
+        x.set(l, outside(field).unwrap_or(x.get(l % per)));
     }
-    let v = scene.object.eval_object_lanes(x, field, scene.isa);
-    for (i, &(r, l)) in which.iter().enumerate() {
-        let Some((_, d)) = &mut batches[r] else {
-            unreachable!("only the batches' samples are held")
-        };
-        if let Some(normal) = central_normal_of(&v[6 * i..6 * i + 6]) {
-            d.hold(l, normal);
-        }
-    }
-}
-
-/// The neighbours `x` of the waiting samples `which` (batch, lane), two
-/// lanes each, evaluated together, and the normals they give held.
-#[inline(always)]
-fn hold_found(
-    batches: &mut [Option<(&Basis, &mut Deferred)>],
-    x: &mut Points,
-    which: &[(usize, usize)],
-    scene: &Scene,
-    field: &Field,
-) {
-    for l in 2 * which.len()..LANES {
-        x.set(l, outside(field).unwrap_or(x.get(l % 2)));
-    }
-    #[cfg(test)]
-    if which.iter().any(|&(r, _)| r != which[0].0) {
-        tests::ACROSS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    }
-    let v = scene.density.eval_lanes(x, field, scene.isa);
+    let v = eval(x);
     for (i, &(r, l)) in which.iter().enumerate() {
         let Some((basis, d)) = &mut batches[r] else {
             unreachable!("only the batches' samples are held")
         };
-        let (f, fv, fw) = (d.f[l], v[2 * i], v[2 * i + 1]);
-        let g = basis.du * (f - d.behind[l]) + basis.dv * (fv - f) + basis.dw * (fw - f);
-        if let Some(normal) = Normal::of_gradient(g) {
-            d.hold(l, normal);
+        if let Some(n) = normal(basis, d, l, &v[per * i..per * (i + 1)]) {
+            d.hold(l, n);
         }
     }
 }
@@ -705,8 +701,8 @@ fn hold_found(
 /// `shortcuts` lets it pass transparent samples without their normals,
 /// reuse a sample's colour along a run of samples of the same f and normal,
 /// skip the refraction map where f repeats, and let the samples' light wait
-/// ([`Deferred`]) (the same result; off only to test that). `WAIT` is
-/// [`waits`], chosen once per scene too: its copy leaves out the normals
+/// ([`Deferred`]) (the same result; off only to test that). `WAIT`
+/// ([`march_waits`]) is chosen once per scene too: its copy leaves out the normals
 /// found and the samples shaded in the loop.
 fn march<const COMMON: bool, const WAIT: bool>(
     scene: &Scene,
@@ -1601,27 +1597,15 @@ mod tests {
         shortcuts: bool,
     ) -> Sample {
         let (mut deferred, mut waiting) = (None, None);
-        let done = if waits(scene, shortcuts) {
-            march::<COMMON, true>(
-                scene,
-                ray,
-                field,
-                phase,
-                shortcuts,
-                &mut deferred,
-                &mut waiting,
-            )
-        } else {
-            march::<COMMON, false>(
-                scene,
-                ray,
-                field,
-                phase,
-                shortcuts,
-                &mut deferred,
-                &mut waiting,
-            )
-        };
+        let done = march_waits::<COMMON>(
+            scene,
+            ray,
+            field,
+            phase,
+            shortcuts,
+            &mut deferred,
+            &mut waiting,
+        );
         match (done, &waiting) {
             (Some(sample), _) => sample,
             (None, Some(w)) => finish(w, scene, field, &mut deferred),
