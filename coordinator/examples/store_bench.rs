@@ -70,7 +70,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         counted.as_secs_f64() * 1e3,
     );
     let start = Instant::now();
-    let tiles = store.tiles(jobs[0].id, 3)?;
+    let tiles = store.tiles(jobs[0].id, 3)?.tiles;
     println!(
         "tiles() of one frame ({} tiles): {:.2} ms",
         tiles.len(),

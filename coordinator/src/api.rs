@@ -98,6 +98,7 @@ impl From<ApiError> for Refusal {
             ApiError::Conflict(_) => StatusCode::CONFLICT,
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            ApiError::InsufficientStorage(_) => StatusCode::INSUFFICIENT_STORAGE,
         };
         Refusal::new(status, e.to_string())
     }
@@ -219,6 +220,36 @@ fn api_routes() -> OpenApiRouter<Arc<dyn Control>> {
         .routes(routes!(cancel_job))
         .routes(routes!(list_workers))
         .routes(routes!(metrics))
+        .routes(routes!(readyz))
+}
+
+/// Whether the service is ready to take work.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct Ready {
+    /// Always true in a 200 answer.
+    pub ready: bool,
+}
+
+/// The readiness probe: 200 while the service takes jobs and tiles; 503 with
+/// the reason while its store cannot write (disk full, I/O error) or it is
+/// shutting down. It turns ready again by itself when the store writes.
+#[utoipa::path(
+    get,
+    path = "/readyz",
+    tag = "metrics",
+    responses(
+        (status = 200, description = "Ready", body = Ready),
+        (status = 401, description = "Missing or wrong bearer token", body = ErrorBody),
+        (status = 503, description = "Not ready: the store cannot write, or the coordinator is draining", body = ErrorBody),
+    )
+)]
+async fn readyz(State(control): State<Arc<dyn Control>>) -> Response {
+    match control.ready() {
+        Ok(()) => Json(Ready { ready: true }).into_response(),
+        // Not logged: a probe asks every few seconds, and the service logs
+        // the store's failure itself.
+        Err(why) => error_response(StatusCode::SERVICE_UNAVAILABLE, one_line(&why)),
+    }
 }
 
 /// Queues a job.
@@ -234,7 +265,8 @@ fn api_routes() -> OpenApiRouter<Arc<dyn Control>> {
         (status = 401, description = "Missing or wrong bearer token", body = ErrorBody),
         (status = 413, description = "Body over 256 KiB, or scene text over 64 KiB", body = ErrorBody),
         (status = 415, description = "Content-Type is not application/json", body = ErrorBody),
-        (status = 503, description = "The coordinator is draining", body = ErrorBody),
+        (status = 503, description = "The coordinator is draining, or its store cannot write (not queued, no id)", body = ErrorBody),
+        (status = 507, description = "The store's disk is full: the job is not queued and has no id", body = ErrorBody),
     )
 )]
 async fn submit_job(
@@ -311,7 +343,8 @@ async fn get_job(
         (status = 401, description = "Missing or wrong bearer token", body = ErrorBody),
         (status = 404, description = "No such job", body = ErrorBody),
         (status = 409, description = "The job has already ended", body = ErrorBody),
-        (status = 503, description = "The coordinator cannot take the request now", body = ErrorBody),
+        (status = 503, description = "The coordinator cannot take the request now (its store cannot write: the job goes on)", body = ErrorBody),
+        (status = 507, description = "The store's disk is full: the cancel is not kept and the job goes on", body = ErrorBody),
     )
 )]
 async fn cancel_job(
@@ -971,6 +1004,7 @@ mod tests {
             ("/api/v1/jobs/{id}/cancel", "post"),
             ("/api/v1/workers", "get"),
             ("/metrics", "get"),
+            ("/readyz", "get"),
         ]
         .into_iter()
         .map(|(p, m)| (p.to_string(), m.to_string()))
@@ -992,7 +1026,7 @@ mod tests {
             "bearer"
         );
         let submit = &doc["paths"]["/api/v1/jobs"]["post"]["responses"];
-        for code in ["201", "400", "401", "413", "503"] {
+        for code in ["201", "400", "401", "413", "503", "507"] {
             assert!(submit.get(code).is_some(), "{code}");
         }
         assert!(doc["paths"]["/api/v1/jobs/{id}/cancel"]["post"]["responses"]["409"].is_object());
@@ -1016,7 +1050,7 @@ mod tests {
                 "{method} {path}: {status}"
             );
         }
-        assert_eq!(openapi().paths.paths.len(), 5);
+        assert_eq!(openapi().paths.paths.len(), 6);
     }
 
     #[tokio::test]

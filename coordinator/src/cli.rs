@@ -153,6 +153,33 @@ pub enum Command {
     Cancel(JobArgs),
     /// Wait for a job to end; exit status 0 only if it is done.
     Wait(JobArgs),
+    /// Check or back up a service's store (`--data`), also while it runs.
+    #[command(subcommand)]
+    Store(StoreCommand),
+}
+
+/// `coordinator store …`.
+#[derive(Debug, clap::Subcommand)]
+pub enum StoreCommand {
+    /// SQLite's full integrity_check and every stored tile's checksum; exit
+    /// status 1 if anything is wrong.
+    Check {
+        /// The service's data directory.
+        #[arg(long, value_name = "DIR")]
+        data: PathBuf,
+    },
+    /// A consistent copy of the store to FILE, taken with SQLite's online
+    /// backup API (the service may keep running). Restore: stop the service,
+    /// put FILE in place of DIR/farm.sqlite, delete DIR/farm.sqlite-wal and
+    /// DIR/farm.sqlite-shm, start with --accept-older-store (deploy/README.md).
+    Backup {
+        /// The service's data directory.
+        #[arg(long, value_name = "DIR")]
+        data: PathBuf,
+        /// Where the copy goes (replaced if it exists).
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+    },
 }
 
 /// The default address of `serve` and of the clients' `--server`.
@@ -212,6 +239,12 @@ pub struct ServeArgs {
     /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
     #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
     pub interleave: u32,
+    /// Open a store that is older than its generation file (jobs committed
+    /// since are missing: a lost or truncated WAL, an older copy put back)
+    /// and go on with what it holds; new job ids still start past every id
+    /// given out.
+    #[arg(long)]
+    pub accept_older_store: bool,
     /// Log lines as text or JSON.
     #[arg(long, value_name = "FORMAT", default_value = "plain")]
     pub log_format: LogFormat,

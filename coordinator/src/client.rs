@@ -329,7 +329,17 @@ pub fn status(args: &StatusArgs) -> Result<String, ClientError> {
         None => {
             let jobs: Vec<JobView> = client.get("/api/v1/jobs", "a list of jobs")?;
             let workers: Vec<WorkerView> = client.get("/api/v1/workers", "a list of workers")?;
-            Ok(status_table(&jobs, &workers))
+            let ready: Result<crate::api::Ready, _> = client.get("/readyz", "readiness");
+            let table = status_table(&jobs, &workers);
+            Ok(match ready {
+                // Not ready: why, above the table (the store cannot write).
+                Err(ClientError::Refused {
+                    status: 503,
+                    message,
+                    ..
+                }) => format!("NOT READY: {message}\n{table}"),
+                _ => table,
+            })
         }
     }
 }

@@ -305,7 +305,10 @@ impl WireJob {
 pub trait TileSink: Send + Sync {
     /// Keeps the pixels of an accepted unit. A tile held for a second
     /// rendering ([`Accepted::held`]) comes again, not held, once confirmed.
-    fn tile(&self, accepted: &Accepted, pixels: &[u8]);
+    /// A worker's tile that cannot be kept (`Err`, the reason) is refused and
+    /// its unit handed out again ([`Scheduler::accept_kept`]); a confirmed
+    /// tile that cannot be kept stays in memory only, as it was while held.
+    fn tile(&self, accepted: &Accepted, pixels: &[u8]) -> Result<(), String>;
 
     /// Frames of a job already complete that are rendered again, because a
     /// worker caught lying delivered some of their tiles.
@@ -317,7 +320,8 @@ fn store_confirmed(scheduler: &mut Scheduler, sink: Option<&Arc<dyn TileSink>>) 
     let confirmed = scheduler.take_confirmed();
     if let Some(sink) = sink {
         for (accepted, pixels) in &confirmed {
-            sink.tile(accepted, pixels);
+            // The sink reports its own failures.
+            let _ = sink.tile(accepted, pixels);
         }
     }
 }
@@ -588,21 +592,25 @@ impl Service {
             state
                 .scheduler
                 .note_calls_cpu(p.assignment_id, p.calls_cpu_micros);
+            let sink = self.0.sink.as_ref();
             let accepted = state
                 .scheduler
-                .accept(
+                .accept_kept(
                     &p.worker_id,
                     p.assignment_id,
-                    p.unit.as_ref(),
-                    &p.pixels,
+                    (p.unit.as_ref(), &p.pixels),
                     p.render_cpu_micros,
                     now,
+                    &mut |a, pixels| sink.map_or(Ok(()), |sink| sink.tile(a, pixels)),
                 )
                 .map_err(|r| {
-                    tracing::warn!(
-                        "refused a tile from {}: {r}",
-                        convert::name_from_wire(&p.worker_id)
-                    );
+                    if !matches!(r, Refusal::Unstored { .. }) {
+                        // An unkept tile is the sink's to report (once a minute).
+                        tracing::warn!(
+                            "refused a tile from {}: {r}",
+                            convert::name_from_wire(&p.worker_id)
+                        );
+                    }
                     if state.scheduler.has_checks() {
                         // A refused tile is a claim that the unit cannot be rendered.
                         self.0.checks.notify_one();
@@ -611,9 +619,6 @@ impl Service {
                 })?;
             if let Some(a) = &accepted {
                 state.stats.observe(a.latency);
-                if let Some(sink) = &self.0.sink {
-                    sink.tile(a, &p.pixels);
-                }
             }
             store_confirmed(&mut state.scheduler, self.0.sink.as_ref());
             if state.scheduler.has_completed() {
@@ -714,7 +719,9 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 fn refusal(r: Refusal) -> Status {
     match r {
         Refusal::UnknownWorker(_) => Status::not_found(r.to_string()),
-        Refusal::NotHeld(_) => Status::failed_precondition(r.to_string()),
+        Refusal::NotHeld(_) | Refusal::Unstored { .. } => {
+            Status::failed_precondition(r.to_string())
+        }
         Refusal::NeverAssigned(_)
         | Refusal::WrongUnit(_)
         | Refusal::Malformed { .. }
@@ -1329,7 +1336,10 @@ impl Farm {
         let _ = stop_server.send(());
         // Graceful shutdown waits for open connections: daemon workers keep theirs
         // (they wait for the next frame), so give them a moment, then stop serving.
-        match tokio::time::timeout(Duration::from_secs(1), &mut server_task).await {
+        // At most 1 s, and no more than the grace (at least 250 ms): a
+        // service past its drain time must exit at once.
+        let server_grace = grace.clamp(Duration::from_millis(250), Duration::from_secs(1));
+        match tokio::time::timeout(server_grace, &mut server_task).await {
             Ok(Ok(Err(e))) => tracing::warn!("server: {e}"),
             Ok(_) => {}
             Err(_) => server_task.abort(),
@@ -1564,7 +1574,8 @@ async fn run_checks(shared: Arc<Shared>) {
         report_verdict(state, &check, &outcome, &verdict);
         if let Some(sink) = &shared.sink {
             if let Some((accepted, pixels)) = &verdict.stored {
-                sink.tile(accepted, pixels);
+                // The sink reports its own failures; the tile stays in the canvas.
+                let _ = sink.tile(accepted, pixels);
             }
             for liar in verdict
                 .liars

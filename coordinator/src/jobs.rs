@@ -192,6 +192,9 @@ pub enum ApiError {
     /// 500: the coordinator's own fault (the store failed).
     #[error("{0}")]
     Internal(String),
+    /// 507: the store's disk is full; nothing was kept.
+    #[error("{0}")]
+    InsufficientStorage(String),
 }
 
 /// What the HTTP API asks of the running farm. Implemented by the service;
@@ -209,4 +212,9 @@ pub trait Control: Send + Sync + 'static {
     fn workers(&self) -> Vec<WorkerView>;
     /// The Prometheus text exposition of the farm's metrics.
     fn metrics(&self) -> String;
+    /// Whether the service takes work (`/readyz`): `Err` says why not (its
+    /// store cannot write, it is shutting down).
+    fn ready(&self) -> Result<(), String> {
+        Ok(())
+    }
 }

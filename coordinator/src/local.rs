@@ -277,8 +277,10 @@ impl LocalWorkers {
     /// Waits up to `grace` for the workers to leave, then stops the rest (at
     /// once, and quietly, with no grace). With `terminate`, asks them to leave
     /// first (SIGTERM), as a service does when it stops: its workers hear no
-    /// `finished`.
+    /// `finished`. The workers share the one `grace`, so however many are
+    /// stuck (SIGSTOPped, say), this returns within `grace` and a kill each.
     pub async fn stop(self, grace: Duration, terminate: bool) {
+        let deadline = tokio::time::Instant::now() + grace;
         match self {
             LocalWorkers::Processes(children, _) => {
                 // Ask first (SIGTERM: a worker delivers its last tile and says
@@ -298,7 +300,7 @@ impl LocalWorkers {
                     name, mut child, ..
                 } in children
                 {
-                    match tokio::time::timeout(grace, child.wait()).await {
+                    match tokio::time::timeout_at(deadline, child.wait()).await {
                         Ok(_) => {}
                         Err(_) => {
                             if !grace.is_zero() {
@@ -312,7 +314,7 @@ impl LocalWorkers {
             LocalWorkers::InProcess { stop, tasks } => {
                 let _ = stop.send(true);
                 for task in tasks {
-                    if tokio::time::timeout(grace, task).await.is_err() && !grace.is_zero() {
+                    if tokio::time::timeout_at(deadline, task).await.is_err() && !grace.is_zero() {
                         tracing::warn!("an in-process worker did not stop in time");
                     }
                 }

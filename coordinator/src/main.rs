@@ -83,6 +83,7 @@ fn main() -> ExitCode {
                 }
             })
             .map_err(|e| e.to_string()),
+        Some(Command::Store(command)) => store_command(command),
         None => {
             coordinator::logging::init(cli.quiet);
             coordinator::run_all(cli.into_config())
@@ -95,6 +96,45 @@ fn main() -> ExitCode {
         Err(e) => {
             complain(format_args!("error: {e}\n"));
             ExitCode::FAILURE
+        }
+    }
+}
+
+/// `coordinator store check|backup`.
+fn store_command(command: coordinator::cli::StoreCommand) -> Result<ExitCode, String> {
+    use coordinator::cli::StoreCommand;
+    match command {
+        StoreCommand::Check { data } => {
+            let report = coordinator::store::check(&data).map_err(|e| e.to_string())?;
+            for problem in &report.problems {
+                complain(format_args!("{}: {problem}\n", report.file.display()));
+            }
+            if report.problems.is_empty() {
+                say(format_args!(
+                    "{}: ok ({} jobs, {} tiles checked)\n",
+                    report.file.display(),
+                    report.jobs,
+                    report.tiles
+                ));
+                Ok(ExitCode::SUCCESS)
+            } else {
+                complain(format_args!(
+                    "{}: {} problems found; restore it from a backup, or let the service drop \
+                     the tiles that fail (they are rendered again)\n",
+                    report.file.display(),
+                    report.problems.len()
+                ));
+                Ok(ExitCode::FAILURE)
+            }
+        }
+        StoreCommand::Backup { data, file } => {
+            let generation = coordinator::store::backup(&data, &file).map_err(|e| e.to_string())?;
+            say(format_args!(
+                "{}: a copy of {} (job ids up to {generation})\n",
+                file.display(),
+                data.join(coordinator::store::DB_FILE).display()
+            ));
+            Ok(ExitCode::SUCCESS)
         }
     }
 }

@@ -111,6 +111,17 @@ pub enum Refusal {
         /// What is wrong.
         error: WireError,
     },
+    /// The tile is valid but could not be kept (the service's store cannot
+    /// write): it is not accepted, and its unit is handed out again later.
+    #[error(
+        "the coordinator cannot keep the tile of assignment {id} now ({reason}); its unit is handed out again later"
+    )]
+    Unstored {
+        /// The assignment.
+        id: u64,
+        /// Why it could not be kept.
+        reason: String,
+    },
 }
 
 /// One worker's failure to render a unit.
@@ -214,6 +225,10 @@ pub struct Counted {
     /// The worker has just been blocklisted for the job.
     pub blocklisted: bool,
 }
+
+/// What [`Scheduler::accept_kept`] calls to keep a tile before accepting it:
+/// `Err` (why) refuses the tile.
+pub type Keep<'a> = dyn FnMut(&Accepted, &[u8]) -> Result<(), String> + 'a;
 
 /// A tile accepted into a canvas: what the service stores.
 #[derive(Clone, Debug, PartialEq)]
@@ -669,6 +684,8 @@ pub struct Scheduler {
     one_shot: bool,
     /// Draining: nothing more is handed out.
     draining: bool,
+    /// Units are held back: the tiles cannot be kept now ([`Scheduler::pause`]).
+    paused: bool,
     /// Assignments taken back from their workers by [`Scheduler::remove_job`]
     /// and not yet told them: (worker id, assignment id).
     withdrawn: Vec<(String, u64)>,
@@ -728,6 +745,7 @@ impl Scheduler {
             lease,
             one_shot: false,
             draining: false,
+            paused: false,
             withdrawn: Vec::new(),
             id_keys: std::collections::hash_map::RandomState::new(),
             verify: 0.0,
@@ -820,6 +838,17 @@ impl Scheduler {
     /// Stops handing out units (a draining service).
     pub fn drain(&mut self) {
         self.draining = true;
+    }
+
+    /// Stops (`true`) or resumes (`false`) handing out units while the tiles
+    /// cannot be kept (a service whose store cannot write).
+    pub fn pause(&mut self, paused: bool) {
+        self.paused = paused;
+    }
+
+    /// Whether units are held back by [`Scheduler::pause`].
+    pub fn paused(&self) -> bool {
+        self.paused
     }
 
     /// Units held by workers now.
@@ -919,7 +948,7 @@ impl Scheduler {
             }
             return Ok(Next::Finished);
         }
-        if self.draining {
+        if self.draining || self.paused {
             return Ok(Next::Wait);
         }
         let order = self.queue_order();
@@ -1347,13 +1376,37 @@ impl Scheduler {
         render_cpu_micros: u64,
         now: Instant,
     ) -> Result<Option<Accepted>, Refusal> {
+        self.accept_kept(
+            worker_id,
+            assignment_id,
+            (unit, values),
+            render_cpu_micros,
+            now,
+            &mut |_, _| Ok(()),
+        )
+    }
+
+    /// [`Scheduler::accept`], with `keep` called on a tile about to be
+    /// accepted, before anything of it is recorded: when `keep` fails the tile
+    /// is refused ([`Refusal::Unstored`]), its lease is taken back and its
+    /// unit queued again, so nothing the worker is told is in can be lost;
+    /// and the scheduler pauses ([`Scheduler::pause`]) until told otherwise.
+    pub fn accept_kept(
+        &mut self,
+        worker_id: &str,
+        assignment_id: u64,
+        (unit, values): (Option<&pb::Unit>, &[u8]),
+        render_cpu_micros: u64,
+        now: Instant,
+        keep: &mut Keep<'_>,
+    ) -> Result<Option<Accepted>, Refusal> {
         let accepted = self.accept_tile(
             worker_id,
             assignment_id,
-            unit,
-            values,
+            (unit, values),
             render_cpu_micros,
             now,
+            keep,
         );
         if let Err(r @ (Refusal::Malformed { .. } | Refusal::WrongUnit(_))) = &accepted {
             // Checked like any claim that the unit cannot be rendered.
@@ -1367,10 +1420,10 @@ impl Scheduler {
         &mut self,
         worker_id: &str,
         assignment_id: u64,
-        unit: Option<&pb::Unit>,
-        values: &[u8],
+        (unit, values): (Option<&pb::Unit>, &[u8]),
         render_cpu_micros: u64,
         now: Instant,
+        keep: &mut Keep<'_>,
     ) -> Result<Option<Accepted>, Refusal> {
         let (wid, w) = self.worker_mut(worker_id)?;
         w.last_seen = now;
@@ -1459,11 +1512,31 @@ impl Scheduler {
             }
         }
         let job = self.jobs.get_mut(&job_id).expect("checked above");
+        let held = job.sampled(self.verify_key, issued_unit);
+        let frame = job.frame();
+        let accepted = Accepted {
+            job: job_id,
+            frame,
+            unit: issued_unit,
+            worker: self.workers[&wid].name.clone(),
+            latency: now.saturating_duration_since(issued_at),
+            held,
+        };
+        if let Err(reason) = keep(&accepted, values) {
+            // Nothing more goes out until whoever keeps the tiles resumes it.
+            self.paused = true;
+            self.leases.remove(&assignment_id);
+            self.requeue(job_id, issued_unit);
+            return Err(Refusal::Unstored {
+                id: assignment_id,
+                reason,
+            });
+        }
+        let job = self.jobs.get_mut(&job_id).expect("checked above");
         // Checked (the whole tile, above): store it.
         job.canvas.store(&claimed, tile);
         job.done[issued_unit] = true;
         job.delivered[issued_unit] = Some(wid);
-        let held = job.sampled(self.verify_key, issued_unit);
         if held {
             job.held.insert(issued_unit, (wid, values.to_vec()));
             job.to_check.push_back(issued_unit);
@@ -1471,7 +1544,6 @@ impl Scheduler {
         job.remaining -= 1;
         job.unit_cpu[issued_unit] = render_cpu_micros;
         job.pending.retain(|&u| u != issued_unit);
-        let frame = job.frame();
         self.leases
             .retain(|_, l| l.job != job_id || l.unit != issued_unit);
         let w = self.workers.get_mut(&wid).expect("checked above");
@@ -1488,14 +1560,7 @@ impl Scheduler {
             w.recent.pop_front();
         }
         self.settle(job_id, now);
-        Ok(Some(Accepted {
-            job: job_id,
-            frame,
-            unit: issued_unit,
-            worker: self.workers[&wid].name.clone(),
-            latency: now.saturating_duration_since(issued_at),
-            held,
-        }))
+        Ok(Some(accepted))
     }
 
     /// Moves the job's complete frame's image out and starts its next frame,

@@ -41,10 +41,41 @@
 //! - `jobs(id, spec_json, priority, state, error, frames_done, submitted_unix_ms)`;
 //!   `id` is `AUTOINCREMENT`, so ids are never reused, even after deletes.
 //! - `outputs(job, frame, seq, path)`: the files written, `seq` giving their order.
-//! - `tiles(job, frame, unit, pixels)`: the units received of unfinished frames.
+//! - `tiles(job, frame, unit, pixels, checksum)`: the units received of
+//!   unfinished frames, each with the XXH3-64 of its bytes (version 3): a tile
+//!   read back whose bytes no longer match is dropped and rendered again.
 //! - `redo(job, frame)`: finished frames to render again, because a worker
-//!   caught lying had delivered some of their tiles (version 2; a version 1
-//!   store gains the table when opened).
+//!   caught lying had delivered some of their tiles (version 2).
+//! - `meta(key, value)`: `generation`, the highest job id given out
+//!   (version 3).
+//!
+//! An older store is brought to the current version when opened (version 1
+//! gains `redo`; version 2 gains the checksums, computed from the bytes as
+//! they are then, and `meta`).
+//!
+//! # Checks
+//!
+//! Every write is checked, its commit included: a write that fails (disk
+//! full, I/O error) is an error, never a value. [`Store::open`] runs SQLite's
+//! `PRAGMA quick_check` and refuses a damaged file with a message naming it
+//! and what to do; [`check`] runs the full `integrity_check` and every tile's
+//! checksum (`coordinator store check`).
+//!
+//! # Generation
+//!
+//! The highest job id given out is kept both in the database and in a small
+//! file beside it, `DIR/generation` (written by a rename, after each job's
+//! commit). A database that comes back older than the file — its WAL lost or
+//! truncated, an old copy put back — has lost committed jobs: it is refused
+//! ([`StoreError::Older`]) unless opened with `accept_older`, which also
+//! moves the id sequence past the file's value, so no id is given twice.
+//!
+//! # At rest
+//!
+//! [`Store::checkpoint`] (at a clean stop) copies the WAL into the database
+//! and truncates it, so `farm.sqlite` alone holds everything; [`backup`]
+//! copies a consistent snapshot of a store in use with SQLite's online
+//! backup API.
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
@@ -52,18 +83,26 @@ use std::os::fd::AsRawFd;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use rusqlite::{Connection, ErrorCode, OptionalExtension, params};
+use rusqlite::{Connection, ErrorCode, OpenFlags, OptionalExtension, params};
 
 use crate::jobs::JobState;
 
 /// The store version this build writes and the newest it reads.
-pub const STORE_VERSION: i64 = 2;
+pub const STORE_VERSION: i64 = 3;
 
 /// The database file's name inside the data directory.
 pub const DB_FILE: &str = "farm.sqlite";
 
 /// The lock file's name inside the data directory.
 pub const LOCK_FILE: &str = "lock";
+
+/// The generation file's name inside the data directory: the highest job id
+/// given out, as decimal text.
+pub const GENERATION_FILE: &str = "generation";
+
+/// What to do about a damaged store, for every message that reports one.
+const RESTORE_HINT: &str = "restore it from a backup (`coordinator store backup`, deploy/README.md) \
+                            or start with --data in another directory";
 
 /// How long a statement waits for a lock held by another connection.
 const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
@@ -94,6 +133,7 @@ CREATE TABLE tiles (
     frame INTEGER NOT NULL,
     unit INTEGER NOT NULL,
     pixels BLOB NOT NULL,
+    checksum INTEGER NOT NULL,
     PRIMARY KEY (job, frame, unit)
 );
 CREATE TABLE redo (
@@ -101,6 +141,11 @@ CREATE TABLE redo (
     frame INTEGER NOT NULL,
     PRIMARY KEY (job, frame)
 ) WITHOUT ROWID;
+CREATE TABLE meta (
+    key TEXT PRIMARY KEY,
+    value INTEGER NOT NULL
+) WITHOUT ROWID;
+INSERT INTO meta (key, value) VALUES ('generation', 0);
 ";
 
 /// What version 2 added to version 1's schema.
@@ -112,9 +157,21 @@ CREATE TABLE redo (
 ) WITHOUT ROWID;
 ";
 
+/// What version 3 added to version 2's schema (the checksums are filled in
+/// by [`Store::prepare`]).
+const SCHEMA_2_TO_3: &str = "
+ALTER TABLE tiles ADD COLUMN checksum INTEGER NOT NULL DEFAULT 0;
+CREATE TABLE meta (
+    key TEXT PRIMARY KEY,
+    value INTEGER NOT NULL
+) WITHOUT ROWID;
+INSERT INTO meta (key, value)
+    VALUES ('generation', coalesce((SELECT seq FROM sqlite_sequence WHERE name = 'jobs'), 0));
+";
+
 /// The tables of [`SCHEMA`] and their columns, in order: what [`Store::open`]
 /// checks an existing database against.
-const TABLES: [(&str, &[&str]); 4] = [
+const TABLES: [(&str, &[&str]); 5] = [
     (
         "jobs",
         &[
@@ -128,9 +185,16 @@ const TABLES: [(&str, &[&str]); 4] = [
         ],
     ),
     ("outputs", &["job", "frame", "seq", "path"]),
-    ("tiles", &["job", "frame", "unit", "pixels"]),
+    ("tiles", &["job", "frame", "unit", "pixels", "checksum"]),
     ("redo", &["job", "frame"]),
+    ("meta", &["key", "value"]),
 ];
+
+/// The checksum stored with a tile: the XXH3-64 of its bytes, as SQLite's
+/// signed integer.
+pub fn tile_checksum(pixels: &[u8]) -> i64 {
+    xxhash_rust::xxh3::xxh3_64(pixels) as i64
+}
 
 /// Why the store failed. Every message names the data directory or the
 /// database file.
@@ -176,7 +240,7 @@ pub enum StoreError {
     },
     /// The file is not a SQLite database, or not one of the store's schema, or
     /// holds a row the store cannot read.
-    #[error("{file}: the store is corrupt or not a coordinator store: {message}")]
+    #[error("{file}: the store is damaged or not a coordinator store: {message}; {RESTORE_HINT}")]
     Corrupt {
         /// The database file.
         file: PathBuf,
@@ -199,6 +263,42 @@ pub enum StoreError {
         file: PathBuf,
         /// The journal mode SQLite kept.
         mode: String,
+    },
+    /// The database holds fewer jobs than were given out: its WAL was lost or
+    /// truncated, or an older copy was put back.
+    #[error(
+        "{file}: the store is older than its generation file {generation_file}: it has given out \
+         job ids up to {stored}, the file says {expected}, so jobs committed since are missing (a \
+         lost or truncated {file}-wal, or an older copy put back). Restore the latest backup, or \
+         start with --accept-older-store to go on with what the store holds"
+    )]
+    Older {
+        /// The database file.
+        file: PathBuf,
+        /// The generation file.
+        generation_file: PathBuf,
+        /// The highest id the database has given out.
+        stored: u64,
+        /// The highest id the generation file records.
+        expected: u64,
+    },
+    /// The generation file cannot be read or written, or holds no number.
+    #[error("{file}: cannot use the store's generation file: {message}")]
+    Generation {
+        /// The generation file.
+        file: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// SQLite cannot read the file at open (an I/O error).
+    #[error(
+        "{file}: cannot read the store ({source}): check the disk it is on; if the file is damaged, {RESTORE_HINT}"
+    )]
+    Unreadable {
+        /// The database file.
+        file: PathBuf,
+        /// SQLite's error.
+        source: rusqlite::Error,
     },
     /// SQLite failed (disk full, I/O error, …).
     #[error("{file}: {source}")]
@@ -253,12 +353,38 @@ impl std::fmt::Debug for Store {
     }
 }
 
+impl StoreError {
+    /// Whether the failure is the disk's room (SQLITE_FULL): the service
+    /// answers 507 rather than 503.
+    pub fn is_full(&self) -> bool {
+        matches!(self, StoreError::Sqlite { source, .. }
+            if source.sqlite_error_code() == Some(ErrorCode::DiskFull))
+    }
+}
+
+/// The tiles of a frame as read back: those whose bytes match their checksum
+/// (`(unit, pixels)` by unit), and the units of those that do not.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameTiles {
+    /// The sound tiles.
+    pub tiles: Vec<(u32, Vec<u8>)>,
+    /// The units whose stored bytes no longer match their checksum.
+    pub rotten: Vec<u32>,
+}
+
 impl Store {
     /// Opens the store in `dir` (created if missing): locks `dir/lock`, then
     /// opens `dir/farm.sqlite`, creating the schema if the database is new and
-    /// checking the store version and the schema (not every page: opening stays
-    /// quick however many tiles are stored) if not.
+    /// checking the store version, the schema, SQLite's `quick_check` and the
+    /// generation if not. An older store than its generation file is refused.
     pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        Store::open_with(dir, false)
+    }
+
+    /// [`Store::open`]; with `accept_older`, a store older than its generation
+    /// file is opened (with a warning) and its id sequence moved past the
+    /// file's value.
+    pub fn open_with(dir: &Path, accept_older: bool) -> Result<Store, StoreError> {
         let dir_error = |source| StoreError::Dir {
             dir: dir.to_path_buf(),
             source,
@@ -276,7 +402,135 @@ impl Store {
             _lock: lock,
         };
         store.prepare()?;
+        store.quick_check()?;
+        store.check_generation(accept_older)?;
         Ok(store)
+    }
+
+    /// The generation file beside the database.
+    fn generation_file(&self) -> PathBuf {
+        self.path.with_file_name(GENERATION_FILE)
+    }
+
+    /// The highest job id the database has given out.
+    fn generation(&self) -> Result<u64, StoreError> {
+        let g: i64 = self
+            .conn
+            .prepare_cached("SELECT value FROM meta WHERE key = 'generation'")
+            .and_then(|mut s| s.query_row([], |r| r.get(0)))
+            .optional()
+            .map_err(|e| self.opening(e))?
+            .ok_or_else(|| self.corrupt("the generation row of table meta is missing".into()))?;
+        u64::try_from(g).map_err(|_| self.corrupt(format!("negative generation {g}")))
+    }
+
+    /// Compares the database's generation with the file's (refusing an older
+    /// database unless `accept_older`), then writes the file.
+    fn check_generation(&self, accept_older: bool) -> Result<(), StoreError> {
+        let file = self.generation_file();
+        let bad = |message: String| StoreError::Generation {
+            file: file.clone(),
+            message,
+        };
+        let expected = match std::fs::read_to_string(&file) {
+            Ok(text) => Some(text.trim().parse::<u64>().map_err(|_| {
+                bad(format!(
+                    "it holds {:?}, not a number; if the store is sound, delete the file",
+                    text.trim()
+                ))
+            })?),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => return Err(bad(e.to_string())),
+        };
+        let stored = self.generation()?;
+        match expected {
+            Some(expected) if expected > stored && !accept_older => {
+                return Err(StoreError::Older {
+                    file: self.path.clone(),
+                    generation_file: file,
+                    stored,
+                    expected,
+                });
+            }
+            Some(expected) if expected > stored => {
+                tracing::warn!(
+                    "{}: the store is older than its generation file (ids up to {stored}, the file \
+                     says {expected}): going on with what it holds (--accept-older-store); new \
+                     job ids start after {expected}",
+                    self.path.display()
+                );
+                self.transaction(|conn| {
+                    conn.execute(
+                        "UPDATE meta SET value = ?1 WHERE key = 'generation'",
+                        params![expected],
+                    )?;
+                    conn.execute(
+                        "UPDATE sqlite_sequence SET seq = ?1 WHERE name = 'jobs' AND seq < ?1",
+                        params![expected],
+                    )?;
+                    conn.execute(
+                        "INSERT INTO sqlite_sequence (name, seq) SELECT 'jobs', ?1 \
+                         WHERE NOT EXISTS (SELECT 1 FROM sqlite_sequence WHERE name = 'jobs')",
+                        params![expected],
+                    )?;
+                    Ok(())
+                })?;
+            }
+            _ => {}
+        }
+        let generation = self.generation()?;
+        if expected == Some(generation) {
+            // Nothing to write (a full disk does not stop a restart).
+            return Ok(());
+        }
+        write_generation(&file, generation).map_err(|e| bad(e.to_string()))
+    }
+
+    /// SQLite's `quick_check` (every page's structure, not the rows' values):
+    /// a damaged file is refused.
+    fn quick_check(&self) -> Result<(), StoreError> {
+        let found: Vec<String> = self
+            .conn
+            .prepare("PRAGMA quick_check(5)")
+            .and_then(|mut s| s.query_map([], |r| r.get(0))?.collect())
+            .map_err(|e| self.opening(e))?;
+        if found.len() == 1 && found[0] == "ok" {
+            return Ok(());
+        }
+        Err(self.corrupt(format!("SQLite's quick_check found: {}", found.join("; "))))
+    }
+
+    /// Copies the WAL into the database and truncates it (a clean stop), so
+    /// the database file alone holds everything.
+    pub fn checkpoint(&self) -> Result<(), StoreError> {
+        let (busy, _, _): (i64, i64, i64) = self
+            .conn
+            .query_row("PRAGMA wal_checkpoint(TRUNCATE)", [], |r| {
+                Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+            })
+            .map_err(|e| self.sqlite(e))?;
+        if busy != 0 {
+            return Err(self.sqlite(rusqlite::Error::SqliteFailure(
+                rusqlite::ffi::Error::new(rusqlite::ffi::SQLITE_BUSY),
+                Some("the checkpoint could not finish: another connection reads the store".into()),
+            )));
+        }
+        Ok(())
+    }
+
+    /// A write of a large tile's size (a row added and deleted in one
+    /// committed transaction), to learn whether the store can take tiles
+    /// again.
+    pub fn probe(&self) -> Result<(), StoreError> {
+        self.transaction(|conn| {
+            conn.prepare_cached(
+                "INSERT OR REPLACE INTO meta (key, value) VALUES ('probe', zeroblob(262144))",
+            )?
+            .execute([])?;
+            conn.prepare_cached("DELETE FROM meta WHERE key = 'probe'")?
+                .execute([])?;
+            Ok(())
+        })
     }
 
     /// The database file.
@@ -285,20 +539,21 @@ impl Store {
     }
 
     /// Adds a queued job; returns its id, greater than every id given before.
+    /// The id is returned only once its transaction is committed; the
+    /// generation file then records it.
     pub fn insert_job(
         &self,
         spec_json: &str,
         priority: i32,
         submitted_unix_ms: u64,
     ) -> Result<u64, StoreError> {
-        let id: i64 = self
-            .conn
-            .prepare_cached(
-                "INSERT INTO jobs (spec_json, priority, state, submitted_unix_ms) \
-                 VALUES (?1, ?2, ?3, ?4) RETURNING id",
-            )
-            .and_then(|mut s| {
-                s.query_row(
+        let id: i64 = self.transaction(|conn| {
+            let id: i64 = conn
+                .prepare_cached(
+                    "INSERT INTO jobs (spec_json, priority, state, submitted_unix_ms) \
+                     VALUES (?1, ?2, ?3, ?4) RETURNING id",
+                )?
+                .query_row(
                     params![
                         spec_json,
                         priority,
@@ -306,10 +561,21 @@ impl Store {
                         submitted_unix_ms
                     ],
                     |r| r.get(0),
-                )
-            })
-            .map_err(|e| self.sqlite(e))?;
-        u64::try_from(id).map_err(|_| self.corrupt(format!("negative job id {id}")))
+                )?;
+            conn.prepare_cached("UPDATE meta SET value = max(value, ?1) WHERE key = 'generation'")?
+                .execute(params![id])?;
+            Ok(id)
+        })?;
+        let id = u64::try_from(id).map_err(|_| self.corrupt(format!("negative job id {id}")))?;
+        if let Err(e) = write_generation(&self.generation_file(), id) {
+            // The job is committed; the file lags, which only weakens the
+            // check of a later open.
+            tracing::warn!(
+                "{}: cannot record generation {id}: {e}",
+                self.generation_file().display()
+            );
+        }
+        Ok(id)
     }
 
     /// Sets a job's state and error. A final state (done, failed, cancelled)
@@ -347,15 +613,16 @@ impl Store {
         unit: u32,
         pixels: &[u8],
     ) -> Result<(), StoreError> {
-        self.conn
-            .prepare_cached(
-                "INSERT OR REPLACE INTO tiles (job, frame, unit, pixels) \
-                 SELECT ?1, ?2, ?3, ?4 FROM jobs \
+        let checksum = tile_checksum(pixels);
+        self.transaction(|conn| {
+            conn.prepare_cached(
+                "INSERT OR REPLACE INTO tiles (job, frame, unit, pixels, checksum) \
+                 SELECT ?1, ?2, ?3, ?4, ?5 FROM jobs \
                  WHERE id = ?1 AND state IN ('queued', 'running')",
-            )
-            .and_then(|mut s| s.execute(params![job, frame, unit, pixels]))
-            .map_err(|e| self.sqlite(e))?;
-        Ok(())
+            )?
+            .execute(params![job, frame, unit, pixels, checksum])?;
+            Ok(())
+        })
     }
 
     /// Records that finished frames of job `job` are to be rendered again
@@ -423,8 +690,9 @@ impl Store {
     pub fn jobs(&self) -> Result<Vec<StoredJob>, StoreError> {
         type Row = (u64, String, i32, String, Option<String>, u32, u64);
         // One read transaction: the rows and the outputs are of the same moment.
-        let (rows, outputs, redo) = self.transaction(|conn| {
-            let rows: Vec<Row> = conn
+        let (rows, outputs, redo) = self
+            .transaction(|conn| {
+                let rows: Vec<Row> = conn
                 .prepare_cached(
                     "SELECT id, spec_json, priority, state, error, frames_done, submitted_unix_ms \
                      FROM jobs ORDER BY id",
@@ -441,16 +709,20 @@ impl Store {
                     ))
                 })?
                 .collect::<rusqlite::Result<_>>()?;
-            let outputs: Vec<(u64, String)> = conn
-                .prepare_cached("SELECT job, path FROM outputs ORDER BY job, seq")?
-                .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
-                .collect::<rusqlite::Result<_>>()?;
-            let redo: Vec<(u64, u32)> = conn
-                .prepare_cached("SELECT job, frame FROM redo ORDER BY job, frame")?
-                .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
-                .collect::<rusqlite::Result<_>>()?;
-            Ok((rows, outputs, redo))
-        })?;
+                let outputs: Vec<(u64, String)> = conn
+                    .prepare_cached("SELECT job, path FROM outputs ORDER BY job, seq")?
+                    .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+                    .collect::<rusqlite::Result<_>>()?;
+                let redo: Vec<(u64, u32)> = conn
+                    .prepare_cached("SELECT job, frame FROM redo ORDER BY job, frame")?
+                    .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+                    .collect::<rusqlite::Result<_>>()?;
+                Ok((rows, outputs, redo))
+            })
+            .map_err(|e| match e {
+                StoreError::Sqlite { source, .. } => self.reading(source),
+                e => e,
+            })?;
         let mut jobs = rows
             .into_iter()
             .map(
@@ -506,17 +778,41 @@ impl Store {
             .map_err(|e| self.sqlite(e))
     }
 
-    /// The stored tiles of frame `frame` of job `job`: `(unit, pixels)` by unit.
-    pub fn tiles(&self, job: u64, frame: u32) -> Result<Vec<(u32, Vec<u8>)>, StoreError> {
-        self.conn
+    /// The stored tiles of frame `frame` of job `job`, each checked against
+    /// its checksum: the sound ones, and the units of those that are not.
+    pub fn tiles(&self, job: u64, frame: u32) -> Result<FrameTiles, StoreError> {
+        let rows: Vec<(u32, Vec<u8>, i64)> = self
+            .conn
             .prepare_cached(
-                "SELECT unit, pixels FROM tiles WHERE job = ?1 AND frame = ?2 ORDER BY unit",
+                "SELECT unit, pixels, checksum FROM tiles WHERE job = ?1 AND frame = ?2 ORDER BY unit",
             )
             .and_then(|mut s| {
-                s.query_map(params![job, frame], |r| Ok((r.get(0)?, r.get(1)?)))?
+                s.query_map(params![job, frame], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
                     .collect()
             })
-            .map_err(|e| self.sqlite(e))
+            .map_err(|e| self.reading(e))?;
+        let mut out = FrameTiles::default();
+        for (unit, pixels, checksum) in rows {
+            if tile_checksum(&pixels) == checksum {
+                out.tiles.push((unit, pixels));
+            } else {
+                out.rotten.push(unit);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Deletes the tiles of `units` of frame `frame` of job `job` (tiles
+    /// found rotten).
+    pub fn drop_tiles(&self, job: u64, frame: u32, units: &[u32]) -> Result<(), StoreError> {
+        self.transaction(|conn| {
+            let mut delete = conn
+                .prepare_cached("DELETE FROM tiles WHERE job = ?1 AND frame = ?2 AND unit = ?3")?;
+            for &unit in units {
+                delete.execute(params![job, frame, unit])?;
+            }
+            Ok(())
+        })
     }
 
     /// How many tiles are stored, over every job.
@@ -578,9 +874,34 @@ impl Store {
         } else {
             if version == 1 {
                 // Version 1's tables must be sound before they are extended.
-                self.check_tables(&TABLES[..3])?;
+                self.check_tables(&[TABLES[0], TABLES[1], ("tiles", &TABLES[2].1[..4])])?;
                 self.transaction(|conn| {
                     conn.execute_batch(SCHEMA_1_TO_2)?;
+                    conn.pragma_update(None, "user_version", 2)?;
+                    Ok(())
+                })?;
+            }
+            if version <= 2 {
+                self.check_tables(&[
+                    TABLES[0],
+                    TABLES[1],
+                    ("tiles", &TABLES[2].1[..4]),
+                    TABLES[3],
+                ])?;
+                self.transaction(|conn| {
+                    conn.execute_batch(SCHEMA_2_TO_3)?;
+                    // Each tile's checksum, from its bytes as they are now.
+                    let keys: Vec<i64> = conn
+                        .prepare("SELECT rowid FROM tiles")?
+                        .query_map([], |r| r.get(0))?
+                        .collect::<rusqlite::Result<_>>()?;
+                    let mut read = conn.prepare("SELECT pixels FROM tiles WHERE rowid = ?1")?;
+                    let mut write =
+                        conn.prepare("UPDATE tiles SET checksum = ?2 WHERE rowid = ?1")?;
+                    for key in keys {
+                        let pixels: Vec<u8> = read.query_row(params![key], |r| r.get(0))?;
+                        write.execute(params![key, tile_checksum(&pixels)])?;
+                    }
                     conn.pragma_update(None, "user_version", STORE_VERSION)?;
                     Ok(())
                 })?;
@@ -659,9 +980,209 @@ impl Store {
             Some(ErrorCode::NotADatabase | ErrorCode::DatabaseCorrupt) => {
                 self.corrupt(e.to_string())
             }
+            Some(ErrorCode::SystemIoFailure) => StoreError::Unreadable {
+                file: self.path.clone(),
+                source: e,
+            },
+            _ => self.reading(e),
+        }
+    }
+
+    /// An error while reading rows: a value of the wrong type or bytes that
+    /// are not text are a damaged store, as is a damaged page.
+    fn reading(&self, e: rusqlite::Error) -> StoreError {
+        match &e {
+            rusqlite::Error::FromSqlConversionFailure(..)
+            | rusqlite::Error::InvalidColumnType(..)
+            | rusqlite::Error::Utf8Error(..)
+            | rusqlite::Error::IntegralValueOutOfRange(..) => {
+                self.corrupt(format!("a row cannot be read: {e}"))
+            }
+            _ if matches!(
+                e.sqlite_error_code(),
+                Some(ErrorCode::NotADatabase | ErrorCode::DatabaseCorrupt)
+            ) =>
+            {
+                self.corrupt(e.to_string())
+            }
             _ => self.sqlite(e),
         }
     }
+}
+
+/// Writes `generation` to `file` through a temporary file and a rename, so
+/// the file always holds a whole number.
+fn write_generation(file: &Path, generation: u64) -> std::io::Result<()> {
+    let tmp = file.with_extension("tmp");
+    std::fs::write(&tmp, format!("{generation}\n"))?;
+    std::fs::rename(&tmp, file)
+}
+
+/// Opens `dir/farm.sqlite` read-only, without the lock (a running
+/// coordinator may hold it): for [`check`] and [`backup`].
+fn open_read_only(dir: &Path) -> Result<(Connection, PathBuf), StoreError> {
+    let path = dir.join(DB_FILE);
+    if !path.is_file() {
+        return Err(StoreError::Dir {
+            dir: dir.to_path_buf(),
+            source: std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("no store: {} does not exist", path.display()),
+            ),
+        });
+    }
+    let conn = Connection::open_with_flags(
+        &path,
+        OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+    )
+    .map_err(|source| StoreError::Unreadable {
+        file: path.clone(),
+        source,
+    })?;
+    conn.busy_timeout(BUSY_TIMEOUT)
+        .map_err(|source| StoreError::Sqlite {
+            file: path.clone(),
+            source,
+        })?;
+    Ok((conn, path))
+}
+
+/// What [`check`] found.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CheckReport {
+    /// The database file.
+    pub file: PathBuf,
+    /// Jobs stored.
+    pub jobs: u64,
+    /// Tiles whose checksum was checked.
+    pub tiles: u64,
+    /// What is wrong: SQLite's `integrity_check` findings, then each tile
+    /// whose bytes do not match its checksum. Empty when sound.
+    pub problems: Vec<String>,
+}
+
+/// `coordinator store check`: SQLite's full `integrity_check` of the store
+/// in `dir`, and every stored tile's checksum. Reads only; a running
+/// coordinator may keep writing meanwhile.
+pub fn check(dir: &Path) -> Result<CheckReport, StoreError> {
+    let (conn, path) = open_read_only(dir)?;
+    let damaged = |e: rusqlite::Error| StoreError::Corrupt {
+        file: path.clone(),
+        message: e.to_string(),
+    };
+    let version: i64 = conn
+        .pragma_query_value(None, "user_version", |r| r.get(0))
+        .map_err(damaged)?;
+    if version != STORE_VERSION {
+        return Err(StoreError::Corrupt {
+            file: path.clone(),
+            message: format!(
+                "store version {version}; `store check` reads version {STORE_VERSION} (start \
+                 the coordinator on it once to bring it up to date)"
+            ),
+        });
+    }
+    let mut report = CheckReport {
+        file: path.clone(),
+        ..CheckReport::default()
+    };
+    let found: Vec<String> = conn
+        .prepare("PRAGMA integrity_check(100)")
+        .and_then(|mut s| s.query_map([], |r| r.get(0))?.collect())
+        .map_err(damaged)?;
+    if !(found.len() == 1 && found[0] == "ok") {
+        report
+            .problems
+            .extend(found.into_iter().map(|f| format!("integrity_check: {f}")));
+    }
+    report.jobs = conn
+        .query_row("SELECT count(*) FROM jobs", [], |r| r.get(0))
+        .map_err(damaged)?;
+    let mut rows = conn
+        .prepare("SELECT job, frame, unit, pixels, checksum FROM tiles ORDER BY job, frame, unit")
+        .map_err(damaged)?;
+    let mut rows = rows.query([]).map_err(damaged)?;
+    while let Some(row) = rows.next().map_err(damaged)? {
+        let key: (u64, u32, u32) = (
+            row.get(0).map_err(damaged)?,
+            row.get(1).map_err(damaged)?,
+            row.get(2).map_err(damaged)?,
+        );
+        let pixels = row.get_ref(3).map_err(damaged)?.as_blob().map_err(|e| {
+            damaged(rusqlite::Error::FromSqlConversionFailure(
+                3,
+                rusqlite::types::Type::Blob,
+                Box::new(e),
+            ))
+        })?;
+        let checksum: i64 = row.get(4).map_err(damaged)?;
+        report.tiles += 1;
+        if tile_checksum(pixels) != checksum {
+            report.problems.push(format!(
+                "job {} frame {} unit {}: the tile's bytes do not match its checksum (it is \
+                 dropped and rendered again when the job resumes)",
+                key.0, key.1, key.2
+            ));
+        }
+    }
+    Ok(report)
+}
+
+/// `coordinator store backup`: a consistent copy of the store in `dir` to
+/// `dest` (SQLite's online backup API, in one step, so the copy is of one
+/// moment even while a coordinator writes), written beside `dest` and renamed
+/// onto it. Returns the copy's highest job id.
+pub fn backup(dir: &Path, dest: &Path) -> Result<u64, StoreError> {
+    let (src, path) = open_read_only(dir)?;
+    let tmp = dest.with_extension("partial");
+    let dest_error = |source: rusqlite::Error| StoreError::Sqlite {
+        file: dest.to_path_buf(),
+        source,
+    };
+    let _ = std::fs::remove_file(&tmp);
+    {
+        let mut out = Connection::open(&tmp).map_err(dest_error)?;
+        copy_all(&src, &mut out).map_err(|source| StoreError::Sqlite {
+            file: path.clone(),
+            source,
+        })?;
+        // The copy is one file: its own journal in rollback mode while moved.
+        out.pragma_update(None, "journal_mode", "DELETE")
+            .map_err(dest_error)?;
+    }
+    let generation: i64 = Connection::open_with_flags(&tmp, OpenFlags::SQLITE_OPEN_READ_ONLY)
+        .and_then(|c| {
+            c.query_row("SELECT value FROM meta WHERE key = 'generation'", [], |r| {
+                r.get(0)
+            })
+        })
+        .map_err(dest_error)?;
+    std::fs::rename(&tmp, dest).map_err(|source| StoreError::Dir {
+        dir: dest.to_path_buf(),
+        source,
+    })?;
+    Ok(generation.max(0) as u64)
+}
+
+/// Copies every page of `src` to `out` in one backup step (one read
+/// transaction, so one moment of the source), retrying while a writer holds
+/// the lock (at most 200 times 50 ms).
+fn copy_all(src: &Connection, out: &mut Connection) -> rusqlite::Result<()> {
+    use rusqlite::backup::{Backup, StepResult};
+    let backup = Backup::new(src, out)?;
+    for _ in 0..200 {
+        match backup.step(-1)? {
+            StepResult::Done => return Ok(()),
+            StepResult::More | StepResult::Busy | StepResult::Locked => {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            _ => std::thread::sleep(Duration::from_millis(50)),
+        }
+    }
+    Err(rusqlite::Error::SqliteFailure(
+        rusqlite::ffi::Error::new(rusqlite::ffi::SQLITE_BUSY),
+        Some("the store stayed locked for 10 s".into()),
+    ))
 }
 
 /// Takes the exclusive lock on `dir/lock` (without waiting) and writes this
@@ -733,6 +1254,24 @@ mod tests {
         fn drop(&mut self) {
             let _ = std::fs::remove_dir_all(&self.0);
         }
+    }
+
+    /// Version 1's schema: jobs and outputs as now, tiles without checksums.
+    fn schema_1() -> String {
+        let jobs_and_outputs = SCHEMA
+            .split("CREATE TABLE tiles")
+            .next()
+            .unwrap_or_default();
+        format!(
+            "{jobs_and_outputs}
+            CREATE TABLE tiles (
+                job INTEGER NOT NULL REFERENCES jobs(id) ON DELETE CASCADE,
+                frame INTEGER NOT NULL,
+                unit INTEGER NOT NULL,
+                pixels BLOB NOT NULL,
+                PRIMARY KEY (job, frame, unit)
+            );"
+        )
     }
 
     fn open(dir: &TempDir) -> Store {
@@ -830,14 +1369,14 @@ mod tests {
         store.put_tile(a, 0, 2, &[3; 100])?;
         assert_eq!(store.tile_count()?, 5);
         assert_eq!(
-            store.tiles(a, 0)?,
+            store.tiles(a, 0)?.tiles,
             vec![(0, vec![0; 50]), (2, vec![3; 100])]
         );
-        assert_eq!(store.tiles(a, 5)?, vec![]);
+        assert_eq!(store.tiles(a, 5)?, FrameTiles::default());
         assert_eq!(store.tile_keys(a)?, vec![(0, 0), (0, 2), (1, 0)]);
         store.finish_frame(a, 0, "a0.png")?;
-        assert_eq!(store.tiles(a, 0)?, vec![]);
-        assert_eq!(store.tiles(a, 1)?, vec![(0, vec![10; 10])]);
+        assert_eq!(store.tiles(a, 0)?, FrameTiles::default());
+        assert_eq!(store.tiles(a, 1)?.tiles, vec![(0, vec![10; 10])]);
         assert_eq!(store.tile_count()?, 3);
         // A running state keeps the tiles; a final one deletes them.
         store.set_state(b, JobState::Running, None)?;
@@ -891,9 +1430,7 @@ mod tests {
         let path = dir.0.join("farm.sqlite");
         {
             let conn = Connection::open(&path)?;
-            // Version 1's schema: the current one without `redo`.
-            let v1 = SCHEMA.split("CREATE TABLE redo").next().unwrap_or_default();
-            conn.execute_batch(v1)?;
+            conn.execute_batch(&schema_1())?;
             conn.pragma_update(None, "user_version", 1)?;
             conn.execute(
                 "INSERT INTO jobs (spec_json, priority, state, submitted_unix_ms) \
@@ -935,7 +1472,7 @@ mod tests {
         assert_eq!(jobs[0].frames_done, 1);
         assert_eq!(jobs[0].outputs, vec!["out_3.png".to_string()]);
         assert_eq!(
-            store.tiles(a, 4)?,
+            store.tiles(a, 4)?.tiles,
             vec![(0, vec![7; 16384]), (3, vec![8; 100])]
         );
         let c = store.insert_job("{}", 0, 7)?;
@@ -954,13 +1491,13 @@ mod tests {
         let path = dir.0.join("farm.sqlite");
         {
             let conn = Connection::open(&path)?;
-            conn.pragma_update(None, "user_version", 3)?;
+            conn.pragma_update(None, "user_version", 4)?;
         }
         let e = Store::open(&dir.0).map(|_| ()).map_err(|e| e.to_string());
         assert_eq!(
             e,
             Err(format!(
-                "{} was written by a newer coordinator (store version 3; this build reads up to 2)",
+                "{} was written by a newer coordinator (store version 4; this build reads up to 3)",
                 path.display()
             ))
         );
@@ -983,7 +1520,7 @@ mod tests {
             };
             assert!(matches!(e, StoreError::Corrupt { .. }), "{e:?}");
             let expected = format!(
-                "{}: the store is corrupt or not a coordinator store: ",
+                "{}: the store is damaged or not a coordinator store: ",
                 path.display()
             );
             assert!(e.to_string().starts_with(&expected), "{e}");
@@ -1006,8 +1543,9 @@ mod tests {
         assert_eq!(
             e,
             Err(format!(
-                "{}: the store is corrupt or not a coordinator store: table jobs has columns (x), \
-                 expected (id, spec_json, priority, state, error, frames_done, submitted_unix_ms)",
+                "{}: the store is damaged or not a coordinator store: table jobs has columns (x), \
+                 expected (id, spec_json, priority, state, error, frames_done, submitted_unix_ms); \
+                 {RESTORE_HINT}",
                 path.display()
             ))
         );
@@ -1060,6 +1598,147 @@ mod tests {
             )),
             "{message}"
         );
+        Ok(())
+    }
+
+    #[test]
+    fn a_rotten_tile_is_reported_and_dropped() -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("rot");
+        let store = open(&dir);
+        let a = store.insert_job("{}", 0, 0)?;
+        store.put_tile(a, 0, 0, &[1; 64])?;
+        store.put_tile(a, 0, 1, &[2; 64])?;
+        // A byte flipped under the checksum.
+        store.conn.execute(
+            "UPDATE tiles SET pixels = ?1 WHERE job = ?2 AND unit = 1",
+            params![[2u8; 63].iter().copied().chain([3]).collect::<Vec<u8>>(), a],
+        )?;
+        let read = store.tiles(a, 0)?;
+        assert_eq!(read.tiles, vec![(0, vec![1; 64])]);
+        assert_eq!(read.rotten, vec![1]);
+        drop(store);
+        let report = check(&dir.0)?;
+        assert_eq!((report.jobs, report.tiles), (1, 2));
+        assert_eq!(report.problems.len(), 1, "{:?}", report.problems);
+        assert!(
+            report.problems[0].starts_with(&format!("job {a} frame 0 unit 1: ")),
+            "{:?}",
+            report.problems
+        );
+        let store = open(&dir);
+        store.drop_tiles(a, 0, &[1])?;
+        assert_eq!(store.tile_keys(a)?, vec![(0, 0)]);
+        drop(store);
+        assert!(check(&dir.0)?.problems.is_empty());
+        Ok(())
+    }
+
+    #[test]
+    fn a_version_2_store_gains_checksums_and_its_generation()
+    -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("upgrade-2");
+        std::fs::create_dir_all(&dir.0)?;
+        let path = dir.0.join("farm.sqlite");
+        {
+            let conn = Connection::open(&path)?;
+            conn.execute_batch(&schema_1())?;
+            conn.execute_batch(SCHEMA_1_TO_2)?;
+            conn.pragma_update(None, "user_version", 2)?;
+            for _ in 0..3 {
+                conn.execute(
+                    "INSERT INTO jobs (spec_json, priority, state, submitted_unix_ms) \
+                     VALUES ('{}', 0, 'running', 0)",
+                    [],
+                )?;
+            }
+            conn.execute(
+                "INSERT INTO tiles (job, frame, unit, pixels) VALUES (2, 0, 5, x'0102030405')",
+                [],
+            )?;
+        }
+        let store = open(&dir);
+        assert_eq!(store.tiles(2, 0)?.tiles, vec![(5, vec![1, 2, 3, 4, 5])]);
+        assert_eq!(store.generation()?, 3);
+        assert_eq!(std::fs::read_to_string(dir.0.join(GENERATION_FILE))?, "3\n");
+        assert_eq!(store.insert_job("{}", 0, 0)?, 4);
+        Ok(())
+    }
+
+    #[test]
+    fn a_store_older_than_its_generation_file_is_refused_unless_accepted()
+    -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("older");
+        let store = open(&dir);
+        assert_eq!(store.insert_job("{}", 0, 0)?, 1);
+        assert_eq!(store.insert_job("{}", 0, 0)?, 2);
+        drop(store);
+        let file = dir.0.join(GENERATION_FILE);
+        assert_eq!(std::fs::read_to_string(&file)?, "2\n");
+        // Jobs 3 to 5 were committed in a WAL that is gone.
+        std::fs::write(&file, "5\n")?;
+        let e = Store::open(&dir.0).map(|_| ()).map_err(|e| e.to_string());
+        let Err(message) = e else {
+            panic!("an older store was opened")
+        };
+        assert!(
+            message.contains("older than its generation file")
+                && message.contains("ids up to 2, the file says 5")
+                && message.contains("--accept-older-store"),
+            "{message}"
+        );
+        let store = Store::open_with(&dir.0, true)?;
+        assert_eq!(store.jobs()?.len(), 2);
+        // No id given out before is given again.
+        assert_eq!(store.insert_job("{}", 0, 0)?, 6);
+        drop(store);
+        assert_eq!(std::fs::read_to_string(&file)?, "6\n");
+        drop(open(&dir));
+        std::fs::write(&file, "six")?;
+        let e = Store::open(&dir.0).map(|_| ()).map_err(|e| e.to_string());
+        assert!(
+            e.as_ref()
+                .is_err_and(|m| m.contains("generation file") && m.contains("\"six\"")),
+            "{e:?}"
+        );
+        Ok(())
+    }
+
+    #[test]
+    fn a_backup_is_one_whole_file_of_the_store() -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("backup");
+        let copy = TempDir::new("backup-copy");
+        std::fs::create_dir_all(&copy.0)?;
+        let store = open(&dir);
+        let a = store.insert_job("{\"a\":1}", 0, 0)?;
+        store.put_tile(a, 0, 3, &[9; 1000])?;
+        // Taken while the store is open and its WAL holds everything.
+        let file = copy.0.join("farm.sqlite");
+        assert_eq!(backup(&dir.0, &file)?, a);
+        store.insert_job("{}", 0, 0)?;
+        drop(store);
+        let restored = open(&copy);
+        assert_eq!(restored.jobs()?.len(), 1);
+        assert_eq!(restored.tiles(a, 0)?.tiles, vec![(3, vec![9; 1000])]);
+        Ok(())
+    }
+
+    #[test]
+    fn a_checkpoint_leaves_everything_in_the_database_file()
+    -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("checkpoint");
+        let store = open(&dir);
+        let a = store.insert_job("{}", 0, 0)?;
+        store.put_tile(a, 0, 0, &[5; 20_000])?;
+        store.checkpoint()?;
+        let wal = dir.0.join("farm.sqlite-wal");
+        assert_eq!(std::fs::metadata(&wal).map_or(0, |m| m.len()), 0);
+        // The database file alone, copied while the store stays open.
+        let copy = TempDir::new("checkpoint-copy");
+        std::fs::create_dir_all(&copy.0)?;
+        std::fs::copy(dir.0.join("farm.sqlite"), copy.0.join("farm.sqlite"))?;
+        let alone = open(&copy);
+        assert_eq!(alone.tiles(a, 0)?.tiles, vec![(0, vec![5; 20_000])]);
+        drop(store);
         Ok(())
     }
 

@@ -20,6 +20,18 @@ pub struct Snapshot<'a> {
     pub queued: &'a [(JobId, u64)],
     /// Units held by workers, by job.
     pub in_flight: &'a [(JobId, u64)],
+    /// The store: whether it writes, and the tiles dropped because their
+    /// stored bytes no longer matched their checksum.
+    pub store: StoreHealth,
+}
+
+/// The store's side of a scrape.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StoreHealth {
+    /// Whether the store's last write succeeded.
+    pub writable: bool,
+    /// Tiles read back that failed their checksum (dropped, rendered again).
+    pub tiles_dropped: u64,
 }
 
 /// A label value with `\`, `"` and newlines escaped.
@@ -45,6 +57,28 @@ fn header(out: &mut String, name: &str, kind: &str, help: &str) {
 /// The exposition text.
 pub fn render(s: &Snapshot<'_>) -> String {
     let mut out = String::new();
+    header(
+        &mut out,
+        "hypertexture_store_writable",
+        "gauge",
+        "1 while the store writes; 0 while its writes fail (disk full, I/O error): tiles are refused and handed out again, submissions refused.",
+    );
+    let _ = writeln!(
+        out,
+        "hypertexture_store_writable {}",
+        u8::from(s.store.writable)
+    );
+    header(
+        &mut out,
+        "hypertexture_store_tiles_dropped_total",
+        "counter",
+        "Stored tiles read back whose bytes did not match their checksum: dropped and rendered again.",
+    );
+    let _ = writeln!(
+        out,
+        "hypertexture_store_tiles_dropped_total {}",
+        s.store.tiles_dropped
+    );
     header(
         &mut out,
         "hypertexture_workers_connected",
@@ -196,7 +230,16 @@ mod tests {
             stats: &stats,
             queued: &[(4, 7)],
             in_flight: &[(4, 1)],
+            store: StoreHealth {
+                writable: false,
+                tiles_dropped: 3,
+            },
         });
+        assert!(text.contains("hypertexture_store_writable 0\n"), "{text}");
+        assert!(
+            text.contains("hypertexture_store_tiles_dropped_total 3\n"),
+            "{text}"
+        );
         assert!(
             text.contains("hypertexture_units_queued_total 7\n"),
             "{text}"

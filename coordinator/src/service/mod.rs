@@ -12,6 +12,7 @@
 //!
 //! Lock order: a job table lock, then the farm's state, then the store.
 
+pub mod health;
 pub mod metrics;
 pub mod params;
 pub mod studio;
@@ -44,6 +45,8 @@ pub struct ServiceConfig {
     pub drain_timeout: Duration,
     /// The scene the studio (at `/`) opens, if any (`coordinator studio SCENE`).
     pub studio_scene: Option<PathBuf>,
+    /// Open a store older than its generation file (`--accept-older-store`).
+    pub accept_older_store: bool,
 }
 
 /// Why the service stopped with an error.
@@ -110,6 +113,27 @@ pub struct Service {
     jobs: Mutex<BTreeMap<JobId, JobMeta>>,
     farm: OnceLock<Arc<Shared>>,
     draining: std::sync::atomic::AtomicBool,
+    /// Whether the store writes, and the tiles dropped for a bad checksum.
+    health: health::Health,
+    /// Records the store could not take yet, in order: retried while it fails.
+    pending: Mutex<Vec<Pending>>,
+}
+
+/// A record of the supervisor's that waits for the store to write again.
+#[derive(Clone, Debug)]
+enum Pending {
+    /// A frame written to `path`, not yet recorded as finished.
+    Frame {
+        job: JobId,
+        frame: u32,
+        path: String,
+    },
+    /// A job's final state, not yet recorded.
+    End {
+        job: JobId,
+        state: JobState,
+        error: Option<String>,
+    },
 }
 
 /// Tiles go to the store as they are accepted; the studio's live frames'
@@ -117,32 +141,44 @@ pub struct Service {
 struct StoreSink(Arc<Service>, Arc<studio::Studio>);
 
 impl TileSink for StoreSink {
-    fn tile(&self, a: &Accepted, pixels: &[u8]) {
+    fn tile(&self, a: &Accepted, pixels: &[u8]) -> Result<(), String> {
         if self.1.owns(a.job) {
             self.1.tile(a, pixels);
-            return;
+            return Ok(());
         }
         if a.held {
             // Stored once its second rendering confirms it: a restart
             // renders it again rather than trusting it unchecked.
-            return;
+            return Ok(());
         }
-        let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
-        if let Err(e) = store.put_tile(a.job, a.frame, a.unit as u32, pixels) {
-            tracing::error!(
-                "job {}: cannot store unit {} of frame {}: {e}",
-                a.job,
-                a.unit,
-                a.frame
-            );
-        }
+        let put = self
+            .0
+            .store()
+            .put_tile(a.job, a.frame, a.unit as u32, pixels);
+        self.0
+            .health
+            .outcome(put, || {
+                format!("job {} frame {} unit {}", a.job, a.frame, a.unit)
+            })
+            .map_err(|e| e.to_string())
     }
 
     fn redo(&self, job: JobId, frames: &[u32]) {
-        let store = self.0.store.lock().unwrap_or_else(|p| p.into_inner());
-        if let Err(e) = store.add_redo(job, frames) {
+        let added = self.0.store().add_redo(job, frames);
+        if let Err(e) = self.0.health.outcome(added, || format!("job {job}")) {
             tracing::error!("job {job}: cannot record frames {frames:?} to render again: {e}");
         }
+    }
+}
+
+/// The API's answer to a job the store could not take: 507 when its disk is
+/// full, 503 otherwise; no id is given.
+fn not_stored(e: &StoreError) -> ApiError {
+    let message = format!("the job is not queued: the store cannot write ({e}); try again later");
+    if e.is_full() {
+        ApiError::InsufficientStorage(message)
+    } else {
+        ApiError::Unavailable(message)
     }
 }
 
@@ -396,15 +432,58 @@ impl Service {
         self.jobs.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Ends a job: records its final state, and takes it out of the farm.
+    /// Ends a job: takes it out of the farm and records its final state.
+    /// When the store cannot record it, the record waits in [`Pending`]
+    /// (retried by [`Service::watch_store`]) and the job shows its state
+    /// once recorded.
     fn end(&self, id: JobId, state: JobState, error: Option<String>) {
-        let mut jobs = self.jobs_lock();
-        let Some(meta) = jobs.get_mut(&id) else {
-            return;
-        };
-        if meta.state.is_final() {
+        {
+            let mut jobs = self.jobs_lock();
+            let Some(meta) = jobs.get_mut(&id) else {
+                return;
+            };
+            if meta.state.is_final() {
+                return;
+            }
+            self.leave_farm(id, meta);
+        }
+        let mut pending = self.pending_lock();
+        if !pending.is_empty() {
+            // After the records waiting before it.
+            pending.push(Pending::End {
+                job: id,
+                state,
+                error,
+            });
             return;
         }
+        drop(pending);
+        if let Err(e) = self.record_end(id, state, error.clone()) {
+            tracing::error!(
+                "job {id}: cannot record that it is {} yet ({e}): retried while the store fails",
+                state.as_str()
+            );
+            self.pending_lock().push(Pending::End {
+                job: id,
+                state,
+                error,
+            });
+        }
+    }
+
+    /// At a clean stop: copies the store's WAL into its database file, so the
+    /// file alone holds everything (a backup of it is whole).
+    fn checkpoint(&self) {
+        let store = self.store();
+        if let Err(e) = store.checkpoint() {
+            tracing::warn!(
+                "cannot checkpoint the store ({e}): it is whole with its -wal file beside it"
+            );
+        }
+    }
+
+    /// Takes a job out of the farm, keeping its progress for its view.
+    fn leave_farm(&self, id: JobId, meta: &mut JobMeta) {
         if let Some(shared) = self.farm.get() {
             let state = shared.lock();
             if let Some(p) = state.scheduler.job_progress(id) {
@@ -414,14 +493,66 @@ impl Service {
             drop(state);
             shared.remove_job(id);
         }
-        meta.state = state;
-        meta.error = error.clone();
-        if let Err(e) = self.store().set_state(id, state, error.as_deref()) {
-            tracing::error!("job {id}: cannot record that it is {}: {e}", state.as_str());
+    }
+
+    /// Records a job's final state in the store, then in its view.
+    fn record_end(
+        &self,
+        id: JobId,
+        state: JobState,
+        error: Option<String>,
+    ) -> Result<(), StoreError> {
+        let set = self.store().set_state(id, state, error.as_deref());
+        self.health.outcome(set, || format!("job {id}'s end"))?;
+        if let Some(meta) = self.jobs_lock().get_mut(&id) {
+            meta.state = state;
+            meta.error = error.clone();
         }
         match (state, &error) {
             (JobState::Failed, Some(e)) => tracing::error!("job {id} failed: {e}"),
             _ => tracing::info!("job {id} {}", state.as_str()),
+        }
+        Ok(())
+    }
+
+    fn pending_lock(&self) -> std::sync::MutexGuard<'_, Vec<Pending>> {
+        self.pending.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// While the store fails: probes it once a [`health::PROBE_EVERY`],
+    /// holds the farm's units back, and retries the records waiting, in
+    /// order; once it writes, the units go out again.
+    fn watch_store(&self, now: Instant) {
+        if self.health.probe_due(now) {
+            let probed = self.store().probe();
+            let _ = self.health.outcome(probed, || "a probe".into());
+        }
+        let waiting: Vec<Pending> = std::mem::take(&mut *self.pending_lock());
+        let mut left = Vec::new();
+        for p in waiting {
+            if !left.is_empty() || !self.health.writable() {
+                left.push(p);
+                continue;
+            }
+            let done = match &p {
+                Pending::Frame { job, frame, path } => self.record_frame(*job, *frame, path),
+                Pending::End { job, state, error } => self.record_end(*job, *state, error.clone()),
+            };
+            if done.is_err() {
+                left.push(p);
+            }
+        }
+        if !left.is_empty() {
+            let mut pending = self.pending_lock();
+            left.append(&mut pending);
+            *pending = left;
+        }
+        if let Some(shared) = self.farm.get() {
+            let writable = self.health.writable();
+            let mut state = shared.lock();
+            if state.scheduler.paused() == writable {
+                state.scheduler.pause(!writable);
+            }
         }
     }
 
@@ -443,9 +574,10 @@ impl Service {
             }
             if meta.state == JobState::Queued && p.started {
                 meta.state = JobState::Running;
-                if let Err(e) = self.store().set_state(id, JobState::Running, None) {
-                    tracing::error!("job {id}: cannot record that it is running: {e}");
-                }
+                // Not kept when the store fails: a restart resumes a queued
+                // job as a running one.
+                let set = self.store().set_state(id, JobState::Running, None);
+                let _ = self.health.outcome(set, || format!("job {id}'s start"));
             }
         }
     }
@@ -483,15 +615,30 @@ impl Service {
             self.end(id, JobState::Failed, Some(e));
             return;
         }
-        let recorded = self.store().finish_frame(id, done.frame, &path);
-        if let Err(e) = recorded {
-            tracing::error!("job {id}: cannot record frame {}: {e}", done.frame);
-        }
         tracing::info!(
             "job {id}: frame {} in {:.3} s → {path}",
             done.frame,
             done.render_time.as_secs_f64()
         );
+        let waiting = !self.pending_lock().is_empty();
+        if waiting || self.record_frame(id, done.frame, &path).is_err() {
+            // Written but not recorded: the job does not count it (nor end)
+            // until the store has it.
+            self.pending_lock().push(Pending::Frame {
+                job: id,
+                frame: done.frame,
+                path,
+            });
+        }
+    }
+
+    /// Records a frame written to `path` in the store, then in the job's
+    /// view; the last frame ends the job as done.
+    fn record_frame(&self, id: JobId, frame: u32, path: &str) -> Result<(), StoreError> {
+        let recorded = self.store().finish_frame(id, frame, path);
+        self.health
+            .outcome(recorded, || format!("job {id} frame {frame}'s record"))?;
+        let path = path.to_string();
         // A frame rendered again (it held a liar's tiles) replaced its file.
         let rendering_again = self
             .farm
@@ -512,6 +659,30 @@ impl Service {
         if finished {
             self.end(id, JobState::Done, None);
         }
+        Ok(())
+    }
+
+    /// The stored tiles of a frame that pass their checksum. A tile that does
+    /// not is logged, counted, deleted from the store, and so rendered again.
+    fn sound_tiles(&self, job: JobId, frame: u32) -> Result<Vec<(usize, Vec<u8>)>, StoreError> {
+        let store = self.store();
+        let read = store.tiles(job, frame)?;
+        if !read.rotten.is_empty() {
+            for unit in &read.rotten {
+                tracing::warn!(
+                    "job {job} frame {frame} unit {unit}: the stored tile's bytes do not match \
+                     its checksum ({}): dropped, the unit is rendered again",
+                    store.path().display()
+                );
+            }
+            self.health.dropped(read.rotten.len() as u64);
+            store.drop_tiles(job, frame, &read.rotten)?;
+        }
+        Ok(read
+            .tiles
+            .into_iter()
+            .map(|(u, t)| (u as usize, t))
+            .collect())
     }
 
     /// Restores the jobs the store holds: ended ones as they were, the others
@@ -531,8 +702,13 @@ impl Service {
             let stored: StoredSpec = serde_json::from_str(&job.spec_json)
                 .map_err(|e| bad(format!("unreadable job: {e}")))?;
             let frames = frames_of(&stored.spec).map_err(bad)?;
+            // By frame number: which frames were recorded, not how many.
+            let finished: std::collections::BTreeSet<u32> =
+                self.store().finished_frames(job.id)?.into_iter().collect();
             let mut state = job.state;
-            if !state.is_final() && job.frames_done as usize >= frames.len() && job.redo.is_empty()
+            if !state.is_final()
+                && frames.iter().all(|f| finished.contains(f))
+                && job.redo.is_empty()
             {
                 state = JobState::Done;
                 self.store().set_state(job.id, state, None)?;
@@ -579,14 +755,16 @@ impl Service {
                     continue;
                 }
             };
-            let frames_done = job.frames_done as usize;
+            // The frames render in order: the run of recorded frames from
+            // the first is skipped, and any recorded after a gap render again
+            // (to the same bytes).
+            let frames_done = checked
+                .frames
+                .iter()
+                .take_while(|f| finished.contains(f))
+                .count();
             let tiles = match checked.frames.get(frames_done) {
-                Some(&frame) => self
-                    .store()
-                    .tiles(job.id, frame)?
-                    .into_iter()
-                    .map(|(u, t)| (u as usize, t))
-                    .collect(),
+                Some(&frame) => self.sound_tiles(job.id, frame)?,
                 None => Vec::new(),
             };
             let tile_count = tiles.len();
@@ -633,10 +811,13 @@ impl Control for Arc<Service> {
         };
         let json = serde_json::to_string(&stored)
             .map_err(|e| ApiError::Internal(format!("cannot encode the job: {e}")))?;
-        let id = self
+        let inserted = self
             .store()
-            .insert_job(&json, stored.spec.priority, unix_ms())
-            .map_err(|e| ApiError::Internal(e.to_string()))?;
+            .insert_job(&json, stored.spec.priority, unix_ms());
+        let id = self
+            .health
+            .outcome(inserted, || "a new job".into())
+            .map_err(|e| not_stored(&e))?;
         let mut jobs = self.jobs_lock();
         let units_per_frame = self
             .enqueue(id, &stored, &checked, Resume::default())
@@ -699,7 +880,13 @@ impl Control for Arc<Service> {
                 state.as_str()
             )));
         }
-        self.end(id, JobState::Cancelled, None);
+        // Recorded first: a cancel the store cannot keep is refused, and the
+        // job goes on.
+        self.record_end(id, JobState::Cancelled, None)
+            .map_err(|e| not_stored(&e))?;
+        if let Some(meta) = self.jobs_lock().get_mut(&id) {
+            self.leave_farm(id, meta);
+        }
         self.job(id)
     }
 
@@ -762,7 +949,24 @@ impl Control for Arc<Service> {
             stats: &stats,
             queued: &queued,
             in_flight: &in_flight,
+            store: metrics::StoreHealth {
+                writable: self.health.writable(),
+                tiles_dropped: self
+                    .health
+                    .tiles_dropped
+                    .load(std::sync::atomic::Ordering::Relaxed),
+            },
         })
+    }
+
+    fn ready(&self) -> Result<(), String> {
+        if self.draining.load(std::sync::atomic::Ordering::Relaxed) {
+            return Err("the coordinator is shutting down".into());
+        }
+        match self.health.failure() {
+            Some((why, _)) => Err(why),
+            None => Ok(()),
+        }
     }
 }
 
@@ -793,6 +997,7 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
         },
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
         studio_scene: None,
+        accept_older_store: args.accept_older_store,
     };
     // One thread serves the farm and the API: per unit it checks, stores and
     // persists a tile, and any thread more competes with the local workers.
@@ -831,6 +1036,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
         },
         drain_timeout: Duration::from_secs(5),
         studio_scene: Some(args.scene),
+        accept_older_store: false,
     };
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -846,13 +1052,15 @@ pub async fn serve(
     config: ServiceConfig,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), ServiceError> {
-    let store = Store::open(&config.data)?;
+    let store = Store::open_with(&config.data, config.accept_older_store)?;
     tracing::info!("store {}", store.path().display());
     let service = Arc::new(Service {
         store: Mutex::new(store),
         jobs: Mutex::new(BTreeMap::new()),
         farm: OnceLock::new(),
         draining: std::sync::atomic::AtomicBool::new(false),
+        health: health::Health::default(),
+        pending: Mutex::new(Vec::new()),
     });
     let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
     let studio = Arc::new(
@@ -942,6 +1150,7 @@ pub async fn serve(
             }
         }
         service.note_running(now);
+        service.watch_store(now);
         if let Some(deadline) = drain_deadline {
             let in_flight = farm.shared().lock().scheduler.in_flight();
             if in_flight == 0 {
@@ -956,7 +1165,13 @@ pub async fn serve(
             }
         }
     }
-    farm.finish(Duration::from_secs(5), true).await;
+    // Past the drain time the workers get no more: the process exits within
+    // `--drain-timeout` and a moment, whatever they do.
+    let grace = drain_deadline.map_or(Duration::from_secs(5), |d| {
+        d.saturating_duration_since(Instant::now())
+    });
+    farm.finish(grace, true).await;
+    service.checkpoint();
     tracing::info!(
         "stopped; every job and stored unit is kept in {}",
         config.data.display()
