@@ -12,7 +12,8 @@ use std::time::{Duration, Instant};
 
 use support::{Running, coordinator, in_process_worker, scene, scratch};
 
-/// A service on a free loopback port; returns it and its URL.
+/// A service on a free loopback port, writing outputs inside the directory
+/// that holds `data`; returns it and its URL.
 fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
     let mut args = vec![
         "serve",
@@ -20,6 +21,8 @@ fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
         data.to_str().unwrap(),
         "--listen",
         "127.0.0.1:0",
+        "--output-root",
+        data.parent().unwrap().to_str().unwrap(),
     ];
     args.extend_from_slice(extra);
     let mut s = Running::coordinator(&args);
@@ -655,6 +658,8 @@ fn tls_and_the_token_cover_the_api_and_the_workers() {
         cert_path.to_str().unwrap(),
         "--tls-key",
         key_path.to_str().unwrap(),
+        "--output-root",
+        dir.to_str().unwrap(),
     ]);
     let port = s.port();
     s.wait_for("serving on https://", 30);
