@@ -13,7 +13,7 @@ const IMAGE: &str = "hypertexture:latest";
 /// The port of `coordinator serve` everywhere in deploy/.
 const PORT: u16 = 47000;
 /// The coordinator's gauge of units waiting over every job (what KEDA scales on).
-const QUEUE_METRIC: &str = "hypertexture_units_queued_total";
+const QUEUE_METRIC: &str = "hypertexture_farm_units_queued";
 
 fn read(path: &str) -> String {
     std::fs::read_to_string(support::root().join(path)).unwrap_or_else(|e| panic!("{path}: {e}"))
@@ -166,6 +166,10 @@ fn compose_matches_the_binaries() {
         "{named} is declared as a named volume"
     );
 
+    // Outputs go only to the mounted output directory.
+    assert_eq!(args.output_root, [std::path::PathBuf::from("/out")]);
+    assert!(volumes.iter().any(|v| v.ends_with(":/out")), "{volumes:?}");
+
     // Docker's SIGKILL comes after the drain.
     assert!(seconds(&coordinator["stop_grace_period"]) > args.drain_timeout);
 
@@ -255,6 +259,17 @@ fn kubernetes_manifests_match_the_binaries() {
             .iter()
             .any(|t| t["metadata"]["name"] == mount["name"]),
         "{data} is a volumeClaimTemplate's volume"
+    );
+    // Outputs go only to the mounted output volume.
+    assert_eq!(args.output_root.len(), 1);
+    let out = args.output_root[0].to_str().unwrap();
+    assert!(
+        c["volumeMounts"]
+            .as_vec()
+            .unwrap()
+            .iter()
+            .any(|m| m["mountPath"].as_str() == Some(out)),
+        "nothing mounted at --output-root {out}"
     );
 
     // The kubelet's SIGKILL comes after the drain.
@@ -404,6 +419,9 @@ fn systemd_units_match_the_binaries() {
         .split_whitespace()
         .collect();
     assert!(writable.contains(&args.data.to_str().unwrap()));
+    // Outputs go only to the writable output directory.
+    assert_eq!(args.output_root.len(), 1);
+    assert!(writable.contains(&args.output_root[0].to_str().unwrap()));
 
     let worker = unit_settings("deploy/systemd/hypertexture-worker.service");
     let url = plain_worker(&exec_start(&worker, "worker"));

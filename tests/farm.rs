@@ -543,15 +543,6 @@ fn a_worker_that_asks_after_the_image_is_written_is_told_the_render_is_finished(
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A free port on loopback (bound, then released).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 #[test]
 fn workers_wait_for_a_late_coordinator_and_outlive_a_dead_one() {
     let dir = scratch("farm-rejoin");

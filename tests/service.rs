@@ -513,6 +513,8 @@ fn tls_and_the_token_cover_the_api_and_the_workers() {
         cert_path.to_str().unwrap(),
         "--tls-key",
         key_path.to_str().unwrap(),
+        "--output-root",
+        dir.to_str().unwrap(),
     ]);
     let port = s.port();
     s.wait_for("serving on https://", 30);

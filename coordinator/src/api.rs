@@ -15,13 +15,19 @@
 //!
 //! | Method and path              | Success               | Refusals            |
 //! |------------------------------|-----------------------|---------------------|
-//! | `POST /api/v1/jobs`          | 201 [`JobView`]       | 400 401 413 415 503 |
-//! | `GET /api/v1/jobs`           | 200 `[JobView]`       | 401                 |
+//! | `POST /api/v1/jobs`          | 201 [`JobView`]       | 400 401 403 413 415 429 503 |
+//! | `GET /api/v1/jobs?limit&cursor` | 200 `[JobView]`, a page | 400 401          |
 //! | `GET /api/v1/jobs/{id}`      | 200 [`JobView`]       | 400 401 404         |
 //! | `POST /api/v1/jobs/{id}/cancel` | 200 [`JobView`]    | 400 401 404 409 503 |
 //! | `GET /api/v1/workers`        | 200 `[WorkerView]`    | 401                 |
 //! | `GET /api/v1/openapi.json`   | 200 the OpenAPI 3 document | 401            |
 //! | `GET /metrics`               | 200 Prometheus text   | 401                 |
+//!
+//! `GET /api/v1/jobs` answers a page, newest first (`limit`, default
+//! [`DEFAULT_PAGE`](crate::service::limits::DEFAULT_PAGE), at most
+//! [`MAX_PAGE`](crate::service::limits::MAX_PAGE)); when more jobs follow, a
+//! `Link: </api/v1/jobs?limit=N&cursor=C>; rel="next"` header names the next
+//! page. A submission past `--max-queued` is 429 with `Retry-After`.
 //!
 //! Every answer of 400 or above is `{"error": "<one line>"}` with
 //! `Content-Type: application/json`, axum's own refusals (bad JSON, a wrong
@@ -94,6 +100,8 @@ impl From<ApiError> for Refusal {
     fn from(e: ApiError) -> Refusal {
         let status = match e {
             ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
+            ApiError::Forbidden(_) => StatusCode::FORBIDDEN,
+            ApiError::TooMany(_) => StatusCode::TOO_MANY_REQUESTS,
             ApiError::NotFound(_) => StatusCode::NOT_FOUND,
             ApiError::Conflict(_) => StatusCode::CONFLICT,
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
@@ -129,7 +137,15 @@ impl IntoResponse for Refusal {
         if self.status.is_server_error() {
             tracing::error!("api: {}", self.message);
         }
-        error_response(self.status, self.message)
+        let status = self.status;
+        let mut response = error_response(status, self.message);
+        if status == StatusCode::TOO_MANY_REQUESTS {
+            response.headers_mut().insert(
+                header::RETRY_AFTER,
+                HeaderValue::from(crate::service::limits::RETRY_AFTER_SECS),
+            );
+        }
+        response
     }
 }
 
@@ -261,10 +277,13 @@ async fn readyz(State(control): State<Arc<dyn Control>>) -> Response {
     responses(
         (status = 201, description = "Queued", body = JobView,
             headers(("Location" = String, description = "The job's URL: /api/v1/jobs/{id}"))),
-        (status = 400, description = "Malformed JSON, or a scene or setting the coordinator refuses", body = ErrorBody),
+        (status = 400, description = "Malformed JSON, or a scene or setting the coordinator refuses (an output pattern's # run over 9, a path over PATH_MAX or a name over NAME_MAX)", body = ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = ErrorBody),
+        (status = 403, description = "The output is outside the service's output roots (--output-root), which the message names", body = ErrorBody),
         (status = 413, description = "Body over 256 KiB, or scene text over 64 KiB", body = ErrorBody),
         (status = 415, description = "Content-Type is not application/json", body = ErrorBody),
+        (status = 429, description = "The queue holds --max-queued jobs not ended", body = ErrorBody,
+            headers(("Retry-After" = u64, description = "Seconds to wait before submitting again"))),
         (status = 503, description = "The coordinator is draining, or its store cannot write (not queued, no id)", body = ErrorBody),
         (status = 507, description = "The store's disk is full: the job is not queued and has no id", body = ErrorBody),
     )
@@ -296,18 +315,54 @@ async fn submit_job(
     Ok(response)
 }
 
-/// Every job, newest first.
+/// A page of `GET /api/v1/jobs`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+struct PageQuery {
+    /// Jobs in the page: 1 to 1000, default 100.
+    limit: Option<usize>,
+    /// Where the page starts: the `cursor` of the previous page's `Link` header
+    /// (absent: the newest job).
+    cursor: Option<u64>,
+}
+
+/// The jobs, newest first, a page at a time.
 #[utoipa::path(
     get,
     path = "/api/v1/jobs",
     tag = "jobs",
+    params(PageQuery),
     responses(
-        (status = 200, description = "Every job, newest first", body = Vec<JobView>),
+        (status = 200, description = "A page of jobs, newest first", body = Vec<JobView>,
+            headers(("Link" = String, description = "When more jobs follow: `</api/v1/jobs?limit=N&cursor=C>; rel=\"next\"`, the next page"))),
+        (status = 400, description = "A limit or cursor that is not a number, or a limit outside 1 to 1000", body = ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = ErrorBody),
     )
 )]
-async fn list_jobs(State(control): State<Arc<dyn Control>>) -> Json<Vec<JobView>> {
-    Json(control.jobs())
+async fn list_jobs(
+    State(control): State<Arc<dyn Control>>,
+    query: Result<axum::extract::Query<PageQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, Refusal> {
+    use crate::service::limits::{DEFAULT_PAGE, MAX_PAGE};
+    let axum::extract::Query(query) =
+        query.map_err(|e| Refusal::new(StatusCode::BAD_REQUEST, e.body_text()))?;
+    let limit = query.limit.unwrap_or(DEFAULT_PAGE);
+    if !(1..=MAX_PAGE).contains(&limit) {
+        return Err(Refusal::new(
+            StatusCode::BAD_REQUEST,
+            format!("limit {limit}: a page holds 1 to {MAX_PAGE} jobs"),
+        ));
+    }
+    let (page, next) = control.jobs_page(query.cursor, limit);
+    let mut response = Json(page).into_response();
+    if let Some(next) = next
+        && let Ok(link) = HeaderValue::from_str(&format!(
+            "</api/v1/jobs?limit={limit}&cursor={next}>; rel=\"next\""
+        ))
+    {
+        response.headers_mut().insert(header::LINK, link);
+    }
+    Ok(response)
 }
 
 /// One job.

@@ -9,7 +9,7 @@
 //! (scene, frame, voxel), so the file is the same for any number of threads.
 
 use std::num::NonZeroUsize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 pub use hypertexture::bake::Lattice;
@@ -190,13 +190,9 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         Some((a, b)) => (a..=b).collect(),
         None => vec![config.frame],
     };
-    if frames.len() > 1 && !config.out.contains('#') {
-        return Err(CoordinatorError::Bake(format!(
-            "--out {:?}: {} frames need a # in the name (e.g. fur.####.vdb)",
-            config.out,
-            frames.len()
-        )));
-    }
+    let range = crate::scheduler::Frames::new(frames[0], frames[frames.len() - 1]);
+    crate::service::outputs::check_pattern(&config.out, range, Path::new(""))
+        .map_err(|e| CoordinatorError::Bake(format!("--{e}")))?;
     if !(2..=MAX_RESOLUTION).contains(&config.resolution) {
         return Err(CoordinatorError::Bake(format!(
             "--resolution {}: expected 2 to {MAX_RESOLUTION} voxels along the longest edge",

@@ -245,6 +245,20 @@ pub struct ServeArgs {
     /// given out.
     #[arg(long)]
     pub accept_older_store: bool,
+    /// A directory jobs may write their outputs in (repeatable); every
+    /// output must resolve inside one, after `..` and symlinks. Default: the
+    /// directory serve is started in (never `/`).
+    #[arg(long, value_name = "DIR")]
+    pub output_root: Vec<PathBuf>,
+    /// Jobs not ended (queued or running) the queue holds; one more
+    /// submission is refused with 429 and Retry-After.
+    #[arg(long, value_name = "N", default_value_t = crate::service::limits::DEFAULT_MAX_QUEUED)]
+    pub max_queued: usize,
+    /// How long ended jobs are kept: an age (7d, 12h, 30m, 90s), a number of
+    /// the newest jobs, or both (7d,1000); then they leave the list and the
+    /// store (their files stay).
+    #[arg(long, value_name = "AGE,N", default_value = crate::service::limits::DEFAULT_KEEP_ENDED)]
+    pub keep_ended: crate::service::limits::KeepEnded,
     /// Log lines as text or JSON.
     #[arg(long, value_name = "FORMAT", default_value = "plain")]
     pub log_format: LogFormat,

@@ -160,6 +160,26 @@ impl Client {
         answer("GET", &url, request.call(), 200, expected)
     }
 
+    /// GET `path`, expecting 200 and a `T`, and the path of the next page
+    /// its `Link: <…>; rel="next"` header names.
+    fn get_page<T: DeserializeOwned>(
+        &self,
+        path: &str,
+        expected: &'static str,
+    ) -> Result<(T, Option<String>), ClientError> {
+        let url = self.url(path);
+        let mut request = self.agent.get(&url);
+        if let Some(t) = &self.token {
+            request = request.header("Authorization", format!("Bearer {t}"));
+        }
+        let result = request.call();
+        let next = result.as_ref().ok().and_then(|r| {
+            let link = r.headers().get("link")?.to_str().ok()?;
+            next_link(link)
+        });
+        Ok((answer("GET", &url, result, 200, expected)?, next))
+    }
+
     /// POST `body` (JSON; none: empty) to `path`, expecting `status` and a `T`.
     fn post<T: DeserializeOwned>(
         &self,
@@ -180,6 +200,23 @@ impl Client {
         answer("POST", &url, result, status, expected)
     }
 }
+
+/// The target of the `rel="next"` entry of a `Link` header (RFC 8288), when
+/// it is a path of the service.
+fn next_link(link: &str) -> Option<String> {
+    link.split(',').find_map(|entry| {
+        let (target, params) = entry.trim().split_once(';')?;
+        let target = target.trim().strip_prefix('<')?.strip_suffix('>')?;
+        let next = params
+            .split(';')
+            .any(|p| p.trim().eq_ignore_ascii_case("rel=\"next\""));
+        (next && target.starts_with('/')).then(|| target.to_string())
+    })
+}
+
+/// Pages of `GET /api/v1/jobs` `coordinator status` reads at most (of
+/// [`MAX_PAGE`](crate::service::limits::MAX_PAGE) jobs each).
+const MAX_STATUS_PAGES: usize = 1000;
 
 /// The certificates of the PEM file `path`.
 fn read_ca(path: &Path) -> Result<Vec<ureq::tls::Certificate<'static>>, ClientError> {
@@ -327,7 +364,16 @@ pub fn status(args: &StatusArgs) -> Result<String, ClientError> {
             Ok(job_details(&job))
         }
         None => {
-            let jobs: Vec<JobView> = client.get("/api/v1/jobs", "a list of jobs")?;
+            let mut jobs: Vec<JobView> = Vec::new();
+            let mut path = format!("/api/v1/jobs?limit={}", crate::service::limits::MAX_PAGE);
+            for _ in 0..MAX_STATUS_PAGES {
+                let (page, next): (Vec<JobView>, _) = client.get_page(&path, "a list of jobs")?;
+                jobs.extend(page);
+                match next {
+                    Some(next) if next != path => path = next,
+                    _ => break,
+                }
+            }
             let workers: Vec<WorkerView> = client.get("/api/v1/workers", "a list of workers")?;
             let ready: Result<crate::api::Ready, _> = client.get("/readyz", "readiness");
             let table = status_table(&jobs, &workers);
@@ -582,6 +628,19 @@ pub fn job_details(job: &JobView) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_next_page_is_the_link_headers_rel_next() {
+        assert_eq!(
+            next_link("</api/v1/jobs?limit=2&cursor=7>; rel=\"next\"").as_deref(),
+            Some("/api/v1/jobs?limit=2&cursor=7")
+        );
+        assert_eq!(
+            next_link("<http://elsewhere/x>; rel=\"next\", </a>; rel=\"prev\""),
+            None
+        );
+        assert_eq!(next_link("garbage"), None);
+    }
     use crate::jobs::{ApiError, Control, JobState};
     use std::collections::BTreeMap;
     use std::sync::atomic::{AtomicU32, Ordering};

@@ -1379,8 +1379,10 @@ pub async fn render_frames(
         .map_err(FarmError::Units)?;
     let unit_count = units.len();
     let mut scheduler =
-        Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease)
-            .with_frames(job.frames.iter().map(|f| f.frame).collect());
+        Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease).with_frames(
+            crate::scheduler::Frames::consecutive(job.frames.iter().map(|f| f.frame))
+                .ok_or_else(|| FarmError::Stopped("a render's frames are consecutive".into()))?,
+        );
     scheduler.set_verify(config.verify);
     let wire = WireJob::of(&job);
     let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;

@@ -180,12 +180,18 @@ pub enum ApiError {
     /// 400: the request is malformed (a bad scene names file:line:column).
     #[error("{0}")]
     BadRequest(String),
+    /// 403: an output outside the service's output roots.
+    #[error("{0}")]
+    Forbidden(String),
     /// 404: no such job.
     #[error("no job {0}")]
     NotFound(u64),
     /// 409: the request conflicts with the job's state (cancelling an ended job).
     #[error("{0}")]
     Conflict(String),
+    /// 429: the queue is full (`--max-queued`); answered with `Retry-After`.
+    #[error("{0}")]
+    TooMany(String),
     /// 503: the coordinator is draining and takes no new jobs.
     #[error("{0}")]
     Unavailable(String),
@@ -197,6 +203,20 @@ pub enum ApiError {
     InsufficientStorage(String),
 }
 
+/// The first `limit` of `jobs` (newest first), and the id that starts the
+/// next page when more follow.
+pub fn page(jobs: impl Iterator<Item = JobView>, limit: usize) -> (Vec<JobView>, Option<u64>) {
+    let mut page: Vec<JobView> = jobs.take(limit.saturating_add(1)).collect();
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let next = if more {
+        page.last().map(|j| j.id)
+    } else {
+        None
+    };
+    (page, next)
+}
+
 /// What the HTTP API asks of the running farm. Implemented by the service;
 /// every method is quick (no rendering, at most a store transaction).
 pub trait Control: Send + Sync + 'static {
@@ -204,6 +224,16 @@ pub trait Control: Send + Sync + 'static {
     fn submit(&self, spec: JobSpec) -> Result<JobView, ApiError>;
     /// Every job, newest first.
     fn jobs(&self) -> Vec<JobView>;
+    /// At most `limit` jobs older than the job `before` (all when `None`),
+    /// newest first, and the id to pass as `before` for the next page (`None`
+    /// on the last page).
+    fn jobs_page(&self, before: Option<u64>, limit: usize) -> (Vec<JobView>, Option<u64>) {
+        let older = self
+            .jobs()
+            .into_iter()
+            .filter(|j| before.is_none_or(|b| j.id < b));
+        page(older, limit)
+    }
     /// One job.
     fn job(&self, id: u64) -> Result<JobView, ApiError>;
     /// Cancels a job that has not ended; returns it.

@@ -629,12 +629,24 @@ pub fn write_frame_image(
     write_atomically(path, &encoded)
 }
 
-/// Writes `bytes` to a temporary file beside `path`, then renames it over `path`.
+/// Writes `bytes` to a temporary file beside `path`, then renames it over
+/// `path`. The temporary file is created new (`O_EXCL`) without following a
+/// symlink (`O_NOFOLLOW`); a `path` that exists and is not a regular file (a
+/// symlink, a directory, a device) is refused.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
+    use std::os::unix::fs::OpenOptionsExt as _;
     let io = |source| OutputError::Io {
         path: path.to_path_buf(),
         source,
     };
+    if let Ok(existing) = std::fs::symlink_metadata(path)
+        && !existing.file_type().is_file()
+    {
+        return Err(io(std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            "it exists and is not a regular file; refused",
+        )));
+    }
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -643,10 +655,29 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
         .file_name()
         .map_or_else(|| "image".into(), |n| n.to_string_lossy().into_owned());
     let temp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-    let result = std::fs::File::create(&temp)
-        .and_then(|mut f| f.write_all(bytes).and_then(|_| f.sync_all()))
+    let create = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(&temp)
+    };
+    let file = match create() {
+        // Left by a process of the same id that died writing: removed (a
+        // symlink is removed itself, never followed), then created anew.
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            std::fs::remove_file(&temp).and_then(|()| create())
+        }
+        other => other,
+    };
+    let mut created = false;
+    let result = file
+        .and_then(|mut f| {
+            created = true;
+            f.write_all(bytes).and_then(|_| f.sync_all())
+        })
         .and_then(|_| std::fs::rename(&temp, path));
-    if result.is_err() {
+    if result.is_err() && created {
         let _ = std::fs::remove_file(&temp);
     }
     result.map_err(io)
@@ -791,6 +822,28 @@ mod tests {
         assert_eq!(entries, vec![std::ffi::OsString::from("x.png")]);
         let err = write_image(&film(), &dir.join("missing/x.png"), &meta()).unwrap_err();
         assert!(err.to_string().contains("missing/x.png"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_target_that_is_not_a_regular_file_and_a_planted_temp_symlink_are_never_followed() {
+        let dir = std::env::temp_dir().join(format!("ht-output-nofollow-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("a-dir.png")).unwrap();
+        let victim = dir.join("victim");
+        std::fs::write(&victim, b"keep").unwrap();
+        std::os::unix::fs::symlink(&victim, dir.join("link.png")).unwrap();
+        for target in ["link.png", "a-dir.png"] {
+            let e = write_atomically(&dir.join(target), b"image").unwrap_err();
+            assert!(e.to_string().contains("not a regular file"), "{e}");
+        }
+        // A symlink planted at the temporary file's name is replaced, not followed.
+        let temp = dir.join(format!(".x.png.{}.tmp", std::process::id()));
+        std::os::unix::fs::symlink(&victim, &temp).unwrap();
+        write_atomically(&dir.join("x.png"), b"image").unwrap();
+        assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
+        assert_eq!(std::fs::read(dir.join("x.png")).unwrap(), b"image");
+        assert!(!temp.exists());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

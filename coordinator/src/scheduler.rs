@@ -442,9 +442,87 @@ pub struct JobPlan {
     /// What its tiles carry.
     pub format: PixelFormat,
     /// Its frames, in order (at least one).
-    pub frames: Vec<u32>,
+    pub frames: Frames,
     /// Tags a worker must carry to render it.
     pub require_tags: Vec<String>,
+}
+
+/// A job's frames: the consecutive numbers `first..=last`, held as their two
+/// ends, so a job of 100,000 frames takes the room of a job of one and is
+/// added (or restored) as quickly.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Frames {
+    first: u32,
+    last: u32,
+}
+
+impl Frames {
+    /// The frames `first..=last` (`last` before `first` is taken as `first`).
+    pub fn new(first: u32, last: u32) -> Frames {
+        Frames {
+            first,
+            last: last.max(first),
+        }
+    }
+
+    /// The one frame `frame`.
+    pub fn one(frame: u32) -> Frames {
+        Frames::new(frame, frame)
+    }
+
+    /// The frames of `numbers` when they are consecutive and increasing (and
+    /// at least one), else `None`.
+    pub fn consecutive(mut numbers: impl Iterator<Item = u32>) -> Option<Frames> {
+        let first = numbers.next()?;
+        let mut last = first;
+        for n in numbers {
+            if last.checked_add(1) != Some(n) {
+                return None;
+            }
+            last = n;
+        }
+        Some(Frames { first, last })
+    }
+
+    /// How many frames.
+    pub fn len(&self) -> usize {
+        (self.last - self.first) as usize + 1
+    }
+
+    /// Never: a job has at least one frame (for clippy's `len_without_is_empty`).
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// The first frame.
+    pub fn first(&self) -> u32 {
+        self.first
+    }
+
+    /// The last frame.
+    pub fn last(&self) -> u32 {
+        self.last
+    }
+
+    /// The `index`-th frame (from 0).
+    pub fn get(&self, index: usize) -> Option<u32> {
+        u32::try_from(index)
+            .ok()
+            .and_then(|i| self.first.checked_add(i))
+            .filter(|&f| f <= self.last)
+    }
+
+    /// The index of frame `frame` (from 0).
+    pub fn index_of(&self, frame: u32) -> Option<usize> {
+        (self.first..=self.last)
+            .contains(&frame)
+            .then(|| (frame - self.first) as usize)
+    }
+
+    /// Every frame, in order.
+    pub fn iter(&self) -> std::ops::RangeInclusive<u32> {
+        self.first..=self.last
+    }
 }
 
 /// Where a job restored from the store stands.
@@ -539,13 +617,11 @@ impl Job {
             current: resume.frames_done.min(plan.frames.len()),
             pass: 0,
             resume_at: None,
-            redo: plan
-                .frames
+            redo: resume
+                .redo
                 .iter()
-                .enumerate()
-                .take(resume.frames_done)
-                .filter(|(_, f)| resume.redo.contains(f))
-                .map(|(i, _)| i)
+                .filter_map(|&f| plan.frames.index_of(f))
+                .filter(|&i| i < resume.frames_done)
                 .collect(),
             frame_started: None,
             pending: (0..n).collect(),
@@ -598,7 +674,8 @@ impl Job {
     }
 
     fn frame(&self) -> u32 {
-        self.plan.frames[self.current.min(self.plan.frames.len() - 1)]
+        let frames = &self.plan.frames;
+        frames.get(self.current).unwrap_or(frames.last())
     }
 
     fn finished(&self) -> bool {
@@ -723,7 +800,7 @@ impl Scheduler {
                 width,
                 height,
                 format,
-                frames: vec![0],
+                frames: Frames::one(0),
                 require_tags: Vec::new(),
             },
             Resume::default(),
@@ -784,8 +861,7 @@ impl Scheduler {
     }
 
     /// Renders these frames of the one-shot job (in order, at least one) instead of frame 0.
-    pub fn with_frames(mut self, frames: Vec<u32>) -> Scheduler {
-        assert!(!frames.is_empty(), "a render has at least one frame");
+    pub fn with_frames(mut self, frames: Frames) -> Scheduler {
         if let Some(job) = self.jobs.get_mut(&ONE_SHOT_JOB) {
             job.plan.frames = frames;
         }
@@ -1194,7 +1270,10 @@ impl Scheduler {
         let current = job.current;
         let earlier: Vec<usize> = earlier.into_iter().filter(|&i| i != current).collect();
         job.redo.extend(earlier.iter().copied());
-        let earlier_frames = earlier.iter().map(|&i| job.plan.frames[i]).collect();
+        let earlier_frames = earlier
+            .iter()
+            .filter_map(|&i| job.plan.frames.get(i))
+            .collect();
         let name = self
             .workers
             .get(&worker)
@@ -2229,7 +2308,7 @@ mod tests {
         let units = work_units(8, 8, 8, 4096);
         let n = units.len();
         let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5))
-            .with_frames(vec![3, 4]);
+            .with_frames(Frames::new(3, 4));
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let mut first_frame = Vec::new();
         for _ in 0..n {
@@ -2657,7 +2736,7 @@ mod tests {
         let units = work_units(16, 16, 8, 4096);
         let n = units.len();
         let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5))
-            .with_frames(vec![0, 1, 2]);
+            .with_frames(Frames::new(0, 2));
         let (liar, good) = (s.register("liar", 1, now), s.register("good", 1, now));
         // Frame 0: none of the liar's garbage is sampled, so it goes out.
         render_frame_part(&mut s, &liar, 1e38, n / 2, now);
@@ -2717,7 +2796,7 @@ mod tests {
             width: 16,
             height: 16,
             format: PixelFormat::Samples,
-            frames: vec![4, 5, 6],
+            frames: Frames::new(4, 6),
             require_tags: Vec::new(),
         };
         let mut s = Scheduler::service(Duration::from_secs(5));
@@ -3099,7 +3178,7 @@ mod tests {
             width: 8,
             height: 8,
             format: PixelFormat::Samples,
-            frames: vec![0],
+            frames: Frames::one(0),
             require_tags: tags.iter().map(|t| t.to_string()).collect(),
         }
     }

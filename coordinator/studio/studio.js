@@ -362,7 +362,7 @@ function listen() {
     if (e.data) $('error').textContent = JSON.parse(e.data).error;
   });
   source.addEventListener('status', (e) => {
-    latestStatus = e.data;
+    applyStatus(JSON.parse(e.data));
     // While a high-quality frame renders, the tables wait for its drawing
     // (or STATUS_WAIT_MS): a layout costs the workers' cores.
     const waiting = studio.quality === 'high' && !studio.complete;
@@ -371,13 +371,27 @@ function listen() {
 }
 
 const STATUS_WAIT_MS = 2000;
-let latestStatus = null;               // the last status event's data, not shown yet
+const SHOWN_JOBS = 200;                // the newest jobs the table shows
+const statusJobs = new Map();          // every job the status events told of, by id
+let statusWorkers = [];
+let statusChanged = false;             // told of changes not shown yet
 let statusShown = -Infinity;
 
+/** A status event carries changes: the workers when they changed, the jobs
+ * new or changed, and the ids of jobs gone (`full`: every job, the first). */
+function applyStatus(s) {
+  if (s.full) statusJobs.clear();
+  if (s.workers) statusWorkers = s.workers;
+  for (const j of s.jobs ?? []) statusJobs.set(j.id, j);
+  for (const id of s.gone ?? []) statusJobs.delete(id);
+  statusChanged = true;
+}
+
 function showStatusNow() {
-  if (latestStatus === null) return;
-  showStatus(JSON.parse(latestStatus));
-  latestStatus = null;
+  if (!statusChanged) return;
+  const jobs = [...statusJobs.values()].sort((a, b) => b.id - a.id).slice(0, SHOWN_JOBS);
+  showStatus({ workers: statusWorkers, jobs });
+  statusChanged = false;
   statusShown = performance.now();
 }
 

@@ -24,6 +24,15 @@ pub fn scratch(test: &str) -> PathBuf {
     dir
 }
 
+/// A free port on loopback (bound, then released).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
 /// Runs the coordinator binary with `args`.
 pub fn coordinator(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_coordinator"))

@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 
 use super::{Running, coordinator, scene};
 
-/// A service on a free loopback port; returns it and its URL.
+/// A service on a free loopback port, writing outputs inside the directory
+/// that holds `data`; returns it and its URL.
 pub fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
     let mut args = vec![
         "serve",
@@ -15,6 +16,8 @@ pub fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
         data.to_str().unwrap(),
         "--listen",
         "127.0.0.1:0",
+        "--output-root",
+        data.parent().unwrap().to_str().unwrap(),
     ];
     args.extend_from_slice(extra);
     let mut s = Running::coordinator(&args);

@@ -1,6 +1,11 @@
 //! The service's metrics in the Prometheus text exposition format (0.0.4),
 //! written from a snapshot of the farm at each scrape: nothing is counted
 //! twice, and nothing can drift from what `/api/v1` shows.
+//!
+//! Series labelled by job exist only for running jobs (a unit handed out,
+//! not ended): the number of series is bounded by the jobs being rendered,
+//! never by the queue's length or its history. `promtool check metrics`
+//! passes on the text (`tests/limits.rs`).
 
 use std::fmt::Write;
 
@@ -10,15 +15,19 @@ use crate::scheduler::JobId;
 
 /// What a scrape shows.
 pub struct Snapshot<'a> {
-    /// Every job.
+    /// The running jobs.
     pub jobs: &'a [JobView],
+    /// How many jobs are in each state, in the order of [`JobState::ALL`].
+    pub job_states: &'a [usize; JobState::ALL.len()],
     /// Every connected worker.
     pub workers: &'a [WorkerView],
     /// The farm's counters.
     pub stats: &'a FarmStats,
-    /// Units waiting to be handed out, by job.
+    /// Units waiting to be handed out, over every job.
+    pub queued_all: u64,
+    /// Units waiting to be handed out, by running job.
     pub queued: &'a [(JobId, u64)],
-    /// Units held by workers, by job.
+    /// Units held by workers, by running job.
     pub in_flight: &'a [(JobId, u64)],
     /// The store: whether it writes, and the tiles dropped because their
     /// stored bytes no longer matched their checksum.
@@ -89,18 +98,17 @@ pub fn render(s: &Snapshot<'_>) -> String {
 
     header(
         &mut out,
-        "hypertexture_units_queued_total",
+        "hypertexture_farm_units_queued",
         "gauge",
         "Units waiting to be handed out, over every job (what an autoscaler watches).",
     );
-    let queued: u64 = s.queued.iter().map(|(_, n)| n).sum();
-    let _ = writeln!(out, "hypertexture_units_queued_total {queued}");
+    let _ = writeln!(out, "hypertexture_farm_units_queued {}", s.queued_all);
 
     header(
         &mut out,
         "hypertexture_units_queued",
         "gauge",
-        "Units of the frame rendering waiting to be handed out, by job.",
+        "Units of the frame rendering waiting to be handed out, by running job.",
     );
     for (job, n) in s.queued {
         let _ = writeln!(out, "hypertexture_units_queued{{job=\"{job}\"}} {n}");
@@ -109,7 +117,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         &mut out,
         "hypertexture_units_in_flight",
         "gauge",
-        "Units held by workers, by job.",
+        "Units held by workers, by running job.",
     );
     for (job, n) in s.in_flight {
         let _ = writeln!(out, "hypertexture_units_in_flight{{job=\"{job}\"}} {n}");
@@ -118,7 +126,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         &mut out,
         "hypertexture_units_done",
         "gauge",
-        "Units complete, over every frame, by job.",
+        "Units complete, over every frame, by running job.",
     );
     for j in s.jobs {
         let _ = writeln!(
@@ -128,8 +136,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         );
     }
     header(&mut out, "hypertexture_jobs", "gauge", "Jobs by state.");
-    for state in JobState::ALL {
-        let n = s.jobs.iter().filter(|j| j.state == state).count();
+    for (state, n) in JobState::ALL.iter().zip(s.job_states) {
         let _ = writeln!(out, "hypertexture_jobs{{state=\"{}\"}} {n}", state.as_str());
     }
     header(
@@ -226,8 +233,10 @@ mod tests {
         }];
         let text = render(&Snapshot {
             jobs: &[],
+            job_states: &[0, 1, 0, 0, 0],
             workers: &workers,
             stats: &stats,
+            queued_all: 7,
             queued: &[(4, 7)],
             in_flight: &[(4, 1)],
             store: StoreHealth {
@@ -241,9 +250,10 @@ mod tests {
             "{text}"
         );
         assert!(
-            text.contains("hypertexture_units_queued_total 7\n"),
+            text.contains("hypertexture_farm_units_queued 7\n"),
             "{text}"
         );
+        assert!(text.contains("hypertexture_jobs{state=\"running\"} 1\n"));
         assert!(text.contains("hypertexture_units_queued{job=\"4\"} 7\n"));
         assert!(text.contains("name=\"evil\\\"\\nname\""), "{text}");
         assert!(text.contains("hypertexture_unit_latency_seconds_bucket{le=\"+Inf\"} 3\n"));

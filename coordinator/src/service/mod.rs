@@ -13,9 +13,13 @@
 //! Lock order: a job table lock, then the farm's state, then the store.
 
 pub mod health;
+pub mod limits;
 pub mod metrics;
+pub mod outputs;
 pub mod params;
 pub mod studio;
+
+pub use outputs::expand_pattern;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -31,7 +35,7 @@ use serde::{Deserialize, Serialize};
 use crate::cli::{LogFormat, ServeArgs};
 use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
 use crate::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
-use crate::scheduler::{Accepted, CompletedFrame, JobId, JobPlan, Resume, Scheduler};
+use crate::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
 use crate::store::{Store, StoreError};
 
 /// How the service runs.
@@ -47,6 +51,12 @@ pub struct ServiceConfig {
     pub studio_scene: Option<PathBuf>,
     /// Open a store older than its generation file (`--accept-older-store`).
     pub accept_older_store: bool,
+    /// The directories outputs may be written in.
+    pub output_roots: outputs::OutputRoots,
+    /// Jobs not ended the queue holds; one more submission is refused (429).
+    pub max_queued: usize,
+    /// How long ended jobs are kept.
+    pub keep_ended: limits::KeepEnded,
 }
 
 /// Why the service stopped with an error.
@@ -77,6 +87,9 @@ pub enum ServiceError {
     /// The studio's scene file could not be read.
     #[error("{0}")]
     Studio(String),
+    /// The output roots cannot be used.
+    #[error("{0}")]
+    Roots(String),
 }
 
 /// A job as the store keeps it: as submitted, and the unit layout it was
@@ -94,7 +107,7 @@ struct JobMeta {
     state: JobState,
     error: Option<String>,
     outputs: Vec<String>,
-    frames: Vec<u32>,
+    frames: Frames,
     units_per_frame: u64,
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
@@ -105,6 +118,9 @@ struct JobMeta {
     final_units: u64,
     /// The workers blocklisted for it when it left the scheduler.
     final_blocklisted: Vec<String>,
+    /// When it ended (milliseconds since the Unix epoch; for a job that
+    /// ended before this process started, when it was submitted).
+    ended_unix_ms: u64,
 }
 
 /// The running service's state: the API's [`Control`].
@@ -117,6 +133,14 @@ pub struct Service {
     health: health::Health,
     /// Records the store could not take yet, in order: retried while it fails.
     pending: Mutex<Vec<Pending>>,
+    /// Where outputs may be written.
+    roots: outputs::OutputRoots,
+    /// What relative outputs are relative to: the directory serve started in.
+    base: PathBuf,
+    /// Jobs not ended the queue holds.
+    max_queued: usize,
+    /// How long ended jobs are kept.
+    keep_ended: limits::KeepEnded,
 }
 
 /// A record of the supervisor's that waits for the store to write again.
@@ -188,52 +212,21 @@ fn unix_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// The file of `frame` for an output pattern: each run of `#` is the frame
-/// number padded with zeros to the run's length (`fur.####.exr`, 7 →
-/// `fur.0007.exr`).
-pub fn expand_pattern(pattern: &str, frame: u32) -> String {
-    let mut out = String::with_capacity(pattern.len() + 8);
-    let mut chars = pattern.chars().peekable();
-    while let Some(c) = chars.next() {
-        if c == '#' {
-            let mut width = 1;
-            while chars.peek() == Some(&'#') {
-                chars.next();
-                width += 1;
-            }
-            out.push_str(&format!("{frame:0width$}"));
-        } else {
-            out.push(c);
-        }
-    }
-    out
-}
-
 /// The frames of a job.
-fn frames_of(spec: &JobSpec) -> Result<Vec<u32>, String> {
-    let frames: Vec<u32> = match spec.frames {
-        None => vec![0],
-        Some([a, b]) if a <= b && b - a < 100_000 => (a..=b).collect(),
-        Some([a, b]) => {
-            return Err(format!(
-                "frames [{a}, {b}]: the first must not be after the last, and a job has at most 100000"
-            ));
-        }
-    };
-    if frames.len() > 1 && !spec.out.contains('#') {
-        return Err(format!(
-            "out {:?}: {} frames need a # in the pattern (e.g. out/fur.####.png)",
-            spec.out,
-            frames.len()
-        ));
+fn frames_of(spec: &JobSpec) -> Result<Frames, String> {
+    match spec.frames {
+        None => Ok(Frames::one(0)),
+        Some([a, b]) if a <= b && b - a < 100_000 => Ok(Frames::new(a, b)),
+        Some([a, b]) => Err(format!(
+            "frames [{a}, {b}]: the first must not be after the last, and a job has at most 100000"
+        )),
     }
-    Ok(frames)
 }
 
 /// A job's spec, checked: its scene built, its frames and tile format.
 struct Checked {
     scene: Scene,
-    frames: Vec<u32>,
+    frames: Frames,
     format: PixelFormat,
     name: String,
     /// What its images record.
@@ -243,8 +236,15 @@ struct Checked {
 /// Units per job, for the metrics.
 type PerJob = Vec<(JobId, u64)>;
 
-/// Builds the scene of a job (its checks) and the job's plan pieces.
-fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
+/// Builds the scene of a job (its checks) and the job's plan pieces. Its
+/// output pattern is checked ([`outputs::check_pattern`]) and its first
+/// frame's file placed inside `roots` (relative paths against `base`); no
+/// other frame is expanded.
+fn check_spec(
+    spec: &JobSpec,
+    roots: &outputs::OutputRoots,
+    base: &Path,
+) -> Result<Checked, ApiError> {
     let bad = ApiError::BadRequest;
     if spec.scene.len() > hypertexture::scene::MAX_SCENE_BYTES {
         return Err(bad(format!(
@@ -260,25 +260,14 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         .unwrap_or_else(|| "scene.ron".into());
     let name = hypertexture_proto::convert::untrusted(&name, 256);
     let frames = frames_of(spec).map_err(bad)?;
-    for (&frame, path) in frames
-        .iter()
-        .zip(frames.iter().map(|&f| expand_pattern(&spec.out, f)))
-        .take(1)
-    {
-        let path = Path::new(&path);
-        crate::output::ImageFormat::from_path(path).map_err(|e| bad(e.to_string()))?;
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        if !dir.is_dir() {
-            return Err(bad(format!(
-                "out {:?} (frame {frame}): the directory {} does not exist on the coordinator's machine",
-                spec.out,
-                dir.display()
-            )));
-        }
-    }
+    outputs::check_pattern(&spec.out, frames, base).map_err(|e| bad(e.to_string()))?;
+    // Every frame's file has the first one's extension: a `#` run in it
+    // would make digits, and no format is named by digits.
+    let first = PathBuf::from(expand_pattern(&spec.out, frames.first()));
+    crate::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
+    roots
+        .resolve(&spec.out, &first, base)
+        .map_err(|e| ApiError::Forbidden(e.to_string()))?;
     farm::tags_from_wire(&spec.require_tags).map_err(|e| bad(format!("require_tags: {e}")))?;
     let overrides = Overrides {
         width: spec.width,
@@ -302,11 +291,7 @@ fn check_spec(spec: &JobSpec) -> Result<Checked, ApiError> {
         &spec.scene,
         &overrides,
     ));
-    let outputs: Vec<PathBuf> = frames
-        .iter()
-        .map(|&f| PathBuf::from(expand_pattern(&spec.out, f)))
-        .collect();
-    let format = crate::output::pixel_format_for(outputs.iter().map(PathBuf::as_path));
+    let format = crate::output::pixel_format_for([first.as_path()]);
     Ok(Checked {
         scene,
         frames,
@@ -334,7 +319,7 @@ impl Service {
         let spec = &stored.spec;
         let (scene, frames, format, scene_name) = (
             &checked.scene,
-            &checked.frames,
+            checked.frames,
             checked.format,
             &checked.name,
         );
@@ -350,13 +335,12 @@ impl Service {
             scene_name: scene_name.clone(),
             width: scene.width(),
             height: scene.height(),
-            frames: frames
-                .iter()
-                .map(|&frame| farm::FrameOut {
-                    frame,
-                    out: PathBuf::from(expand_pattern(&spec.out, frame)),
-                })
-                .collect(),
+            // The wire form takes the first frame (each assignment sets its
+            // own); the files are expanded as each frame is written.
+            frames: vec![farm::FrameOut {
+                frame: frames.first(),
+                out: PathBuf::from(expand_pattern(&spec.out, frames.first())),
+            }],
             spp: spec.spp,
             quality: spec.quality.map(Into::into),
             knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
@@ -372,7 +356,7 @@ impl Service {
             width: scene.width(),
             height: scene.height(),
             format,
-            frames: frames.to_vec(),
+            frames,
             require_tags: spec.require_tags.clone(),
         };
         let shared = self.farm().map_err(|e| e.to_string())?;
@@ -507,6 +491,7 @@ impl Service {
         if let Some(meta) = self.jobs_lock().get_mut(&id) {
             meta.state = state;
             meta.error = error.clone();
+            meta.ended_unix_ms = unix_ms();
         }
         match (state, &error) {
             (JobState::Failed, Some(e)) => tracing::error!("job {id} failed: {e}"),
@@ -556,6 +541,35 @@ impl Service {
         }
     }
 
+    /// Forgets the ended jobs `--keep-ended` no longer keeps, in memory and
+    /// in the store; their files stay where they were written.
+    fn prune_ended(&self) {
+        let now = unix_ms();
+        let ended: Vec<(u64, Duration)> = self
+            .jobs_lock()
+            .iter()
+            .filter(|(_, m)| m.state.is_final())
+            .map(|(&id, m)| {
+                let age = Duration::from_millis(now.saturating_sub(m.ended_unix_ms));
+                (id, age)
+            })
+            .collect();
+        let prune = self.keep_ended.to_prune(ended);
+        if prune.is_empty() {
+            return;
+        }
+        let mut jobs = self.jobs_lock();
+        let store = self.store();
+        for &id in &prune {
+            if let Err(e) = store.delete_job(id) {
+                tracing::error!("job {id}: cannot prune it from the store: {e}");
+                continue;
+            }
+            jobs.remove(&id);
+        }
+        tracing::info!("pruned {} ended jobs (--keep-ended)", prune.len());
+    }
+
     /// Notes jobs whose first unit has gone out as running.
     fn note_running(&self, now: Instant) {
         let Some(shared) = self.farm.get() else {
@@ -594,21 +608,25 @@ impl Service {
                     stored,
                     metadata: Some(metadata),
                     ..
-                }) if !state.is_final() => (
-                    expand_pattern(&stored.spec.out, done.frame),
-                    metadata.at_frame(done.frame),
-                ),
+                }) if !state.is_final() => (stored.spec.out.clone(), metadata.at_frame(done.frame)),
                 _ => return,
             }
         };
+        let path = expand_pattern(&path, done.frame);
         let image = done.image;
-        let target = PathBuf::from(&path);
+        let (service, pattern, target) = (Arc::clone(self), path.clone(), PathBuf::from(&path));
         let written = tokio::task::spawn_blocking(move || {
-            crate::output::write_frame_image(&image, &target, &metadata)
+            // Placed again as it is written: a `#` in a directory makes
+            // each frame's directory its own, and one may have changed.
+            let target = service
+                .roots
+                .prepare(&pattern, &target, &service.base)
+                .map_err(|e| e.to_string())?;
+            crate::output::write_frame_image(&image, &target, &metadata).map_err(|e| e.to_string())
         })
         .await;
         let written = match written {
-            Ok(r) => r.map_err(|e| e.to_string()),
+            Ok(r) => r,
             Err(e) => Err(format!("the writer failed: {e}")),
         };
         if let Err(e) = written {
@@ -707,7 +725,7 @@ impl Service {
                 self.store().finished_frames(job.id)?.into_iter().collect();
             let mut state = job.state;
             if !state.is_final()
-                && frames.iter().all(|f| finished.contains(f))
+                && frames.iter().all(|f| finished.contains(&f))
                 && job.redo.is_empty()
             {
                 state = JobState::Done;
@@ -728,10 +746,11 @@ impl Service {
                 running_since: None,
                 final_units: 0,
                 final_blocklisted: Vec::new(),
+                ended_unix_ms: job.submitted_unix_ms,
                 stored,
             };
             if state.is_final() {
-                if let Ok(checked) = check_spec(&meta.stored.spec) {
+                if let Ok(checked) = check_spec(&meta.stored.spec, &self.roots, &self.base) {
                     meta.units_per_frame = farm_units(
                         checked.scene.width(),
                         checked.scene.height(),
@@ -744,7 +763,7 @@ impl Service {
                 self.jobs_lock().insert(job.id, meta);
                 continue;
             }
-            let checked = check_spec(&meta.stored.spec);
+            let checked = check_spec(&meta.stored.spec, &self.roots, &self.base);
             let checked = match checked {
                 Ok(c) => c,
                 Err(e) => {
@@ -764,7 +783,7 @@ impl Service {
                 .take_while(|f| finished.contains(f))
                 .count();
             let tiles = match checked.frames.get(frames_done) {
-                Some(&frame) => self.sound_tiles(job.id, frame)?,
+                Some(frame) => self.sound_tiles(job.id, frame)?,
                 None => Vec::new(),
             };
             let tile_count = tiles.len();
@@ -801,7 +820,19 @@ impl Control for Arc<Service> {
                 "the coordinator is shutting down and takes no new jobs".into(),
             ));
         }
-        let checked = check_spec(&spec)?;
+        let active = self
+            .jobs_lock()
+            .values()
+            .filter(|m| !m.state.is_final())
+            .count();
+        if active >= self.max_queued {
+            return Err(ApiError::TooMany(format!(
+                "the queue holds {active} jobs not ended, its limit (--max-queued {}); \
+                 try again when some have ended",
+                self.max_queued
+            )));
+        }
+        let checked = check_spec(&spec, &self.roots, &self.base)?;
         let shared = self.farm()?;
         let (interleave, expected_workers) = shared.unit_layout();
         let stored = StoredSpec {
@@ -846,6 +877,7 @@ impl Control for Arc<Service> {
             running_since: None,
             final_units: 0,
             final_blocklisted: Vec::new(),
+            ended_unix_ms: 0,
         };
         let view = self.view(id, &meta, Instant::now());
         jobs.insert(id, meta);
@@ -859,6 +891,16 @@ impl Control for Arc<Service> {
             .rev()
             .map(|(&id, meta)| self.view(id, meta, now))
             .collect()
+    }
+
+    fn jobs_page(&self, before: Option<u64>, limit: usize) -> (Vec<JobView>, Option<u64>) {
+        let now = Instant::now();
+        let jobs = self.jobs_lock();
+        let older = jobs
+            .range(..before.unwrap_or(u64::MAX))
+            .rev()
+            .map(|(&id, meta)| self.view(id, meta, now));
+        crate::jobs::page(older, limit)
     }
 
     fn job(&self, id: u64) -> Result<JobView, ApiError> {
@@ -921,22 +963,42 @@ impl Control for Arc<Service> {
     }
 
     fn metrics(&self) -> String {
-        let jobs: Vec<JobView> = Control::jobs(self);
+        // Only running jobs are shown by job: the series are bounded by the
+        // jobs being rendered, not by the queue or its history.
+        let (running, states) = {
+            let now = Instant::now();
+            let jobs = self.jobs_lock();
+            let mut states = [0; JobState::ALL.len()];
+            let mut running = Vec::new();
+            for (&id, meta) in jobs.iter() {
+                if let Some(i) = JobState::ALL.iter().position(|&s| s == meta.state) {
+                    states[i] += 1;
+                }
+                if meta.state == JobState::Running {
+                    running.push(self.view(id, meta, now));
+                }
+            }
+            (running, states)
+        };
         let workers = Control::workers(self);
-        let (stats, queued, in_flight): (_, PerJob, PerJob) = match self.farm.get() {
+        let (stats, queued_all, queued, in_flight): (_, u64, PerJob, PerJob) = match self.farm.get()
+        {
             Some(shared) => {
                 let state = shared.lock();
-                let per_job: Vec<(JobId, u64, u64)> = state
-                    .scheduler
-                    .job_ids()
-                    .into_iter()
-                    .filter_map(|id| {
-                        let p = state.scheduler.job_progress(id)?;
-                        Some((id, p.units_queued, p.units_in_flight))
-                    })
-                    .collect();
+                let mut all = 0;
+                let mut per_job: Vec<(JobId, u64, u64)> = Vec::new();
+                for id in state.scheduler.job_ids() {
+                    let Some(p) = state.scheduler.job_progress(id) else {
+                        continue;
+                    };
+                    all += p.units_queued;
+                    if p.started {
+                        per_job.push((id, p.units_queued, p.units_in_flight));
+                    }
+                }
                 (
                     state.stats.clone(),
+                    all,
                     per_job.iter().map(|&(id, q, _)| (id, q)).collect(),
                     per_job.iter().map(|&(id, _, f)| (id, f)).collect(),
                 )
@@ -944,9 +1006,11 @@ impl Control for Arc<Service> {
             None => Default::default(),
         };
         metrics::render(&metrics::Snapshot {
-            jobs: &jobs,
+            jobs: &running,
+            job_states: &states,
             workers: &workers,
             stats: &stats,
+            queued_all,
             queued: &queued,
             in_flight: &in_flight,
             store: metrics::StoreHealth {
@@ -979,6 +1043,13 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
         _ => None,
     };
     let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+    let cwd = std::env::current_dir().map_err(|e| {
+        crate::CoordinatorError::Service(Box::new(ServiceError::Roots(format!(
+            "cannot read the working directory: {e}"
+        ))))
+    })?;
+    let output_roots = outputs::OutputRoots::for_serve(&args.output_root, &cwd)
+        .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
     let config = ServiceConfig {
         data: args.data,
         farm: FarmConfig {
@@ -998,6 +1069,9 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
         drain_timeout: Duration::from_secs_f64(args.drain_timeout),
         studio_scene: None,
         accept_older_store: args.accept_older_store,
+        output_roots,
+        max_queued: args.max_queued,
+        keep_ended: args.keep_ended,
     };
     // One thread serves the farm and the API: per unit it checks, stores and
     // persists a tile, and any thread more competes with the local workers.
@@ -1018,6 +1092,19 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
     let data = args.data.unwrap_or_else(|| {
         std::env::temp_dir().join(format!("hypertexture-studio-{}", std::process::id()))
     });
+    // The studio writes its renders beside its scene, or where it was started.
+    let scene_dir = match args.scene.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let mut dirs = vec![scene_dir];
+    if let Ok(cwd) = std::env::current_dir()
+        && cwd.parent().is_some()
+    {
+        dirs.push(cwd);
+    }
+    let output_roots = outputs::OutputRoots::new(&dirs)
+        .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
     let config = ServiceConfig {
         data,
         farm: FarmConfig {
@@ -1037,6 +1124,9 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
         drain_timeout: Duration::from_secs(5),
         studio_scene: Some(args.scene),
         accept_older_store: false,
+        output_roots,
+        max_queued: limits::DEFAULT_MAX_QUEUED,
+        keep_ended: limits::KeepEnded::default(),
     };
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -1054,6 +1144,18 @@ pub async fn serve(
 ) -> Result<(), ServiceError> {
     let store = Store::open_with(&config.data, config.accept_older_store)?;
     tracing::info!("store {}", store.path().display());
+    let base = std::env::current_dir()
+        .map_err(|e| ServiceError::Roots(format!("cannot read the working directory: {e}")))?;
+    tracing::info!(
+        "outputs are written inside {}",
+        config
+            .output_roots
+            .roots()
+            .iter()
+            .map(|r| r.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
     let service = Arc::new(Service {
         store: Mutex::new(store),
         jobs: Mutex::new(BTreeMap::new()),
@@ -1061,6 +1163,10 @@ pub async fn serve(
         draining: std::sync::atomic::AtomicBool::new(false),
         health: health::Health::default(),
         pending: Mutex::new(Vec::new()),
+        roots: config.output_roots.clone(),
+        base,
+        max_queued: config.max_queued,
+        keep_ended: config.keep_ended,
     });
     let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
     let studio = Arc::new(
@@ -1113,6 +1219,7 @@ pub async fn serve(
         started.elapsed().as_secs_f64()
     );
     tokio::pin!(shutdown);
+    let mut pruned_at = Instant::now();
     let mut drain_deadline: Option<Instant> = None;
     let mut failed = None;
     loop {
@@ -1151,6 +1258,10 @@ pub async fn serve(
         }
         service.note_running(now);
         service.watch_store(now);
+        if now.duration_since(pruned_at) >= limits::PRUNE_EVERY {
+            pruned_at = now;
+            service.prune_ended();
+        }
         if let Some(deadline) = drain_deadline {
             let in_flight = farm.shared().lock().scheduler.in_flight();
             if in_flight == 0 {

@@ -327,7 +327,7 @@ fn overrides(
 
 impl Studio {
     /// A studio of the scene at `path` (none: an empty editor), whose final
-    /// renders go beside the scene (or into `data`).
+    /// renders go beside the scene (or into the working directory).
     pub fn new(path: Option<&Path>, data: &Path, token: Option<String>) -> Result<Studio, String> {
         let (text, name, final_out) = match path {
             Some(p) => {
@@ -344,10 +344,14 @@ impl Studio {
                     .unwrap_or_else(|_| dir.join(format!("{stem}.final.png")));
                 (text, p.display().to_string(), out.display().to_string())
             }
+            // Without a scene, in the directory serve runs in (an output root).
             None => (
                 String::new(),
                 "scene.ron".to_string(),
-                data.join("studio.final.png").display().to_string(),
+                std::path::absolute("studio.final.png")
+                    .unwrap_or_else(|_| data.join("studio.final.png"))
+                    .display()
+                    .to_string(),
             ),
         };
         let (raw, raw_rx) = mpsc::unbounded_channel();
@@ -613,7 +617,7 @@ impl Studio {
                 width: checked.width,
                 height: checked.height,
                 format: PixelFormat::Srgb8,
-                frames: vec![0],
+                frames: crate::scheduler::Frames::one(0),
                 require_tags: Vec::new(),
             };
             let data = serde_json::json!({
@@ -955,19 +959,70 @@ struct Stream {
     rx: broadcast::Receiver<Arc<Event>>,
     status: tokio::time::Interval,
     ctx: Ctx,
+    sent: StatusSent,
+}
+
+/// What a stream's status events have told its browser: a hash of each
+/// job's JSON and of the workers' (the first event is full).
+#[derive(Default)]
+struct StatusSent {
+    jobs: std::collections::HashMap<u64, u64>,
+    workers: Option<u64>,
+}
+
+fn json_hash(value: &impl serde::Serialize) -> u64 {
+    use std::hash::{BuildHasher as _, BuildHasherDefault};
+    let text = serde_json::to_string(value).unwrap_or_default();
+    BuildHasherDefault::<std::collections::hash_map::DefaultHasher>::default().hash_one(text)
 }
 
 fn sse(event: &Event) -> SseEvent {
     SseEvent::default().event(event.name).data(&event.data)
 }
 
-/// The workers (pixels per second) and the job queue.
-fn status(ctx: &Ctx) -> SseEvent {
-    let data = serde_json::json!({
-        "workers": ctx.control.workers(),
-        "jobs": ctx.control.jobs(),
-    });
-    SseEvent::default().event("status").data(data.to_string())
+/// The changes to the workers (pixels per second) and the job queue since
+/// the stream's last status event: the workers when they changed, the jobs
+/// new or changed, the ids of jobs gone; `None` when nothing changed. The
+/// first event holds every job (`full`).
+fn status(ctx: &Ctx, sent: &mut StatusSent) -> Option<SseEvent> {
+    let full = sent.workers.is_none();
+    let workers = ctx.control.workers();
+    let workers_hash = json_hash(&workers);
+    let workers = (sent.workers != Some(workers_hash)).then_some(workers);
+    sent.workers = Some(workers_hash);
+    let mut seen = std::collections::HashSet::new();
+    let mut changed = Vec::new();
+    for job in ctx.control.jobs() {
+        let hash = json_hash(&job);
+        seen.insert(job.id);
+        if sent.jobs.insert(job.id, hash) != Some(hash) {
+            changed.push(job);
+        }
+    }
+    let mut gone: Vec<u64> = sent
+        .jobs
+        .keys()
+        .filter(|id| !seen.contains(id))
+        .copied()
+        .collect();
+    gone.sort_unstable();
+    for id in &gone {
+        sent.jobs.remove(id);
+    }
+    if !full && workers.is_none() && changed.is_empty() && gone.is_empty() {
+        return None;
+    }
+    let mut data = serde_json::json!({ "jobs": changed });
+    if full {
+        data["full"] = true.into();
+    }
+    if let Some(workers) = workers {
+        data["workers"] = serde_json::json!(workers);
+    }
+    if !gone.is_empty() {
+        data["gone"] = serde_json::json!(gone);
+    }
+    Some(SseEvent::default().event("status").data(data.to_string()))
 }
 
 async fn events(
@@ -979,21 +1034,25 @@ async fn events(
         rx,
         status: tokio::time::interval(STATUS_EVERY),
         ctx,
+        sent: StatusSent::default(),
     };
     let events = futures_util::stream::unfold(stream, |mut s| async move {
         if let Some(e) = s.backlog.pop_front() {
             return Some((Ok(sse(&e)), s));
         }
-        tokio::select! {
-            received = s.rx.recv() => match received {
-                Ok(e) => Some((Ok(sse(&e)), s)),
-                // Fallen behind (or closing): end the stream; the browser
-                // reconnects and is sent the frame again.
-                Err(_) => None,
-            },
-            _ = s.status.tick() => {
-                let e = status(&s.ctx);
-                Some((Ok(e), s))
+        loop {
+            tokio::select! {
+                received = s.rx.recv() => return match received {
+                    Ok(e) => Some((Ok(sse(&e)), s)),
+                    // Fallen behind (or closing): end the stream; the browser
+                    // reconnects and is sent the frame again.
+                    Err(_) => None,
+                },
+                _ = s.status.tick() => {
+                    if let Some(e) = status(&s.ctx, &mut s.sent) {
+                        return Some((Ok(e), s));
+                    }
+                }
             }
         }
     });
