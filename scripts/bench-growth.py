@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """What 10,000 queued jobs cost a `coordinator serve`: its resident memory,
-the size of `/metrics` and of `GET /api/v1/jobs`, and the bytes per second one
-studio tab's event stream receives.
+the size of `/metrics` and of `GET /api/v1/jobs`, and the bytes one studio
+tab's event stream receives in its first 5 s, then per second over 10 s.
 
     scripts/bench-growth.py target/release/coordinator [JOBS]
 
@@ -81,18 +81,23 @@ def main():
             events = socket.create_connection(("127.0.0.1", port), 5)
             events.sendall(f"GET /studio/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
                            "Accept: text/event-stream\r\n\r\n".encode())
-            received = 0
+            def receive(seconds):
+                received = 0
+                end = time.time() + seconds
+                while time.time() < end:
+                    events.settimeout(max(0.01, end - time.time()))
+                    try:
+                        chunk = events.recv(1 << 20)
+                    except socket.timeout:
+                        break
+                    if not chunk:
+                        break
+                    received += len(chunk)
+                return received
+            # The first 5 s (the first status event), then 10 s more.
+            first = receive(5.0)
             window = 10.0
-            end = time.time() + window
-            while time.time() < end:
-                events.settimeout(max(0.01, end - time.time()))
-                try:
-                    chunk = events.recv(1 << 20)
-                except socket.timeout:
-                    break
-                if not chunk:
-                    break
-                received += len(chunk)
+            received = receive(window)
             events.close()
             rss = rss_kib(serve.pid)
             series = sum(1 for l in metrics.decode().splitlines()
@@ -105,7 +110,8 @@ def main():
                 "metrics_bytes": len(metrics),
                 "metrics_series": series,
                 "jobs_list_bytes": len(listing),
-                "event_bytes_per_second": round(received / window),
+                "event_bytes_first_5s": first,
+                "event_bytes_per_second_after": round(received / window),
             }, indent=1))
         finally:
             serve.send_signal(signal.SIGTERM)
