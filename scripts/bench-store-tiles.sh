@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The service's tile path: one job of 30 frames of 64×64 (`noisy_sphere`,
+# The service's tile path: one job of FRAMES (default 30) frames of 64×64 (`noisy_sphere`,
 # interactive quality, 1 sample) on `coordinator serve` with 2 local workers
 # and --verify 0: tiles stored per second (from the submit to the job done)
 # and the coordinator's own CPU per tile (utime+stime from /proc/PID/stat; the
@@ -9,6 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${BIN:-target/release}
 PORT=${PORT:-47124}
+FRAMES=${FRAMES:-30}
 DATA=$(mktemp -d); OUT=$(mktemp -d)
 "$BIN/coordinator" serve --data "$DATA" --listen "127.0.0.1:$PORT" --local-workers 2 --verify 0 -q 2>"$OUT/log" &
 PID=$!
@@ -19,7 +20,7 @@ SCENE=$(python3 -c 'import json; print(json.dumps(open("scenes/noisy_sphere.ron"
 cpu() { awk '{print $14+$15}' "/proc/$PID/stat"; }
 TCK=$(getconf CLK_TCK)
 C0=$(cpu); T0=$(date +%s.%N)
-ID=$(printf '{"scene":%s,"scene_name":"noisy_sphere.ron","out":"%s/f_##.png","width":64,"height":64,"spp":1,"quality":"interactive","frames":[0,29]}' "$SCENE" "$OUT" \
+ID=$(printf '{"scene":%s,"scene_name":"noisy_sphere.ron","out":"%s/f_##.png","width":64,"height":64,"spp":1,"quality":"interactive","frames":[0,%s]}' "$SCENE" "$OUT" "$((FRAMES - 1))" \
   | curl -sf -X POST -H 'content-type: application/json' --data @- "$URL/api/v1/jobs" | python3 -c 'import json,sys; print(json.load(sys.stdin)["id"])')
 for i in $(seq 6000); do
   JOB=$(curl -sf "$URL/api/v1/jobs/$ID")

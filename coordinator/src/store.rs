@@ -614,15 +614,17 @@ impl Store {
         pixels: &[u8],
     ) -> Result<(), StoreError> {
         let checksum = tile_checksum(pixels);
-        self.transaction(|conn| {
-            conn.prepare_cached(
+        // One statement in autocommit mode: it commits in its own step, and
+        // `execute` returns that step's error, a failed commit included.
+        self.conn
+            .prepare_cached(
                 "INSERT OR REPLACE INTO tiles (job, frame, unit, pixels, checksum) \
                  SELECT ?1, ?2, ?3, ?4, ?5 FROM jobs \
                  WHERE id = ?1 AND state IN ('queued', 'running')",
-            )?
-            .execute(params![job, frame, unit, pixels, checksum])?;
-            Ok(())
-        })
+            )
+            .and_then(|mut s| s.execute(params![job, frame, unit, pixels, checksum]))
+            .map_err(|e| self.sqlite(e))?;
+        Ok(())
     }
 
     /// Records that finished frames of job `job` are to be rendered again
