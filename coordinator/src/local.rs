@@ -124,6 +124,7 @@ impl InProcessPlan {
                     fault: None,
                     shares_process: true,
                     tags: Vec::new(),
+                    asset_cache_bytes: worker::cache::DEFAULT_ASSET_CACHE_MB << 20,
                 };
                 tokio::spawn(worker::run(cfg, stopped.clone()))
             })
