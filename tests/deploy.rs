@@ -515,3 +515,144 @@ fn readme_commands_match_the_binaries() {
     }
     assert!(checked >= 6, "only {checked} commands found in the README");
 }
+
+/// `systemd-analyze security --offline=true`'s overall exposure of a unit
+/// file (0 is safest, 10 is fully exposed).
+fn exposure(path: &str) -> f64 {
+    let file = support::root().join(path);
+    let out = std::process::Command::new("systemd-analyze")
+        .args(["security", "--offline=true"])
+        .arg(&file)
+        .output()
+        .unwrap_or_else(|e| {
+            panic!("systemd-analyze: {e} (scripts/test-deps/systemd-analyze.sh installs it)")
+        });
+    let text = String::from_utf8_lossy(&out.stdout);
+    text.lines()
+        .find_map(|l| {
+            l.split_once("Overall exposure level for ")?
+                .1
+                .split_once(": ")
+        })
+        .and_then(|(_, rest)| rest.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| {
+            panic!(
+                "{path}: no exposure level in systemd-analyze's output:\n{text}{}",
+                String::from_utf8_lossy(&out.stderr)
+            )
+        })
+}
+
+/// Both units are hardened: systemd scores each at most 2.0 (OK). The
+/// worker runs what the network sends on every LAN machine.
+#[test]
+fn systemd_units_are_hardened() {
+    for unit in [
+        "deploy/systemd/hypertexture-coordinator.service",
+        "deploy/systemd/hypertexture-worker.service",
+    ] {
+        let score = exposure(unit);
+        assert!(score <= 2.0, "{unit}: exposure {score} > 2.0");
+        let settings = unit_settings(unit);
+        assert_eq!(setting(&settings, "CapabilityBoundingSet"), "", "{unit}");
+        assert_eq!(setting(&settings, "NoNewPrivileges"), "yes", "{unit}");
+    }
+}
+
+/// A compose service's or a Kubernetes container's list, as strings.
+fn list(y: &Yaml) -> Vec<String> {
+    strings(y)
+        .into_iter()
+        .map(|s| s.to_ascii_lowercase())
+        .collect()
+}
+
+/// The image, the compose services and the Kubernetes workloads run as a
+/// user other than root, on a read-only root file system, with no
+/// capabilities, no privilege gain and the runtime's default seccomp
+/// profile.
+#[test]
+fn containers_run_unprivileged() {
+    // The image's last USER is a number other than 0, so runAsNonRoot can
+    // check it.
+    let dockerfile = read("deploy/Dockerfile");
+    let user = dockerfile
+        .lines()
+        .rev()
+        .find_map(|l| l.strip_prefix("USER "))
+        .expect("a USER line");
+    let uid: u32 = user
+        .split(':')
+        .next()
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap_or_else(|_| panic!("USER {user}: not a number"));
+    assert_ne!(uid, 0, "USER {user}");
+
+    let compose = &load("deploy/compose.yaml")[0];
+    for (name, service) in compose["services"].as_hash().unwrap() {
+        let name = name.as_str().unwrap();
+        let user = service["user"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{name}: no user"));
+        assert!(
+            !user.is_empty() && !user.starts_with("0") && !user.starts_with("root"),
+            "{name}: user {user}"
+        );
+        assert_eq!(
+            service["read_only"].as_bool(),
+            Some(true),
+            "{name}: read_only"
+        );
+        assert_eq!(list(&service["cap_drop"]), ["all"], "{name}: cap_drop");
+        assert!(service["cap_add"].is_badvalue(), "{name}: cap_add");
+        assert!(service["privileged"].as_bool() != Some(true), "{name}");
+        let options = list(&service["security_opt"]);
+        assert!(
+            options.contains(&"no-new-privileges:true".to_string()),
+            "{name}: {options:?}"
+        );
+        assert!(
+            !options.iter().any(|o| o.contains("unconfined")),
+            "{name}: {options:?}"
+        );
+    }
+
+    for (path, kind) in [
+        ("deploy/k8s/coordinator.yaml", "StatefulSet"),
+        ("deploy/k8s/workers.yaml", "Deployment"),
+    ] {
+        let docs = load(path);
+        let pod = &one(&docs, kind)["spec"]["template"]["spec"];
+        let pod_context = &pod["securityContext"];
+        assert_eq!(pod_context["runAsNonRoot"].as_bool(), Some(true), "{path}");
+        assert!(
+            pod_context["runAsUser"].as_i64().is_some_and(|u| u != 0),
+            "{path}"
+        );
+        for c in pod["containers"].as_vec().unwrap() {
+            let context = &c["securityContext"];
+            let seccomp = if context["seccompProfile"].is_badvalue() {
+                &pod_context["seccompProfile"]
+            } else {
+                &context["seccompProfile"]
+            };
+            assert_eq!(seccomp["type"].as_str(), Some("RuntimeDefault"), "{path}");
+            assert_eq!(context["runAsNonRoot"].as_bool(), Some(true), "{path}");
+            assert_eq!(
+                context["readOnlyRootFilesystem"].as_bool(),
+                Some(true),
+                "{path}"
+            );
+            assert_eq!(
+                context["allowPrivilegeEscalation"].as_bool(),
+                Some(false),
+                "{path}"
+            );
+            assert!(context["privileged"].as_bool() != Some(true), "{path}");
+            assert_eq!(list(&context["capabilities"]["drop"]), ["all"], "{path}");
+            assert!(context["capabilities"]["add"].is_badvalue(), "{path}");
+        }
+    }
+}

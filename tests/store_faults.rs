@@ -141,6 +141,8 @@ fn a_full_disk_under_data_loses_no_acknowledged_job() {
     let tmpfs = Tmpfs::mount(&mnt, "8m");
     let data = mnt.join("data");
     let expected = references(&dir, 3);
+    // The outputs go beside the tmpfs, not on it.
+    let root = dir.to_str().unwrap();
     let (s, url) = serve(
         &data,
         &[
@@ -150,6 +152,8 @@ fn a_full_disk_under_data_loses_no_acknowledged_job() {
             "0",
             "--lease-timeout",
             "3",
+            "--output-root",
+            root,
         ],
     );
     let a = submit(
@@ -215,7 +219,7 @@ fn a_full_disk_under_data_loses_no_acknowledged_job() {
     }
     same_bytes(&dir.join("c.png"), &expected[0]);
     // After a restart: both done, every frame listed, and new ids go on.
-    let (_s, url) = serve(&data, &["--local-workers", "0"]);
+    let (_s, url) = serve(&data, &["--local-workers", "0", "--output-root", root]);
     let ja = job(&url, a);
     assert_eq!(ja["state"], "done", "{ja}");
     assert_eq!(ja["outputs"].as_array().unwrap().len(), 3, "{ja}");

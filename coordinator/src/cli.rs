@@ -156,6 +156,11 @@ pub enum Command {
     /// Check or back up a service's store (`--data`), also while it runs.
     #[command(subcommand)]
     Store(StoreCommand),
+    /// Make TLS certificates for a farm on a LAN: a CA (ca.pem, ca.key) and
+    /// a server certificate signed by it (server.pem, server.key) for
+    /// `serve --tls-cert DIR/server.pem --tls-key DIR/server.key`; workers
+    /// trust it with `--ca DIR/ca.pem`.
+    Cert(CertArgs),
 }
 
 /// `coordinator store …`.
@@ -379,6 +384,19 @@ pub struct JobArgs {
     /// The job's id.
     #[arg(value_name = "JOB")]
     pub job: u64,
+}
+
+/// Arguments of `coordinator cert`.
+#[derive(Debug, clap::Args)]
+pub struct CertArgs {
+    /// Directory to write ca.pem, ca.key, server.pem and server.key to
+    /// (created readable by its owner only; existing files are never replaced).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// A host name or IP address workers and clients dial the coordinator by
+    /// (repeatable); localhost, 127.0.0.1 and ::1 are always included.
+    #[arg(long = "name", value_name = "HOST")]
+    pub name: Vec<String>,
 }
 
 /// Arguments of `coordinator grid`.

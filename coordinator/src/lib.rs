@@ -6,6 +6,7 @@ pub mod api;
 pub mod bake;
 pub mod bench;
 pub mod canvas;
+pub mod cert;
 pub mod cli;
 pub mod client;
 pub mod farm;
@@ -92,7 +93,7 @@ impl FarmOptions {
         progress: bool,
     ) -> Result<farm::FarmConfig, CoordinatorError> {
         let tls = match &self.tls {
-            Some((cert, key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+            Some((cert, key)) => Some(cert::read_server_tls(cert, key)?),
             None => None,
         };
         Ok(farm::FarmConfig {

@@ -20,6 +20,45 @@ pub struct LocalProcess {
     /// Its stderr: the first line, and whether the pipe has closed. Every
     /// line is also logged here.
     stderr: Arc<Mutex<(Option<String>, bool)>>,
+    /// The CA file it was given, removed with the last process holding it.
+    _ca: Option<Arc<CaFile>>,
+}
+
+/// The CA file local worker processes trust (the server's certificate), in
+/// a directory of its own: a fresh random name in the temporary directory,
+/// created exclusively and readable by this user only, so no other user can
+/// plant or swap it. Dropping it removes the directory.
+pub struct CaFile {
+    dir: tempfile::TempDir,
+}
+
+impl CaFile {
+    /// The directory's name starts with this.
+    pub const PREFIX: &'static str = "hypertexture-ca-";
+
+    /// Writes `cert` as `ca.pem` in a new private directory.
+    pub fn write(cert: &[u8]) -> std::io::Result<CaFile> {
+        use std::io::Write as _;
+        use std::os::unix::fs::{OpenOptionsExt as _, PermissionsExt as _};
+        let dir = tempfile::Builder::new()
+            .prefix(Self::PREFIX)
+            .permissions(std::fs::Permissions::from_mode(0o700))
+            .tempdir()?;
+        let ca = CaFile { dir };
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .mode(0o600)
+            .open(ca.path())?;
+        file.write_all(cert)?;
+        Ok(ca)
+    }
+
+    /// The file.
+    pub fn path(&self) -> std::path::PathBuf {
+        self.dir.path().join("ca.pem")
+    }
 }
 
 impl LocalProcess {
@@ -124,6 +163,7 @@ impl InProcessPlan {
                     fault: None,
                     shares_process: true,
                     tags: Vec::new(),
+                    asset_cache_bytes: worker::cache::DEFAULT_ASSET_CACHE_MB << 20,
                 };
                 tokio::spawn(worker::run(cfg, stopped.clone()))
             })
@@ -151,14 +191,17 @@ impl LocalWorkers {
             lease: config.lease,
             all_refused: true,
         };
-        let ca_path =
-            std::env::temp_dir().join(format!("hypertexture-ca-{}.pem", std::process::id()));
-        if let Some((cert, _)) = &config.tls {
-            std::fs::write(&ca_path, cert)
-                .map_err(|e| FarmError::Tls(format!("{}: {e}", ca_path.display())))?;
-        }
         match worker_binary() {
             Some(path) => {
+                let ca = match &config.tls {
+                    Some((cert, _)) => Some(Arc::new(CaFile::write(cert).map_err(|e| {
+                        FarmError::Tls(format!(
+                            "cannot write the local workers' CA file in {}: {e}",
+                            std::env::temp_dir().display()
+                        ))
+                    })?)),
+                    None => None,
+                };
                 let mut children = Vec::new();
                 for i in 0..config.local_workers {
                     let name = format!("local-{i}");
@@ -182,8 +225,8 @@ impl LocalWorkers {
                     if let Some(t) = token {
                         cmd.env("HYPERTEXTURE_TOKEN", t);
                     }
-                    if config.tls.is_some() {
-                        cmd.arg("--ca").arg(&ca_path);
+                    if let Some(ca) = &ca {
+                        cmd.arg("--ca").arg(ca.path());
                     }
                     #[cfg(target_os = "linux")]
                     // SAFETY: the closure runs in the child between fork and
@@ -206,6 +249,7 @@ impl LocalWorkers {
                         child,
                         exited: None,
                         stderr,
+                        _ca: ca.clone(),
                     });
                 }
                 tracing::info!(

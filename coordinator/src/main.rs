@@ -84,6 +84,14 @@ fn main() -> ExitCode {
             })
             .map_err(|e| e.to_string()),
         Some(Command::Store(command)) => store_command(command),
+        Some(Command::Cert(args)) => coordinator::cert::make(&args.out, &args.name)
+            .map(|files| {
+                for f in &files {
+                    say(format_args!("{}\n", f.display()));
+                }
+                ExitCode::SUCCESS
+            })
+            .map_err(|e| e.to_string()),
         None => {
             coordinator::logging::init(cli.quiet);
             coordinator::run_all(cli.into_config())

@@ -44,6 +44,11 @@ pub struct Cli {
     /// jobs submitted with --require-tag go only to workers carrying all their tags.
     #[arg(long = "tag", value_name = "NAME", value_parser = tag)]
     pub tag: Vec<String>,
+    /// Megabytes of meshes kept between assignments, the least recently used
+    /// dropped first (a scene in use keeps its own, whatever their size).
+    #[arg(long, value_name = "MB", default_value_t = crate::cache::DEFAULT_ASSET_CACHE_MB,
+          value_parser = clap::value_parser!(u64).range(0..=1 << 20))]
+    pub asset_cache_mb: u64,
     /// Exit as soon as the process with this id is no longer this worker's
     /// parent (set by the coordinator for its own local workers).
     #[arg(long, value_name = "PID", hide = true)]
@@ -77,6 +82,7 @@ impl Cli {
             fault: None,
             shares_process: false,
             tags: self.tag,
+            asset_cache_bytes: self.asset_cache_mb << 20,
         })
     }
 }

@@ -15,6 +15,7 @@
 //! (SIGTERM) it finishes the current unit, says goodbye and returns.
 
 pub mod body;
+pub mod cache;
 pub mod cli;
 pub mod logging;
 
@@ -63,6 +64,8 @@ pub struct WorkerConfig {
     /// Tags: the coordinator hands this worker only jobs whose required tags
     /// it carries.
     pub tags: Vec<String>,
+    /// The most bytes of meshes kept between assignments ([`cache::AssetCache`]).
+    pub asset_cache_bytes: u64,
 }
 
 /// A failure a test asks a worker to have, to exercise what follows it.
@@ -401,7 +404,7 @@ pub async fn run(
         _ => probe(&pool).await?,
     };
     let mut report = WorkerReport::default();
-    let mut scenes = SceneCache::default();
+    let mut scenes = SceneCache::new(config.asset_cache_bytes);
     let mut backoff = Backoff(Backoff::FIRST);
     // Since when the coordinator this worker had reached (a connection was
     // made to it) has been unreachable.
@@ -487,7 +490,7 @@ pub async fn run(
         tracing::info!(
             "registered with {} as {} ({} threads)",
             config.coordinator,
-            registered.worker_id,
+            shown(&registered.worker_id),
             config.threads
         );
         let heartbeat = tokio::spawn(heartbeat(
@@ -700,7 +703,12 @@ async fn serve(
                     }
                 };
                 let started = match fetch_assets(client, worker_id, scenes, &assignment).await {
-                    Ok(()) => start_render(&assignment, (pool, withdrawn), scenes, config.fault),
+                    Ok(fetched) => start_render(
+                        &assignment,
+                        (pool, withdrawn),
+                        (scenes, &fetched),
+                        config.fault,
+                    ),
                     Err(e) => Err(e),
                 };
                 match started {
@@ -745,8 +753,13 @@ async fn serve(
         {
             // A new scene's files are fetched while the current unit renders
             // (one that fails to arrive is tried again when its turn comes).
-            let _ = fetch_assets(client, worker_id, scenes, &a).await;
-            match start_render(&a, (pool, withdrawn), scenes, config.fault) {
+            let started = match fetch_assets(client, worker_id, scenes, &a).await {
+                Ok(fetched) => {
+                    start_render(&a, (pool, withdrawn), (scenes, &fetched), config.fault)
+                }
+                Err(e) => Err(e),
+            };
+            match started {
                 Ok(rendering) => queued = Some((a, rendering)),
                 Err(_) => ahead = Some(a),
             }
@@ -812,8 +825,9 @@ async fn report_failure(
     reason: &str,
 ) -> Result<(), Status> {
     tracing::error!(
-        "cannot render assignment {} ({kind}): {reason}",
-        assignment.assignment_id
+        "cannot render assignment {} ({kind}): {}",
+        assignment.assignment_id,
+        shown(reason)
     );
     client
         .report_failure(pb::ReportFailureParams {
@@ -888,7 +902,14 @@ async fn delivered(
 /// What the coordinator said, safe to log: a message off the network is
 /// escaped and capped like every other ([`convert::untrusted`]).
 fn said(status: &Status) -> String {
-    convert::untrusted(status.message(), convert::MAX_REASON_CHARS)
+    shown(status.message())
+}
+
+/// A string that came from the coordinator (a scene's name, a file's path,
+/// a message that holds them), safe to log: escaped and capped as the
+/// coordinator logs what workers send ([`convert::untrusted`]).
+fn shown(s: &str) -> String {
+    convert::untrusted(s, convert::MAX_REASON_CHARS)
 }
 
 /// What to do after a failed call: give up on refusal, otherwise reconnect.
@@ -997,7 +1018,7 @@ async fn listen_for_withdrawals(mut client: Client, worker_id: String, withdrawn
 fn start_render(
     assignment: &pb::Assignment,
     (pool, withdrawn): (&RenderPool, &Arc<Withdrawn>),
-    scenes: &mut SceneCache,
+    (scenes, fetched): (&mut SceneCache, &Fetched),
     fault: Option<Fault>,
 ) -> Result<Rendering, (FailureKind, String)> {
     let job = assignment
@@ -1012,7 +1033,7 @@ fn start_render(
                 job.scene_name
             ),
         )),
-        _ => scenes.get(job),
+        _ => scenes.get(job, fetched),
     }?;
     if fault == Some(Fault::RenderClaim) {
         return Err((
@@ -1111,9 +1132,16 @@ fn render_tile(
 /// from the assignment's wire job with the worker's code and renders the
 /// tile with the worker's function, so the bytes are those every worker of
 /// this build must send. It renders on the caller's rayon pool.
-#[derive(Default)]
 pub struct UnitRenderer {
     scenes: SceneCache,
+}
+
+impl Default for UnitRenderer {
+    fn default() -> UnitRenderer {
+        UnitRenderer {
+            scenes: SceneCache::new(cache::DEFAULT_ASSET_CACHE_MB << 20),
+        }
+    }
 }
 
 impl UnitRenderer {
@@ -1124,10 +1152,8 @@ impl UnitRenderer {
         job: &pb::Job,
         files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
     ) -> Result<Arc<Scene>, (FailureKind, String)> {
-        for a in &job.assets {
-            if self.scenes.assets.contains_key(&a.hash) {
-                continue;
-            }
+        let mut fetched = Fetched::new();
+        for a in self.scenes.missing(job) {
             let bytes = files(a.hash).ok_or_else(|| {
                 (
                     FailureKind::Assignment,
@@ -1139,9 +1165,9 @@ impl UnitRenderer {
             })?;
             let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
                 .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
-            self.scenes.assets.insert(a.hash, Arc::new(mesh));
+            fetched.insert(a.hash, Arc::new(mesh));
         }
-        self.scenes.get(job)
+        self.scenes.get(job, &fetched)
     }
 
     /// The tile of `unit` of `job` (which carries its scene text and frame),
@@ -1179,33 +1205,94 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
         .unwrap_or("(no message)")
 }
 
-/// Scenes built from assignments, by content hash (a worker holds a few at most).
-#[derive(Default)]
+/// Meshes fetched for one assignment and not kept yet: the cache takes them
+/// only once the scene's hash has matched and the scene has built.
+type Fetched = HashMap<u64, Arc<hypertexture::mesh::Mesh>>;
+
+/// Scenes built from assignments, by content hash (a worker holds a few at
+/// most), and the meshes they name ([`cache::AssetCache`], within a budget).
 struct SceneCache {
-    scenes: HashMap<u64, Arc<Scene>>,
-    /// The files scenes name (meshes), fetched once, verified and built, by
-    /// content hash.
-    assets: HashMap<u64, Arc<hypertexture::mesh::Mesh>>,
+    scenes: HashMap<u64, CachedScene>,
+    /// The files scenes name (meshes), fetched, verified and built, by
+    /// content hash; kept only for scenes whose hash matched.
+    assets: cache::AssetCache,
     /// The hash of the scene used last (0: none): the coordinator leaves its
     /// text out of the assignments that follow.
     last: u64,
+    /// Counts uses: a scene's `used` is the count at its last use.
+    clock: u64,
+}
+
+struct CachedScene {
+    scene: Arc<Scene>,
+    /// The content hashes of the meshes it names.
+    assets: Vec<u64>,
+    used: u64,
 }
 
 impl SceneCache {
     const CAPACITY: usize = 4;
 
-    /// The hash of a scene this worker has built (0: none).
-    fn known(&self) -> u64 {
-        self.last
+    /// An empty cache that keeps at most `asset_bytes` of meshes, but for
+    /// those of the scene in use.
+    fn new(asset_bytes: u64) -> SceneCache {
+        SceneCache {
+            scenes: HashMap::new(),
+            assets: cache::AssetCache::new(asset_bytes),
+            last: 0,
+            clock: 0,
+        }
     }
 
-    /// The built scene of a job. Errors say whether the scene itself fails here
-    /// (every unit of the job would: [`FailureKind::Scene`]) or only this
-    /// assignment was unusable.
-    fn get(&mut self, job: &pb::Job) -> Result<Arc<Scene>, (FailureKind, String)> {
+    /// The hash of a scene this worker has built and still holds (0: none).
+    fn known(&self) -> u64 {
+        if self.scenes.contains_key(&self.last) {
+            self.last
+        } else {
+            0
+        }
+    }
+
+    /// The files of `job` this worker must fetch before its scene can be
+    /// built: none when that scene is built already, else those it does not
+    /// hold (each once).
+    fn missing<'a>(&self, job: &'a pb::Job) -> Vec<&'a pb::AssetRef> {
+        if job.scene_text.is_empty() || self.scenes.contains_key(&job.scene_hash) {
+            return Vec::new();
+        }
+        let mut missing: Vec<&pb::AssetRef> = Vec::new();
+        for a in &job.assets {
+            if !self.assets.contains(a.hash) && !missing.iter().any(|m| m.hash == a.hash) {
+                missing.push(a);
+            }
+        }
+        missing
+    }
+
+    /// A built scene, now the most recently used (with its meshes).
+    fn touch(&mut self, hash: u64) -> Option<Arc<Scene>> {
+        self.clock += 1;
+        let cached = self.scenes.get_mut(&hash)?;
+        cached.used = self.clock;
+        for a in &cached.assets {
+            self.assets.get(*a);
+        }
+        Some(Arc::clone(&cached.scene))
+    }
+
+    /// The built scene of a job, with the meshes `fetched` for it or kept.
+    /// Errors say whether the scene itself fails here (every unit of the job
+    /// would: [`FailureKind::Scene`]) or only this assignment was unusable.
+    /// The scene and the meshes fetched for it are kept only once its hash
+    /// has matched and it has built.
+    fn get(
+        &mut self,
+        job: &pb::Job,
+        fetched: &Fetched,
+    ) -> Result<Arc<Scene>, (FailureKind, String)> {
         if job.scene_text.is_empty() {
             // Left out by the coordinator: this worker said it has the scene.
-            return self.scenes.get(&job.scene_hash).cloned().ok_or_else(|| {
+            return self.touch(job.scene_hash).ok_or_else(|| {
                 // Say "none" from now on, so the next assignment brings the text.
                 self.last = 0;
                 (
@@ -1219,18 +1306,11 @@ impl SceneCache {
         }
         let scene_failure = |e: String| (FailureKind::Scene, e);
         let knobs = convert::knobs_from_wire(&job.knobs);
-        let mut assets = hypertexture::scene::Assets::none();
-        let mut hashes = Vec::with_capacity(job.assets.len());
-        for a in &job.assets {
-            let mesh = self.assets.get(&a.hash).ok_or_else(|| {
-                (
-                    FailureKind::Assignment,
-                    format!("{}: the file {} has not arrived", job.scene_name, a.path),
-                )
-            })?;
-            assets.insert(&a.path, Arc::clone(mesh));
-            hashes.push((a.path.clone(), a.hash));
-        }
+        let hashes: Vec<(String, u64)> = job
+            .assets
+            .iter()
+            .map(|a| (a.path.clone(), a.hash))
+            .collect();
         let hash = convert::scene_hash_with_assets(
             convert::scene_hash(
                 &job.scene_text,
@@ -1248,9 +1328,22 @@ impl SceneCache {
                 job.scene_name, job.scene_hash
             )));
         }
-        if let Some(scene) = self.scenes.get(&hash) {
+        if let Some(scene) = self.touch(hash) {
             self.last = hash;
-            return Ok(Arc::clone(scene));
+            return Ok(scene);
+        }
+        let mut assets = hypertexture::scene::Assets::none();
+        for a in &job.assets {
+            let mesh = match fetched.get(&a.hash) {
+                Some(mesh) => Arc::clone(mesh),
+                None => self.assets.get(a.hash).ok_or_else(|| {
+                    (
+                        FailureKind::Assignment,
+                        format!("{}: the file {} has not arrived", job.scene_name, a.path),
+                    )
+                })?,
+            };
+            assets.insert(&a.path, mesh);
         }
         // Only the files that came with the job: a worker reads none from disk.
         let scene = Scene::from_text_with(
@@ -1267,34 +1360,61 @@ impl SceneCache {
             Some(&assets),
         )
         .map_err(|e| scene_failure(e.to_string()))?;
-        if self.scenes.len() >= Self::CAPACITY {
-            self.scenes.clear();
-        }
         let scene = Arc::new(scene);
-        self.scenes.insert(hash, Arc::clone(&scene));
-        self.last = hash;
+        self.keep(hash, &scene, job, fetched);
         Ok(scene)
+    }
+
+    /// Keeps a scene that has built and the meshes fetched for it. Scenes
+    /// that name a mesh the budget pushed out go too (they would hold it).
+    fn keep(&mut self, hash: u64, scene: &Arc<Scene>, job: &pb::Job, fetched: &Fetched) {
+        let pinned: Vec<u64> = job.assets.iter().map(|a| a.hash).collect();
+        let mut dropped = Vec::new();
+        for (h, mesh) in fetched.iter().filter(|(h, _)| pinned.contains(h)) {
+            dropped.extend(self.assets.keep(*h, Arc::clone(mesh), &pinned));
+        }
+        self.scenes
+            .retain(|_, s| !s.assets.iter().any(|a| dropped.contains(a)));
+        if self.scenes.len() >= Self::CAPACITY {
+            let oldest = self
+                .scenes
+                .iter()
+                .min_by_key(|(_, s)| s.used)
+                .map(|(h, _)| *h);
+            if let Some(oldest) = oldest {
+                self.scenes.remove(&oldest);
+            }
+        }
+        self.clock += 1;
+        self.scenes.insert(
+            hash,
+            CachedScene {
+                scene: Arc::clone(scene),
+                assets: pinned,
+                used: self.clock,
+            },
+        );
+        self.last = hash;
     }
 }
 
-/// Fetches the files an assignment's scene names that this worker has not
-/// built yet (`GetAsset`), checks each against its size and hash, and builds
-/// its mesh off the async thread. A file that does not arrive whole and
-/// intact fails the assignment; one that arrives but is not a usable mesh
-/// fails the scene.
+/// Fetches the files an assignment's scene names that this worker does not
+/// hold (`GetAsset`), checks each against its size and hash, and builds its
+/// mesh off the async thread. They are the caller's to hand to
+/// [`SceneCache::get`], which keeps them once the scene's hash has matched.
+/// A file that does not arrive whole and intact fails the assignment; one
+/// that arrives but is not a usable mesh fails the scene.
 async fn fetch_assets(
     client: &mut Client,
     worker_id: &str,
-    scenes: &mut SceneCache,
+    scenes: &SceneCache,
     assignment: &pb::Assignment,
-) -> Result<(), (FailureKind, String)> {
+) -> Result<Fetched, (FailureKind, String)> {
+    let mut fetched = Fetched::new();
     let Some(job) = &assignment.job else {
-        return Ok(());
+        return Ok(fetched);
     };
-    for a in &job.assets {
-        if scenes.assets.contains_key(&a.hash) {
-            continue;
-        }
+    for a in scenes.missing(job) {
         let failed = |e: String| {
             (
                 FailureKind::Assignment,
@@ -1336,7 +1456,7 @@ async fn fetch_assets(
                 a.hash
             )));
         }
-        let fetched = started.elapsed();
+        let fetched_in = started.elapsed();
         let path = a.path.clone();
         let mesh = tokio::task::spawn_blocking(move || {
             hypertexture::mesh::Mesh::from_obj(&path, &bytes, Default::default())
@@ -1346,16 +1466,16 @@ async fn fetch_assets(
         .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
         tracing::info!(
             "{}: {} ({} bytes, {} triangles) fetched in {:.1} ms, its distance tree built in {:.1} ms",
-            job.scene_name,
-            a.path,
+            shown(&job.scene_name),
+            shown(&a.path),
             a.size,
             mesh.triangle_count(),
-            fetched.as_secs_f64() * 1e3,
-            (started.elapsed() - fetched).as_secs_f64() * 1e3
+            fetched_in.as_secs_f64() * 1e3,
+            (started.elapsed() - fetched_in).as_secs_f64() * 1e3
         );
-        scenes.assets.insert(a.hash, Arc::new(mesh));
+        fetched.insert(a.hash, Arc::new(mesh));
     }
-    Ok(())
+    Ok(fetched)
 }
 
 /// Beats every `every` until aborted. Failures are left to the work loop to notice.
@@ -1438,7 +1558,7 @@ mod tests {
             "/../scenes/noisy_sphere.ron"
         ))
         .unwrap();
-        let mut scenes = SceneCache::default();
+        let mut scenes = SceneCache::new(1 << 20);
         assert_eq!(scenes.known(), 0);
         let full = job(&text);
         let without_text = pb::Job {
@@ -1446,19 +1566,88 @@ mod tests {
             ..full.clone()
         };
         assert!(
-            scenes.get(&without_text).is_err(),
+            scenes.get(&without_text, &Fetched::new()).is_err(),
             "no text and never built: refused"
         );
-        let built = scenes.get(&full).unwrap();
+        let built = scenes.get(&full, &Fetched::new()).unwrap();
         assert_eq!(scenes.known(), full.scene_hash);
-        assert!(Arc::ptr_eq(&built, &scenes.get(&without_text).unwrap()));
+        assert!(Arc::ptr_eq(
+            &built,
+            &scenes.get(&without_text, &Fetched::new()).unwrap()
+        ));
         let forged = pb::Job {
             scene_hash: full.scene_hash ^ 1,
             ..full
         };
         assert!(
-            scenes.get(&forged).is_err(),
+            scenes.get(&forged, &Fetched::new()).is_err(),
             "a hash that does not match the text"
         );
+    }
+
+    /// A scene naming one mesh, `t.obj` (tetrahedron `k`), as a coordinator
+    /// sends it, and the mesh as the worker builds it.
+    fn mesh_job(k: u32, hash_of_text: Option<u64>) -> (pb::Job, Fetched) {
+        let text = "Scene(\n    image: (width: 8, height: 8),\n    camera: (eye: (0.3, 0.3, 3.0), look_at: (0.3, 0.3, 0.3), up: (0.0, 1.0, 0.0), projection: Perspective(fov_y: 40.0)),\n    march: (bounds: (min: (-0.2, -0.2, -0.2), max: (1.2, 1.2, 1.2)), step: Length(0.05), opacity: 40.0, threshold: 0.99),\n    object: Mesh(path: \"t.obj\", softness: 0.1),\n)\n";
+        let obj = cache::tetrahedron_obj(k);
+        let hash = hypertexture::mesh::content_hash(obj.as_bytes());
+        let mesh = hypertexture::mesh::Mesh::from_obj("t.obj", obj.as_bytes(), Default::default())
+            .unwrap();
+        let job = pb::Job {
+            scene_hash: hash_of_text.unwrap_or_else(|| {
+                convert::scene_hash_with_assets(
+                    convert::scene_hash(text, 8, 8, 0, 0, &[]),
+                    &[("t.obj".to_string(), hash)],
+                )
+            }),
+            scene_text: text.to_string(),
+            scene_name: "mesh.ron".into(),
+            width: 8,
+            height: 8,
+            assets: vec![pb::AssetRef {
+                path: "t.obj".into(),
+                hash,
+                size: obj.len() as u64,
+            }],
+            ..Default::default()
+        };
+        (job, Fetched::from([(hash, Arc::new(mesh))]))
+    }
+
+    #[test]
+    fn a_mesh_is_kept_only_once_its_scenes_hash_matches() {
+        let mut scenes = SceneCache::new(1 << 20);
+        let (forged, fetched) = mesh_job(0, Some(42));
+        let (kind, message) = scenes.get(&forged, &fetched).unwrap_err();
+        assert_eq!(kind, FailureKind::Scene);
+        assert!(message.contains("content hash mismatch"), "{message}");
+        assert!(
+            scenes.assets.is_empty(),
+            "a mesh of a forged scene is not kept"
+        );
+        assert_eq!(scenes.missing(&forged).len(), 1, "it is fetched again");
+
+        let (job, fetched) = mesh_job(0, None);
+        scenes.get(&job, &fetched).unwrap();
+        assert_eq!(scenes.assets.len(), 1);
+        assert!(scenes.missing(&job).is_empty());
+        assert_eq!(scenes.known(), job.scene_hash);
+    }
+
+    #[test]
+    fn meshes_past_the_budget_go_with_their_scenes() {
+        let one = mesh_job(0, None).1.values().next().unwrap().memory_bytes() as u64;
+        let mut scenes = SceneCache::new(2 * one);
+        for k in 0..50 {
+            let (job, fetched) = mesh_job(k, None);
+            scenes.get(&job, &fetched).unwrap();
+            assert!(scenes.assets.bytes() <= 2 * one, "{k}");
+            assert!(scenes.scenes.len() <= 2, "{k}: a scene holds its mesh");
+            assert_eq!(scenes.known(), job.scene_hash);
+        }
+        // The last two are kept; the first was dropped and is fetched again.
+        assert!(scenes.missing(&mesh_job(49, None).0).is_empty());
+        assert!(scenes.missing(&mesh_job(48, None).0).is_empty());
+        assert_eq!(scenes.missing(&mesh_job(0, None).0).len(), 1);
     }
 }

@@ -1039,7 +1039,7 @@ impl Control for Arc<Service> {
 pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
     crate::logging::init_with(args.quiet, args.log_format == LogFormat::Json);
     let tls = match (&args.tls_cert, &args.tls_key) {
-        (Some(cert), Some(key)) => Some((farm::read_pem(cert)?, farm::read_pem(key)?)),
+        (Some(cert), Some(key)) => Some(crate::cert::read_server_tls(cert, key)?),
         _ => None,
     };
     let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);

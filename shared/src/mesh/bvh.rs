@@ -31,6 +31,11 @@ pub(super) struct Bvh {
 }
 
 impl Bvh {
+    /// The bytes of its nodes.
+    pub(super) fn memory_bytes(&self) -> usize {
+        self.nodes.capacity() * std::mem::size_of::<Node>()
+    }
+
     /// The tree over `triangles` and the order the leaves take them in (the
     /// caller stores the triangles in that order).
     pub(super) fn build(triangles: &[[Vec3; 3]]) -> (Bvh, Vec<u32>) {

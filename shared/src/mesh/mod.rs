@@ -297,6 +297,14 @@ impl Mesh {
         self.vertices
     }
 
+    /// The bytes this mesh holds: its triangles and its tree (what a cache of
+    /// meshes counts against its budget).
+    pub fn memory_bytes(&self) -> usize {
+        std::mem::size_of::<Mesh>()
+            + self.triangles.capacity() * std::mem::size_of::<Triangle>()
+            + self.bvh.memory_bytes()
+    }
+
     /// The box of every vertex (min, max).
     pub fn bounds(&self) -> (Vec3, Vec3) {
         self.bounds
