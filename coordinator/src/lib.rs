@@ -12,6 +12,7 @@ pub mod farm;
 pub mod files;
 pub mod gate;
 pub mod grid;
+pub mod guard;
 pub mod jobs;
 pub mod local;
 pub mod logging;
@@ -108,6 +109,7 @@ impl FarmOptions {
             progress,
             gate: Default::default(),
             verify: self.verify,
+            allow_hosts: Vec::new(),
         })
     }
 }
