@@ -285,6 +285,7 @@ fn farm_render(
         gate: Default::default(),
         // The farm's own costs, without second renderings.
         verify: 0.0,
+        allow_hosts: Vec::new(),
     };
     Ok(runtime.block_on(farm::render(job, farm_config))?)
 }

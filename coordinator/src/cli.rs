@@ -223,6 +223,12 @@ pub struct ServeArgs {
         value_name = "TOKEN"
     )]
     pub token: Option<String>,
+    /// A name of this machine the service answers to without a token, besides
+    /// 127.0.0.1, localhost and [::1] (repeatable). Without a token any other
+    /// `Host` is refused, so that a page elsewhere cannot reach the service by
+    /// DNS rebinding; with --token any name is served.
+    #[arg(long = "allow-host", value_name = "NAME", value_parser = allowed_host)]
+    pub allow_host: Vec<String>,
     /// TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike.
     #[arg(long, value_name = "FILE", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -295,6 +301,12 @@ pub struct StudioArgs {
         value_name = "TOKEN"
     )]
     pub token: Option<String>,
+    /// A name of this machine the service answers to without a token, besides
+    /// 127.0.0.1, localhost and [::1] (repeatable). Without a token any other
+    /// `Host` is refused, so that a page elsewhere cannot reach the service by
+    /// DNS rebinding; with --token any name is served.
+    #[arg(long = "allow-host", value_name = "NAME", value_parser = allowed_host)]
+    pub allow_host: Vec<String>,
     /// Only warnings and errors.
     #[arg(long, short)]
     pub quiet: bool,
@@ -690,6 +702,17 @@ fn fraction(s: &str) -> Result<f64, String> {
         Ok(f) if (0.0..=1.0).contains(&f) => Ok(f),
         _ => Err(format!(
             "expected a fraction from 0 to 1 (0.02: one unit in 50), found {s:?}"
+        )),
+    }
+}
+
+/// A host name for `--allow-host`, in lower case.
+fn allowed_host(s: &str) -> Result<String, String> {
+    match crate::guard::host_name(s) {
+        Some(name) if !s.contains(':') || s.starts_with('[') && s.ends_with(']') => Ok(name),
+        _ => Err(format!(
+            "expected a host name without a port (letters, digits, `-` and `.`, or an IPv6 \
+             address in brackets), found {s:?}"
         )),
     }
 }

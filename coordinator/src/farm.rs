@@ -62,6 +62,9 @@ pub struct FarmConfig {
     /// The fraction of units rendered a second time and compared (verified
     /// rendering, 0 to 1; 0: none).
     pub verify: f64,
+    /// Host names served besides loopback ones when there is no token
+    /// (`--allow-host`; see [`crate::guard`]).
+    pub allow_hosts: Vec<String>,
 }
 
 /// The fraction of units rendered twice unless `--verify` says otherwise.
@@ -349,6 +352,8 @@ pub struct FarmStats {
     pub refused_workers: u64,
     /// Calls refused for a missing or wrong token.
     pub unauthenticated: u64,
+    /// Requests whose handler panicked (each answered 500 or INTERNAL).
+    pub handler_panics: u64,
     /// Units the coordinator rendered itself to check a sample, a dispute
     /// or a failure claim.
     pub checks: u64,
@@ -427,6 +432,7 @@ impl Shared {
     pub fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
         let mut state = self.lock_state();
         state.stats.unauthenticated = self.gate.refused();
+        state.stats.handler_panics = crate::panics::caught();
         state
     }
 
@@ -565,10 +571,8 @@ impl Service {
         let presented = request
             .metadata()
             .get(hypertexture_proto::AUTHORIZATION)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
-        let ok = presented.is_some_and(|p| constant_time_eq(p.as_bytes(), token.as_bytes()));
-        if ok {
+            .map(|v| v.as_bytes());
+        if crate::guard::bearer_is(presented, token.as_bytes()) {
             Ok(())
         } else {
             // The gate refuses such calls from their headers (and logs them);
@@ -710,10 +714,6 @@ pub fn tags_from_wire(tags: &[String]) -> Result<Vec<String>, String> {
         }
     }
     Ok(out)
-}
-
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 fn refusal(r: Refusal) -> Status {
@@ -1155,7 +1155,7 @@ impl Farm {
             unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
             withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
             closing: watch::channel(false).0,
-            gate: crate::gate::Gate::new(token.as_deref(), config.gate),
+            gate: crate::gate::Gate::new(token.as_deref(), config.gate, &config.allow_hosts),
             assets: Mutex::new(HashMap::new()),
             verify: config.verify,
             checks: tokio::sync::Notify::new(),
@@ -1197,6 +1197,8 @@ impl Farm {
         let gate = Arc::clone(&shared.gate);
         let server_task = tokio::spawn(
             server
+                // Outermost: a handler's panic fails its request alone.
+                .layer(crate::panics::CatchLayer)
                 .layer(crate::gate::GateLayer(Arc::clone(&gate)))
                 .add_routes(router)
                 .serve_with_incoming_shutdown(gate.incoming(listener), async {

@@ -1,9 +1,14 @@
 //! The farm's front door: every connection and every call passes here before
 //! any body is read.
 //!
+//! First, every request passes the `Host` and `Origin` checks of
+//! [`crate::guard::Hosts`] (refused with 400 or 403, a gRPC call with
+//! `PERMISSION_DENIED`): without a token only loopback names and
+//! `--allow-host` names are served, and a foreign `Origin` changes nothing.
+//!
 //! With a token, a connection is *unauthenticated* until one of its requests
-//! carries `Authorization: Bearer <token>` (or, for the studio's browser
-//! routes, `?token=<token>`). Unauthenticated connections are limited in
+//! carries `Authorization: Bearer <token>` (or, for the studio's event
+//! stream alone, `?token=<token>`; see [`crate::guard::admits`]). Unauthenticated connections are limited in
 //! number ([`GateLimits::unauthenticated`]); when one more arrives, the
 //! oldest of the peer address holding the most of them is closed, so a flood
 //! from one address cannot keep another address out. An unauthenticated
@@ -14,7 +19,7 @@
 //! each peer address, with the number refused since the last line.
 //!
 //! Without a token (loopback only, see `farm::Farm::start`) every connection
-//! counts as authenticated and none of this applies.
+//! counts as authenticated and none of the token's rules apply.
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -93,6 +98,8 @@ struct Conns {
 /// The gate: the token, the limits, the connections and the refusals.
 pub struct Gate {
     token: Option<Vec<u8>>,
+    /// The `Host` and `Origin` rules.
+    hosts: crate::guard::Hosts,
     limits: GateLimits,
     conns: Mutex<Conns>,
     refusals: Mutex<HashMap<IpAddr, Refusals>>,
@@ -103,9 +110,12 @@ pub struct Gate {
 }
 
 impl Gate {
-    pub fn new(token: Option<&str>, limits: GateLimits) -> Arc<Gate> {
+    /// A gate for `token` (none: loopback only) that serves `allow_hosts`
+    /// besides loopback names when there is no token.
+    pub fn new(token: Option<&str>, limits: GateLimits, allow_hosts: &[String]) -> Arc<Gate> {
         Arc::new(Gate {
             token: token.map(|t| t.as_bytes().to_vec()),
+            hosts: crate::guard::Hosts::new(allow_hosts, token.is_some()),
             limits,
             conns: Mutex::default(),
             refusals: Mutex::default(),
@@ -190,31 +200,14 @@ impl Gate {
         }
     }
 
-    /// Whether the request's headers (or, for a browser, its `token` query
-    /// parameter) carry the token.
+    /// Whether the request carries the token: in its headers, or for the
+    /// studio's event stream, its `token` query parameter
+    /// ([`crate::guard::admits`]).
     fn admits<B>(&self, request: &Request<B>) -> bool {
         let Some(token) = &self.token else {
             return true;
         };
-        let bearer = request
-            .headers()
-            .get(axum::http::header::AUTHORIZATION)
-            .map(|v| v.as_bytes())
-            .and_then(|v| {
-                let scheme = b"bearer ";
-                (v.len() >= scheme.len() && v[..scheme.len()].eq_ignore_ascii_case(scheme))
-                    .then(|| v[scheme.len()..].trim_ascii())
-            });
-        if bearer.is_some_and(|b| crate::api::same_secret(b, token)) {
-            return true;
-        }
-        // The studio's browser routes pass the token in the query (percent
-        // decoding is the studio's own check; a raw match suffices here).
-        request.uri().query().is_some_and(|q| {
-            q.split('&')
-                .filter_map(|kv| kv.strip_prefix("token="))
-                .any(|t| crate::api::same_secret(t.as_bytes(), token))
-        })
+        crate::guard::admits(request.method(), request.uri(), request.headers(), token)
     }
 
     /// Counts a refusal of `peer`; logs it when the peer's last line is a
@@ -437,7 +430,8 @@ fn peer_of<B>(request: &Request<B>) -> Option<SocketAddr> {
         })
 }
 
-fn is_grpc<B>(request: &Request<B>) -> bool {
+/// Whether a request is a gRPC call (by its content type).
+pub(crate) fn is_grpc<B>(request: &Request<B>) -> bool {
     request
         .headers()
         .get(axum::http::header::CONTENT_TYPE)
@@ -462,6 +456,25 @@ where
 
     fn call(&mut self, request: Request<B>) -> Self::Future {
         let peer = peer_of(&request);
+        if let Err(refused) =
+            self.gate
+                .hosts
+                .check(request.method(), request.uri(), request.headers())
+        {
+            tracing::debug!(
+                "refused {} {} from {}: {}",
+                request.method(),
+                hypertexture_proto::convert::untrusted(request.uri().path(), 128),
+                peer.map_or_else(|| "an unknown address".into(), |p| p.to_string()),
+                refused.message
+            );
+            let response = if is_grpc(&request) {
+                tonic::Status::permission_denied(refused.message).into_http()
+            } else {
+                json_error(refused.status, &refused.message)
+            };
+            return Box::pin(std::future::ready(Ok(response)));
+        }
         if self.gate.admits(&request) {
             if let Some(peer) = peer {
                 let conns = self.gate.conns.lock().unwrap_or_else(|p| p.into_inner());
@@ -486,13 +499,28 @@ where
     }
 }
 
+/// An answer of `status` with the body `{"error": message}`.
+pub(crate) fn json_error(
+    status: axum::http::StatusCode,
+    message: &str,
+) -> Response<tonic::body::Body> {
+    let body = serde_json::json!({ "error": message }).to_string();
+    let mut response = Response::new(tonic::body::Body::new(axum::body::Body::from(body)));
+    *response.status_mut() = status;
+    response.headers_mut().insert(
+        axum::http::header::CONTENT_TYPE,
+        axum::http::HeaderValue::from_static("application/json"),
+    );
+    response
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[tokio::test]
     async fn refusals_are_logged_once_a_minute_a_peer_with_their_count() {
-        let gate = Gate::new(Some("s3cret"), GateLimits::default());
+        let gate = Gate::new(Some("s3cret"), GateLimits::default(), &[]);
         let a: SocketAddr = "10.0.0.1:1".parse().unwrap();
         for _ in 0..5 {
             gate.refuse(Some(a), "a call");
@@ -505,7 +533,7 @@ mod tests {
 
     #[test]
     fn the_token_is_read_from_the_header_or_the_query() {
-        let gate = Gate::new(Some("s3cret"), GateLimits::default());
+        let gate = Gate::new(Some("s3cret"), GateLimits::default(), &[]);
         let with = |h: Option<&str>, uri: &str| {
             let mut r = Request::builder().uri(uri);
             if let Some(h) = h {
@@ -517,8 +545,14 @@ mod tests {
         assert!(with(Some("bearer s3cret"), "/x"));
         assert!(!with(Some("Bearer s3cre"), "/x"));
         assert!(!with(None, "/x"));
+        assert!(with(Some("BEARER s3cret"), "/x"));
         assert!(with(None, "/studio/events?token=s3cret"));
         assert!(!with(None, "/studio/events?token=nope"));
-        assert!(Gate::new(None, GateLimits::default()).admits(&Request::new(())));
+        assert!(!with(None, "/studio/scene?token=s3cret"));
+        assert!(!with(
+            None,
+            "/studio/tiles?generation=0&from=0&to=0&token=s3cret"
+        ));
+        assert!(Gate::new(None, GateLimits::default(), &[]).admits(&Request::new(())));
     }
 }

@@ -13,6 +13,7 @@ pub mod farm;
 pub mod files;
 pub mod gate;
 pub mod grid;
+pub mod guard;
 pub mod jobs;
 pub mod local;
 pub mod logging;
@@ -109,6 +110,7 @@ impl FarmOptions {
             progress,
             gate: Default::default(),
             verify: self.verify,
+            allow_hosts: Vec::new(),
         })
     }
 }

@@ -218,7 +218,8 @@ function moment(generation) {
 async function fetchPixels(need) {
   const g = studio.generation;
   const from = need[0].index, to = need[need.length - 1].index + 1;
-  const query = `generation=${g}&from=${from}&to=${to}` + (token ? '&token=' + encodeURIComponent(token) : '');
+  // The token goes in the header: only the event stream takes it in its URL.
+  const query = `generation=${g}&from=${from}&to=${to}`;
   const response = await fetch('/studio/tiles?' + query, { headers: headers(false) });
   if (!response.ok) throw new Error(`tiles ${from}..${to}: ${response.status}`);
   const bytes = new Uint8Array(await response.arrayBuffer());
@@ -331,6 +332,7 @@ function escape(s) {
 // ---- Events ----------------------------------------------------------------
 
 function listen() {
+  // An EventSource cannot send a header: the one URL that carries the token.
   const source = new EventSource('/studio/events' + (token ? '?token=' + encodeURIComponent(token) : ''));
   source.addEventListener('frame', (e) => {
     // The picture shown stays until the new frame's first tile.

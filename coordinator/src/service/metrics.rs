@@ -204,6 +204,11 @@ pub fn render(s: &Snapshot<'_>) -> String {
             "Worker calls refused for a missing or wrong token.",
             s.stats.unauthenticated,
         ),
+        (
+            "hypertexture_handler_panics_total",
+            "Requests whose handler panicked: each answered 500 (gRPC: INTERNAL), the service going on.",
+            s.stats.handler_panics,
+        ),
     ] {
         header(&mut out, name, "counter", help);
         let _ = writeln!(out, "{name} {value}");

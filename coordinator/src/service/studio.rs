@@ -34,8 +34,9 @@
 //! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
-//! the service) need `Authorization: Bearer <token>` or `?token=<token>` (an
-//! `EventSource` cannot send a header).
+//! the service) need `Authorization: Bearer <token>`; the event stream alone
+//! also takes `?token=<token>` (an `EventSource` cannot send a header), and
+//! the page sends the header on every other request.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -784,7 +785,7 @@ struct Ctx {
 }
 
 /// The studio's routes: the page, its files, and its data routes (behind the
-/// token, from a header or a `token` query parameter).
+/// token: see [`check_token`]).
 pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
     let ctx = Ctx { studio, control };
     let data = Router::new()
@@ -836,54 +837,26 @@ fn static_file(content_type: &'static str, body: &'static str) -> Response {
         .into_response()
 }
 
-/// The value of `name` in a query string, percent-decoded.
-fn query_param(query: &str, name: &str) -> Option<String> {
-    query.split('&').find_map(|pair| {
-        let (k, v) = pair.split_once('=')?;
-        (k == name).then(|| percent_decode(v))
-    })
-}
-
-fn percent_decode(s: &str) -> String {
-    let bytes = s.as_bytes();
-    let mut out = Vec::with_capacity(bytes.len());
-    let mut i = 0;
-    while i < bytes.len() {
-        match bytes[i] {
-            b'%' if i + 2 < bytes.len() => match u8::from_str_radix(&s[i + 1..i + 3], 16) {
-                Ok(b) => {
-                    out.push(b);
-                    i += 3;
-                    continue;
-                }
-                Err(_) => out.push(b'%'),
-            },
-            b'+' => out.push(b' '),
-            b => out.push(b),
-        }
-        i += 1;
-    }
-    String::from_utf8_lossy(&out).into_owned()
-}
-
-/// Refuses a data route without the token (401).
+/// Refuses a data route without the token (401): it comes in
+/// `Authorization: Bearer <token>`, or for `GET /studio/events` alone in
+/// `?token=<token>` ([`crate::guard::admits`]).
 async fn check_token(State(ctx): State<Ctx>, request: Request, next: Next) -> Response {
     let Some(token) = &ctx.studio.token else {
         return next.run(request).await;
     };
-    let bearer = request
-        .headers()
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::to_string);
-    let given = bearer.or_else(|| query_param(request.uri().query()?, "token"));
-    if given.is_some_and(|g| crate::api::same_secret(g.trim().as_bytes(), token.as_bytes())) {
+    if crate::guard::admits(
+        request.method(),
+        request.uri(),
+        request.headers(),
+        token.as_bytes(),
+    ) {
         return next.run(request).await;
     }
     Refused(
         StatusCode::UNAUTHORIZED,
-        "missing or wrong token: send `Authorization: Bearer <token>` or `?token=<token>`".into(),
+        "missing or wrong token: send `Authorization: Bearer <token>` \
+         (the event stream alone also takes `?token=<token>`)"
+            .into(),
     )
     .into_response()
 }
@@ -924,10 +897,6 @@ struct TileRange {
     generation: u64,
     from: usize,
     to: usize,
-    /// The token, read by [`check_token`].
-    #[serde(default)]
-    #[allow(dead_code)]
-    token: Option<String>,
 }
 
 /// The pixels of a range of the current frame's tiles, one after another
@@ -1105,7 +1074,6 @@ mod tests {
             generation,
             from,
             to,
-            token: None,
         };
         assert_eq!(
             studio.tile_pixels(&range(3, 1, 3)).ok(),
@@ -1131,14 +1099,5 @@ mod tests {
                 format!("tiles {from}..{to}: frame 3 has 3 tiles so far")
             );
         }
-    }
-
-    #[test]
-    fn tokens_come_from_the_query_percent_decoded() {
-        assert_eq!(
-            query_param("a=1&token=s%3Dx", "token").as_deref(),
-            Some("s=x")
-        );
-        assert_eq!(query_param("a=1", "token"), None);
     }
 }
