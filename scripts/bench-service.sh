@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${BIN:-target/release}
 DATA=$(mktemp -d); OUT=$(mktemp -d)
-"$BIN/coordinator" serve --data "$DATA" --listen 127.0.0.1:47123 --local-workers 2 -q 2>"$OUT/log" &
+"$BIN/coordinator" serve --data "$DATA" --listen 127.0.0.1:47123 --local-workers 2 --output-root "$OUT" -q 2>"$OUT/log" &
 PID=$!
 trap 'kill $PID 2>/dev/null || true; rm -rf "$DATA" "$OUT"' EXIT
 for i in $(seq 50); do curl -sf http://127.0.0.1:47123/api/v1/jobs >/dev/null && break; sleep 0.1; done

@@ -11,7 +11,10 @@ BIN=${BIN:-target/release}
 PORT=${PORT:-47124}
 FRAMES=${FRAMES:-30}
 DATA=$(mktemp -d); OUT=$(mktemp -d)
-"$BIN/coordinator" serve --data "$DATA" --listen "127.0.0.1:$PORT" --local-workers 2 --verify 0 -q 2>"$OUT/log" &
+# Outputs go to OUT: an output root where the build has them.
+ROOTS=()
+"$BIN/coordinator" serve --help | grep -q -- --output-root && ROOTS=(--output-root "$OUT")
+"$BIN/coordinator" serve --data "$DATA" --listen "127.0.0.1:$PORT" --local-workers 2 --verify 0 "${ROOTS[@]}" -q 2>"$OUT/log" &
 PID=$!
 trap 'kill $PID 2>/dev/null || true; wait $PID 2>/dev/null || true; rm -rf "$DATA" "$OUT"' EXIT
 URL=http://127.0.0.1:$PORT
