@@ -1,8 +1,9 @@
 //! The store's faults: a full disk under `--data` (a small tmpfs this test
-//! mounts as root and unmounts), a byte flipped in a stored tile, a lost or
-//! truncated WAL, a backup put back, and a drain whose local workers are
-//! SIGSTOPped. Every acknowledged job ends done and byte-identical to the
-//! in-process render. Loopback only; every wait is bounded.
+//! mounts as root and unmounts), a frame's record the store refuses, a byte
+//! flipped in a stored tile, a lost or truncated WAL, a backup put back, and
+//! a drain whose local workers are SIGSTOPped. Every acknowledged job ends
+//! done and byte-identical to the in-process render. Loopback only; every
+//! wait is bounded.
 
 mod support;
 
@@ -229,6 +230,57 @@ fn a_full_disk_under_data_loses_no_acknowledged_job() {
     assert!(d > c, "{d} after {c}");
     drop(_s);
     drop(tmpfs);
+}
+
+/// A frame's record refused by the store (a trigger makes SQLite refuse the
+/// output row, as a full disk refuses the whole transaction): the frame's
+/// file is written, but the frame counts only once recorded, so the job is
+/// not done and the service is not ready while the record waits; once the
+/// store takes it, it is recorded by itself, the job ends done with every
+/// frame listed and byte-identical, and a restart finds the same.
+#[test]
+fn a_frames_record_the_store_refuses_waits_and_is_kept_once_it_writes() {
+    let dir = scratch("store-record");
+    let data = dir.join("data");
+    let expected = references(&dir, 2);
+    let (s, url) = serve(&data, &["--local-workers", "1", "--verify", "0"]);
+    let conn = rusqlite::Connection::open(data.join("farm.sqlite")).unwrap();
+    conn.busy_timeout(Duration::from_secs(5)).unwrap();
+    conn.execute_batch(
+        "CREATE TRIGGER refuse_outputs BEFORE INSERT ON outputs \
+         BEGIN SELECT RAISE(ABORT, 'refused by the test'); END;",
+    )
+    .unwrap();
+    let id = submit(
+        &url,
+        "tribble",
+        &dir.join("r_#.png"),
+        &["--width", "32", "--height", "32", "--frames", "0..2"],
+    );
+    let first = dir.join("r_0.png");
+    until(60, "frame 0's file", || first.exists());
+    until(10, "/readyz failing", || readyz(&url) == 503);
+    let j = job(&url, id);
+    assert_ne!(j["state"], "done", "{j}");
+    assert_eq!(j["frames_done"], 0, "a frame counts once recorded: {j}");
+    assert!(j["outputs"].as_array().unwrap().is_empty(), "{j}");
+    assert_eq!(metric(&url, "hypertexture_store_writable"), 0.0);
+    // The store takes writes again: nothing to restart.
+    conn.execute_batch("DROP TRIGGER refuse_outputs;").unwrap();
+    drop(conn);
+    let j = poll_job(&url, id, 60, |j| j["state"] == "done");
+    assert_eq!(j["outputs"].as_array().unwrap().len(), 2, "{j}");
+    assert_eq!(readyz(&url), 200);
+    for (f, want) in expected.iter().enumerate() {
+        same_bytes(&dir.join(format!("r_{f}.png")), want);
+    }
+    s.signal(15);
+    let (status, log) = s.finish(60);
+    assert!(status.success(), "{}", log.join("\n"));
+    let (_s, url) = serve(&data, &["--local-workers", "0"]);
+    let j = job(&url, id);
+    assert_eq!(j["state"], "done", "{j}");
+    assert_eq!(j["outputs"].as_array().unwrap().len(), 2, "{j}");
 }
 
 /// Finds `needle` in `haystack`; returns its offset if it occurs once.

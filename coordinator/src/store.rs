@@ -493,7 +493,13 @@ impl Store {
             .conn
             .prepare("PRAGMA quick_check(5)")
             .and_then(|mut s| s.query_map([], |r| r.get(0))?.collect())
-            .map_err(|e| self.opening(e))?;
+            .map_err(|e| match e.sqlite_error_code() {
+                // Damage the check cannot walk past.
+                Some(ErrorCode::DatabaseCorrupt) => {
+                    self.corrupt(format!("SQLite's quick_check stopped: {e}"))
+                }
+                _ => self.opening(e),
+            })?;
         if found.len() == 1 && found[0] == "ok" {
             return Ok(());
         }
@@ -1529,6 +1535,42 @@ mod tests {
             // The file is left as it was.
             assert_eq!(std::fs::read(&path)?, bytes);
         }
+        Ok(())
+    }
+
+    /// A page of the jobs table's b-tree damaged (its cell count made
+    /// impossible) is found by `quick_check` at open: the store is refused,
+    /// naming the file, what SQLite found and what to do.
+    #[test]
+    fn a_store_that_fails_quick_check_is_refused() -> Result<(), Box<dyn std::error::Error>> {
+        let dir = TempDir::new("quick-check");
+        {
+            let store = open(&dir);
+            for i in 0..100 {
+                store.insert_job(&"j".repeat(1000), 0, i)?;
+            }
+            store.checkpoint()?;
+        }
+        let path = dir.0.join(DB_FILE);
+        let mut bytes = std::fs::read(&path)?;
+        let page = usize::from(u16::from_be_bytes([bytes[16], bytes[17]]));
+        // The last leaf page of a table (type 0x0d) past the schema's page.
+        let leaf = (1..bytes.len() / page)
+            .rev()
+            .find(|&p| bytes[p * page] == 0x0d)
+            .expect("a table leaf page");
+        bytes[leaf * page + 3] = 0xff;
+        bytes[leaf * page + 4] = 0xff;
+        std::fs::write(&path, &bytes)?;
+        let e = match Store::open(&dir.0) {
+            Ok(_) => panic!("a damaged store was opened"),
+            Err(e) => e,
+        };
+        let text = e.to_string();
+        assert!(matches!(e, StoreError::Corrupt { .. }), "{e:?}");
+        assert!(text.starts_with(&path.display().to_string()), "{text}");
+        assert!(text.contains("SQLite's quick_check"), "{text}");
+        assert!(text.contains(RESTORE_HINT), "{text}");
         Ok(())
     }
 
