@@ -16,23 +16,19 @@ use support::*;
 const TOKEN: &str = "s3cret";
 
 /// A service on a free loopback port without local workers, with `extra`
-/// flags; returns it and its port once it serves.
+/// flags (`support::service::serve`); returns it, its port and its scratch
+/// directory once it serves.
 fn serve(name: &str, extra: &[&str]) -> (Running, u16, std::path::PathBuf) {
-    let data = scratch(name);
-    let mut args = vec![
-        "serve",
-        "--data",
-        data.to_str().unwrap(),
-        "--listen",
-        "127.0.0.1:0",
-        "--local-workers",
-        "0",
-    ];
+    let dir = scratch(name);
+    let mut args = vec!["--local-workers", "0"];
     args.extend_from_slice(extra);
-    let mut serve = Running::coordinator(&args);
-    let port = serve.port();
-    serve.wait_for("serving on", 30);
-    (serve, port, data)
+    let (serve, url) = support::service::serve(&dir.join("data"), &args);
+    let port = url
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .expect("the service's port");
+    (serve, port, dir)
 }
 
 /// What came back for one raw HTTP/1 request: the status, the head (in
