@@ -293,6 +293,24 @@ fn find_once(haystack: &[u8], needle: &[u8]) -> Option<usize> {
     found.next().is_none().then_some(first)
 }
 
+/// The file offset of a 32-byte stretch of `pixels` that occurs once in
+/// `file`, tried from the tile's middle outwards.
+fn unique_stretch(file: &[u8], pixels: &[u8]) -> Option<usize> {
+    const STRETCH: usize = 32;
+    let starts = pixels.len().checked_sub(STRETCH)? / STRETCH;
+    (0..=starts)
+        .map(|i| {
+            let half = starts / 2;
+            let k = if i % 2 == 0 {
+                half + i / 2
+            } else {
+                half.wrapping_sub(i / 2 + 1)
+            };
+            k.min(starts) * STRETCH
+        })
+        .find_map(|off| find_once(file, &pixels[off..off + STRETCH]).map(|at| at + STRETCH / 2))
+}
+
 /// A stored tile (JSON of the tiles table's row): its job, frame, unit and bytes.
 fn stored_tiles(db: &Path) -> Vec<(u64, u32, u32, Vec<u8>)> {
     let conn = rusqlite::Connection::open(db).unwrap();
@@ -332,11 +350,20 @@ fn a_flipped_byte_in_a_stored_tile_is_dropped_and_rendered_again() {
     );
     let tiles = stored_tiles(&db);
     assert!(tiles.len() >= 4, "{} tiles stored", tiles.len());
-    let (job_id, frame, unit, pixels) = tiles[tiles.len() / 2].clone();
-    assert_eq!(job_id, id);
     let mut bytes = std::fs::read(&db).unwrap();
-    let at = find_once(&bytes, &pixels).expect("the tile's bytes once in the file");
-    let mid = at + pixels.len() / 2;
+    // Tiles of background repeat one another, and a tile larger than a page
+    // is split across overflow pages: flip inside a stretch of one tile's
+    // bytes that occurs exactly once in the file.
+    let (job_id, frame, unit, mid) = tiles
+        .iter()
+        .cycle()
+        .skip(tiles.len() / 2)
+        .take(tiles.len())
+        .find_map(|(job, frame, unit, pixels)| {
+            unique_stretch(&bytes, pixels).map(|at| (*job, *frame, *unit, at))
+        })
+        .expect("a stretch of some tile's bytes once in the file");
+    assert_eq!(job_id, id);
     for b in &mut bytes[mid..mid + 4] {
         *b ^= 0xa5;
     }
