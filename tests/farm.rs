@@ -230,7 +230,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
         );
         // The right protocol but other arithmetic (another build): its pixels
         // would not be byte-identical, so it is refused, naming both digests.
-        let digest = hypertexture::probe::arithmetic_digest().unwrap();
+        let digest = hypertexture::render::probe::arithmetic_digest().unwrap();
         let refused = client
             .register(pb::RegisterParams {
                 protocol_version: hypertexture_proto::PROTOCOL_VERSION,

@@ -80,13 +80,14 @@ fn golden_images_hold_on_every_isa_path() {
             height: Some(64),
             ..Default::default()
         };
-        for isa in hypertexture::simd::Isa::available() {
+        for isa in hypertexture::math::simd::Isa::available() {
             let mut scene = hypertexture::Scene::load(scene(name), overrides.clone()).unwrap();
             assert!(scene.set_isa(isa));
             let film = pool.install(|| hypertexture::render::render(&scene, 0, &|_| {}));
             let out = dir.join(format!("{name}-{}.png", isa.name()));
-            let metadata = coordinator::output::ImageMetadata::without_scene(64, 64, None, None);
-            coordinator::output::write_image(&film, &out, &metadata).unwrap();
+            let metadata =
+                coordinator::pipeline::output::ImageMetadata::without_scene(64, 64, None, None);
+            coordinator::pipeline::output::write_image(&film, &out, &metadata).unwrap();
             let got = decode_png(&out);
             if got.as_raw() != want.as_raw() {
                 let differing = got

@@ -34,7 +34,7 @@ fn eval_prints_perlins_reference_value_and_probes_scenes() {
     let v: f32 = ok(&out).trim().parse().unwrap();
     assert_eq!(
         v,
-        hypertexture::noise::perlin(glam::Vec3::new(0.5, 0.25, 0.125))
+        hypertexture::field::noise::perlin(glam::Vec3::new(0.5, 0.25, 0.125))
     );
     let out = coordinator(&["eval", "1 + nosie(x)"]);
     assert!(!out.status.success());

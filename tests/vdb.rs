@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use coordinator::bake::Lattice;
+use coordinator::pipeline::bake::Lattice;
 use hypertexture::{Overrides, Scene};
 use support::*;
 

@@ -6,9 +6,9 @@
 
 use std::collections::BTreeMap;
 
-use coordinator::jobs::JobSpec;
-use coordinator::store::Store;
-use hypertexture::interleave::farm_units;
+use coordinator::service::jobs::JobSpec;
+use coordinator::service::store::Store;
+use hypertexture::render::interleave::farm_units;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);

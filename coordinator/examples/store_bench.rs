@@ -6,8 +6,8 @@
 
 use std::time::{Duration, Instant};
 
-use coordinator::jobs::JobState;
-use coordinator::store::Store;
+use coordinator::service::jobs::JobState;
+use coordinator::service::store::Store;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     const PUTS: u32 = 2_000;
@@ -30,9 +30,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let start = Instant::now();
         let mut sum = 0i64;
         for _ in 0..N {
-            sum = sum.wrapping_add(coordinator::store::tile_checksum(std::hint::black_box(
-                &tile[..size],
-            )));
+            sum = sum.wrapping_add(coordinator::service::store::tile_checksum(
+                std::hint::black_box(&tile[..size]),
+            ));
         }
         println!(
             "tile_checksum of {size} bytes: {:.3} µs (sum {sum:x})",

@@ -454,7 +454,7 @@ pub struct BakeArgs {
     #[arg(long, value_name = "FILE")]
     pub out: String,
     /// Voxels along the longest edge of the box where the density can be non-zero.
-    #[arg(long, value_name = "N", default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=i64::from(crate::bake::MAX_RESOLUTION)))]
+    #[arg(long, value_name = "N", default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=i64::from(crate::pipeline::bake::MAX_RESOLUTION)))]
     pub resolution: u32,
     /// Frame number (animated scenes).
     #[arg(long, value_name = "F", default_value_t = 0)]
@@ -499,8 +499,8 @@ pub struct BakeArgs {
 
 impl BakeArgs {
     /// The library configuration of the bake.
-    pub fn into_config(self) -> crate::bake::BakeConfig {
-        crate::bake::BakeConfig {
+    pub fn into_config(self) -> crate::pipeline::bake::BakeConfig {
+        crate::pipeline::bake::BakeConfig {
             scene: self.scene,
             out: self.out,
             resolution: self.resolution,
@@ -578,8 +578,8 @@ pub struct BenchArgs {
 
 impl BenchArgs {
     /// The library configuration of the benchmark.
-    pub fn into_config(self) -> crate::bench::BenchConfig {
-        crate::bench::BenchConfig {
+    pub fn into_config(self) -> crate::pipeline::bench::BenchConfig {
+        crate::pipeline::bench::BenchConfig {
             scene: self.scene,
             unbalanced: self.unbalanced,
             width: self.width,
@@ -708,7 +708,7 @@ fn fraction(s: &str) -> Result<f64, String> {
 
 /// A host name for `--allow-host`, in lower case.
 fn allowed_host(s: &str) -> Result<String, String> {
-    match crate::guard::host_name(s) {
+    match crate::service::guard::host_name(s) {
         Some(name) if !s.contains(':') || s.starts_with('[') && s.ends_with(']') => Ok(name),
         _ => Err(format!(
             "expected a host name without a port (letters, digits, `-` and `.`, or an IPv6 \

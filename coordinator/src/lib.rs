@@ -2,29 +2,12 @@
 //!
 //! The binary (`main.rs`) only parses arguments and calls [`run`].
 
-pub mod api;
-pub mod bake;
-pub mod bench;
-pub mod canvas;
-pub mod cert;
 pub mod cli;
-pub mod client;
 pub mod farm;
 pub mod files;
-pub mod gate;
-pub mod grid;
-pub mod guard;
-pub mod jobs;
-pub mod local;
 pub mod logging;
-pub mod output;
-pub mod panics;
-pub mod progress;
-pub mod recolor;
-pub mod scheduler;
+pub mod pipeline;
 pub mod service;
-pub mod store;
-pub mod vdb;
 
 use std::io::IsTerminal;
 use std::num::NonZeroUsize;
@@ -94,7 +77,7 @@ impl FarmOptions {
         progress: bool,
     ) -> Result<farm::FarmConfig, CoordinatorError> {
         let tls = match &self.tls {
-            Some((cert, key)) => Some(cert::read_server_tls(cert, key)?),
+            Some((cert, key)) => Some(crate::farm::cert::read_server_tls(cert, key)?),
             None => None,
         };
         Ok(farm::FarmConfig {
@@ -143,7 +126,7 @@ pub enum CoordinatorError {
     Scene(#[from] SceneError),
     /// The image could not be written.
     #[error(transparent)]
-    Output(#[from] output::OutputError),
+    Output(#[from] crate::pipeline::output::OutputError),
     /// The farm failed.
     #[error(transparent)]
     Farm(#[from] farm::FarmError),
@@ -217,7 +200,7 @@ pub fn frame_path(out: &std::path::Path, frame: u32) -> PathBuf {
 /// first frame to the last, and each image is written as soon as it is complete.
 pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
     // Fail on a bad output name before spending any time rendering.
-    output::ImageFormat::from_path(&config.out)?;
+    crate::pipeline::output::ImageFormat::from_path(&config.out)?;
     // A sequence's files go beside `config.out`: one directory to check.
     files::check_writable(&config.out)?;
     let (scene_text, scene_name, config) = scene_of(config)?;
@@ -241,7 +224,8 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
         knobs: config.knobs.clone(),
     };
     let scene = Scene::from_text(&scene_text, &scene_name, overrides.clone())?;
-    let metadata = output::ImageMetadata::new(&scene, &scene_name, &scene_text, &overrides);
+    let metadata =
+        crate::pipeline::output::ImageMetadata::new(&scene, &scene_name, &scene_text, &overrides);
     let Some(options) = &config.farm else {
         let threads = config.threads.map_or_else(
             || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
@@ -252,7 +236,7 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
             .into_iter()
             .map(|f| {
                 let (film, time) = render_in_process(&scene, f.frame, threads, config.progress)?;
-                let image = canvas::FrameImage::Film(film);
+                let image = crate::farm::canvas::FrameImage::Film(film);
                 let meta = metadata.at_frame(f.frame);
                 write_frame(&config, &scene, &image, &meta, time, &f.out, &how)
             })
@@ -266,12 +250,12 @@ pub fn run_all(config: Config) -> Result<Vec<Summary>, CoordinatorError> {
 /// by the coordinator gives the scene it stores, its name, and its size, frame,
 /// samples, quality and knobs, so that the render comes out the same again.
 fn scene_of(config: Config) -> Result<(String, String, Config), CoordinatorError> {
-    if output::ImageFormat::from_path(&config.scene).is_err() {
+    if crate::pipeline::output::ImageFormat::from_path(&config.scene).is_err() {
         let text = hypertexture::scene::read_text(&config.scene)?;
         let name = config.scene.display().to_string();
         return Ok((text, name, config));
     }
-    let stored = output::read_stored_render(&config.scene)?;
+    let stored = crate::pipeline::output::read_stored_render(&config.scene)?;
     tracing::info!(
         "{}: the scene {} stored in the image",
         config.scene.display(),
@@ -307,13 +291,13 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
 fn write_frame(
     config: &Config,
     scene: &Scene,
-    image: &canvas::FrameImage,
-    meta: &output::ImageMetadata,
+    image: &crate::farm::canvas::FrameImage,
+    meta: &crate::pipeline::output::ImageMetadata,
     render_time: Duration,
     out: &std::path::Path,
     how: &str,
 ) -> Result<Summary, CoordinatorError> {
-    output::write_frame_image(image, out, meta)?;
+    crate::pipeline::output::write_frame_image(image, out, meta)?;
     let frame = meta.frame;
     tracing::info!(
         "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",
@@ -336,7 +320,7 @@ pub fn render_on_farm(
     config: &Config,
     options: &FarmOptions,
     scene: &Scene,
-    metadata: output::ImageMetadata,
+    metadata: crate::pipeline::output::ImageMetadata,
     frames: Vec<farm::FrameOut>,
 ) -> Result<Vec<Summary>, CoordinatorError> {
     let metadata = std::sync::Arc::new(metadata);
@@ -348,7 +332,9 @@ pub fn render_on_farm(
         spp: config.spp,
         quality: config.quality,
         knobs: config.knobs.clone(),
-        pixel_format: output::pixel_format_for(frames.iter().map(|f| f.out.as_path())),
+        pixel_format: crate::pipeline::output::pixel_format_for(
+            frames.iter().map(|f| f.out.as_path()),
+        ),
         frames,
         metadata: metadata.clone(),
         bake: None,

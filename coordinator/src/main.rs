@@ -8,20 +8,22 @@ use coordinator::cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let mut cli = Cli::parse();
-    coordinator::panics::install();
+    coordinator::service::panics::install();
     let result: Result<ExitCode, String> = match cli.command.take() {
         Some(Command::Bench(args)) => {
             coordinator::logging::init(true);
-            coordinator::bench::run(&args.into_config())
+            coordinator::pipeline::bench::run(&args.into_config())
                 .map(|()| ExitCode::SUCCESS)
                 .map_err(|e| e.to_string())
         }
-        Some(Command::Grid(args)) => coordinator::grid::png_to_grid(&args.png, args.side as usize)
-            .map(|grid| {
-                say(format_args!("{grid}\n"));
-                ExitCode::SUCCESS
-            })
-            .map_err(|e| e.to_string()),
+        Some(Command::Grid(args)) => {
+            coordinator::pipeline::grid::png_to_grid(&args.png, args.side as usize)
+                .map(|grid| {
+                    say(format_args!("{grid}\n"));
+                    ExitCode::SUCCESS
+                })
+                .map_err(|e| e.to_string())
+        }
         Some(Command::Eval(args)) => coordinator::eval(
             &args.expression,
             args.scene.as_deref(),
@@ -36,13 +38,13 @@ fn main() -> ExitCode {
         .map_err(|e| e.to_string()),
         Some(Command::Bake(args)) => {
             coordinator::logging::init(args.quiet);
-            coordinator::bake::run(&args.into_config())
+            coordinator::pipeline::bake::run(&args.into_config())
                 .map(|_| ExitCode::SUCCESS)
                 .map_err(|e| e.to_string())
         }
         Some(Command::Recolor(args)) => {
             coordinator::logging::init(false);
-            coordinator::recolor::run(&args.input, &args.colormap, &args.out)
+            coordinator::pipeline::recolor::run(&args.input, &args.colormap, &args.out)
                 .map(|()| ExitCode::SUCCESS)
                 .map_err(|e| e.to_string())
         }
@@ -52,28 +54,28 @@ fn main() -> ExitCode {
         Some(Command::Studio(args)) => coordinator::service::run_studio(args)
             .map(|()| ExitCode::SUCCESS)
             .map_err(|e| e.to_string()),
-        Some(Command::Submit(args)) => coordinator::client::submit(&args)
+        Some(Command::Submit(args)) => coordinator::service::client::submit(&args)
             .map(|id| {
                 say(format_args!("{id}\n"));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
-        Some(Command::Status(args)) => coordinator::client::status(&args)
+        Some(Command::Status(args)) => coordinator::service::client::status(&args)
             .map(|table| {
                 say(format_args!("{table}"));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
-        Some(Command::Cancel(args)) => coordinator::client::cancel(&args)
+        Some(Command::Cancel(args)) => coordinator::service::client::cancel(&args)
             .map(|job| {
                 say(format_args!("{} {}\n", job.id, job.state.as_str()));
                 ExitCode::SUCCESS
             })
             .map_err(|e| e.to_string()),
-        Some(Command::Wait(args)) => coordinator::client::wait(&args)
+        Some(Command::Wait(args)) => coordinator::service::client::wait(&args)
             .map(|job| {
                 say(format_args!("{} {}\n", job.id, job.state.as_str()));
-                if job.state == coordinator::jobs::JobState::Done {
+                if job.state == coordinator::service::jobs::JobState::Done {
                     ExitCode::SUCCESS
                 } else {
                     if let Some(e) = &job.error {
@@ -84,7 +86,7 @@ fn main() -> ExitCode {
             })
             .map_err(|e| e.to_string()),
         Some(Command::Store(command)) => store_command(command),
-        Some(Command::Cert(args)) => coordinator::cert::make(&args.out, &args.name)
+        Some(Command::Cert(args)) => coordinator::farm::cert::make(&args.out, &args.name)
             .map(|files| {
                 for f in &files {
                     say(format_args!("{}\n", f.display()));
@@ -113,7 +115,7 @@ fn store_command(command: coordinator::cli::StoreCommand) -> Result<ExitCode, St
     use coordinator::cli::StoreCommand;
     match command {
         StoreCommand::Check { data } => {
-            let report = coordinator::store::check(&data).map_err(|e| e.to_string())?;
+            let report = coordinator::service::store::check(&data).map_err(|e| e.to_string())?;
             for problem in &report.problems {
                 complain(format_args!("{}: {problem}\n", report.file.display()));
             }
@@ -136,11 +138,12 @@ fn store_command(command: coordinator::cli::StoreCommand) -> Result<ExitCode, St
             }
         }
         StoreCommand::Backup { data, file } => {
-            let generation = coordinator::store::backup(&data, &file).map_err(|e| e.to_string())?;
+            let generation =
+                coordinator::service::store::backup(&data, &file).map_err(|e| e.to_string())?;
             say(format_args!(
                 "{}: a copy of {} (job ids up to {generation})\n",
                 file.display(),
-                data.join(coordinator::store::DB_FILE).display()
+                data.join(coordinator::service::store::DB_FILE).display()
             ));
             Ok(ExitCode::SUCCESS)
         }

@@ -2,8 +2,8 @@
 
 use std::fmt::Write as _;
 
-use hypertexture::bake::Lattice;
-use hypertexture::interleave::{PixelSet, WorkUnit};
+use hypertexture::render::bake::Lattice;
+use hypertexture::render::interleave::{PixelSet, WorkUnit};
 use hypertexture::{PixelFormat, Quality, Sample};
 
 use crate::{Bytes, FailureKind, pb};
@@ -214,7 +214,7 @@ pub fn scene_hash(
     quality: i32,
     knobs: &[(String, f64)],
 ) -> u64 {
-    let mut h = hypertexture::random::Fnv1a::default();
+    let mut h = hypertexture::math::random::Fnv1a::default();
     h.write(text.bytes());
     h.write(width.to_le_bytes());
     h.write(height.to_le_bytes());
@@ -233,7 +233,7 @@ pub fn scene_hash_with_assets(hash: u64, assets: &[(String, u64)]) -> u64 {
     if assets.is_empty() {
         return hash;
     }
-    let mut h = hypertexture::random::Fnv1a::default();
+    let mut h = hypertexture::math::random::Fnv1a::default();
     h.write(hash.to_le_bytes());
     for (path, content) in assets {
         h.write(path.bytes().chain([0]).chain(content.to_le_bytes()));
@@ -364,7 +364,7 @@ pub fn knobs_from_wire(knobs: &[pb::KnobSetting]) -> Vec<(String, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use hypertexture::interleave::work_units;
+    use hypertexture::render::interleave::work_units;
 
     #[test]
     fn units_round_trip_and_are_checked() {

@@ -47,7 +47,7 @@ impl std::fmt::Display for FailureKind {
 }
 
 /// The largest message either side accepts (tonic's default is 4 MiB). A tile is
-/// at most [`hypertexture::interleave::DEFAULT_MAX_UNIT_PIXELS`] pixels
+/// at most [`hypertexture::render::interleave::DEFAULT_MAX_UNIT_PIXELS`] pixels
 /// (~150 KB of samples); anything near this limit is malformed and refused with
 /// RESOURCE_EXHAUSTED rather than silently truncated.
 pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;

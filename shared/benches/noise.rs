@@ -7,8 +7,8 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use hypertexture::noise::{self, Noise};
-use hypertexture::random::SplitMix64;
+use hypertexture::field::noise::{self, Noise};
+use hypertexture::math::random::SplitMix64;
 
 const POINTS: usize = 1 << 20;
 

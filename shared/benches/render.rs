@@ -8,7 +8,7 @@ use std::path::Path;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use hypertexture::random::SplitMix64;
+use hypertexture::math::random::SplitMix64;
 use hypertexture::{Overrides, Scene};
 
 const GALLERY: [&str; 10] = [

@@ -7,7 +7,7 @@
 //! (scenes by path, e.g. `scenes/fur.ron`; `QUALITY=interactive` the
 //! interactive preset).
 
-use hypertexture::simd::Isa;
+use hypertexture::math::simd::Isa;
 use hypertexture::{Overrides, Quality, Scene};
 
 const USAGE: &str = "usage: film_digest SIZE SCENE... (scene files by path)";
@@ -65,7 +65,7 @@ fn run() -> Result<(), String> {
 }
 
 /// FNV-1a over the little-endian bits of every channel.
-fn fnv1a(pixels: &[hypertexture::film::Sample]) -> u64 {
+fn fnv1a(pixels: &[hypertexture::render::film::Sample]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for p in pixels {
         for c in p.to_array() {

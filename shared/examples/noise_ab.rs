@@ -11,8 +11,8 @@ use std::hint::black_box;
 use std::time::Instant;
 
 use glam::Vec3;
-use hypertexture::noise::{self, Noise};
-use hypertexture::random::SplitMix64;
+use hypertexture::field::noise::{self, Noise};
+use hypertexture::math::random::SplitMix64;
 
 fn main() {
     let rounds: usize = std::env::args()

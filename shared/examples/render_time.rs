@@ -61,7 +61,7 @@ fn run() -> Result<(), String> {
         )
         .map_err(|e| e.to_string())?;
         if let Ok(isa) = std::env::var("ISA") {
-            let isa = hypertexture::simd::Isa::available()
+            let isa = hypertexture::math::simd::Isa::available()
                 .into_iter()
                 .find(|i| i.name() == isa)
                 .ok_or_else(|| {

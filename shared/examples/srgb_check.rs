@@ -1,11 +1,11 @@
-//! Checks [`hypertexture::film::srgb_byte`] (a table of thresholds) against the
+//! Checks [`hypertexture::render::film::srgb_byte`] (a table of thresholds) against the
 //! `powf` it replaces, `to_byte(linear_to_srgb(c))`, for every `f32` in [0, 1]:
 //! about 1.07·10⁹ values, a few seconds in release on all cores. The test suite
 //! checks the neighbourhood of every threshold and a sweep; this is the proof.
 //!
 //! `cargo run --release -p hypertexture --example srgb_check`
 
-use hypertexture::film::{linear_to_srgb, srgb_byte, to_byte};
+use hypertexture::render::film::{linear_to_srgb, srgb_byte, to_byte};
 
 fn main() {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get()) as u32;

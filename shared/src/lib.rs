@@ -4,37 +4,19 @@
 //! of its own (the caller's rayon pool does the work), no global random state. A
 //! pixel's value is a function of (scene, pixel, frame, sample) only.
 //!
-//! - [`scene`]: RON scene files → a checked description → a runtime [`Scene`].
-//! - [`soft`], [`density`]: soft objects, generalized booleans, the DMFs.
-//! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
-//! - [`march`], [`render`]: the ray marcher and the image/pixel drivers.
-//! - [`film`]: what each pixel records.
+//! The layers, each a folder that uses only the ones below it:
+//!
+//! - [`math`]: SIMD paths, fast approximations, hashing, dual numbers.
+//! - [`field`]: noise, bias and gain, soft objects, meshes, the density chain.
 //! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
-//! - [`probe`]: the known-answer probe, a digest of this build's arithmetic.
+//! - [`scene`]: RON scene files → a checked description → a runtime [`Scene`].
+//! - [`render`]: camera, ray marcher, lighting, sampling, film, the drivers.
 
-pub mod bake;
-pub mod camera;
-pub mod curve;
-pub mod density;
-pub mod distortion;
-pub mod dual;
-pub mod fastmath;
-pub mod film;
-pub mod interleave;
-pub mod lighting;
-pub mod march;
-pub mod mesh;
-pub mod motion;
-pub mod noise;
-pub mod probe;
+pub mod field;
+pub mod math;
 pub mod pse;
-pub mod random;
 pub mod render;
-pub mod sampling;
 pub mod scene;
-pub mod shaping;
-pub mod simd;
-pub mod soft;
 
-pub use film::{Film, PixelFormat, Sample};
+pub use render::film::{Film, PixelFormat, Sample};
 pub use scene::{Overrides, Quality, Scene, SceneError};

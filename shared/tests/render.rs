@@ -180,7 +180,7 @@ fn every_scene() -> Vec<(String, u32)> {
 /// scene to the same bits: what lets mixed CPUs share one image.
 #[test]
 fn every_simd_path_renders_the_same_bits() {
-    use hypertexture::simd::Isa;
+    use hypertexture::math::simd::Isa;
     let paths = Isa::available();
     eprintln!("paths on this CPU: {paths:?}");
     for (name, size) in every_scene() {
@@ -270,8 +270,8 @@ fn the_dual_gradient_is_the_derivative() {
 /// density bends within a step, not the picture.
 #[test]
 fn the_dual_gradient_renders_exactly_and_close_to_the_differences() {
+    use hypertexture::math::simd::Isa;
     use hypertexture::scene::Gradient;
-    use hypertexture::simd::Isa;
     for name in ["noisy_sphere", "fur", "gilet/holes_r05"] {
         let mut s = scene(name, 32);
         let forward = render_with(&s, 2).to_srgb8();

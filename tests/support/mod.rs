@@ -273,7 +273,7 @@ pub async fn register_raw(
             protocol_version: hypertexture_proto::PROTOCOL_VERSION,
             name: name.into(),
             threads: 1,
-            arithmetic_digest: hypertexture::probe::arithmetic_digest().unwrap(),
+            arithmetic_digest: hypertexture::render::probe::arithmetic_digest().unwrap(),
             tags: Vec::new(),
         })
         .await

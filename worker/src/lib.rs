@@ -24,7 +24,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use hypertexture::interleave::WorkUnit;
+use hypertexture::render::interleave::WorkUnit;
 use hypertexture::{Overrides, Scene};
 use hypertexture_proto::pb::GetWorkResult;
 use hypertexture_proto::pb::farm_client::FarmClient;
@@ -337,13 +337,13 @@ async fn sleep_or_stop(d: Duration, stop: &mut watch::Receiver<bool>) -> bool {
     }
 }
 
-/// This build's known-answer probe digest ([`hypertexture::probe`]), computed on
+/// This build's known-answer probe digest ([`hypertexture::render::probe`]), computed on
 /// the render pool: the coordinator admits a worker only when it matches its own.
 async fn probe(pool: &RenderPool) -> Result<u64, WorkerError> {
     let (done, digest) = oneshot::channel();
     pool.threads.spawn(move || {
         let started = std::time::Instant::now();
-        let digest = std::panic::catch_unwind(hypertexture::probe::arithmetic_digest);
+        let digest = std::panic::catch_unwind(hypertexture::render::probe::arithmetic_digest);
         if let Ok(Ok(d)) = &digest {
             tracing::debug!(
                 "known-answer probe: digest {d:016x} in {:?}",
@@ -1049,7 +1049,7 @@ fn start_render(
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
     let format = convert::pixel_format_from_wire(job.pixel_format)
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
-    // A bake's pixels are the voxels of its lattice (`hypertexture::bake`).
+    // A bake's pixels are the voxels of its lattice (`hypertexture::render::bake`).
     let bake = job
         .bake
         .as_ref()
@@ -1115,12 +1115,12 @@ fn render_tile(
     pixels: &[(u32, u32)],
     frame: u32,
     format: hypertexture::PixelFormat,
-    bake: Option<&hypertexture::bake::Lattice>,
+    bake: Option<&hypertexture::render::bake::Lattice>,
     stop: &AtomicBool,
 ) -> Option<hypertexture_proto::Bytes> {
     let samples = match bake {
         Some(lattice) => {
-            hypertexture::bake::sample_pixels(scene, lattice, frame, scene.width(), pixels)
+            hypertexture::render::bake::sample_pixels(scene, lattice, frame, scene.width(), pixels)
         }
         None => hypertexture::render::render_pixels_until(scene, frame, pixels, stop)?,
     };
@@ -1163,8 +1163,9 @@ impl UnitRenderer {
                     ),
                 )
             })?;
-            let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
-                .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+            let mesh =
+                hypertexture::field::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
+                    .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
             fetched.insert(a.hash, Arc::new(mesh));
         }
         self.scenes.get(job, &fetched)
@@ -1207,7 +1208,7 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
 
 /// Meshes fetched for one assignment and not kept yet: the cache takes them
 /// only once the scene's hash has matched and the scene has built.
-type Fetched = HashMap<u64, Arc<hypertexture::mesh::Mesh>>;
+type Fetched = HashMap<u64, Arc<hypertexture::field::mesh::Mesh>>;
 
 /// Scenes built from assignments, by content hash (a worker holds a few at
 /// most), and the meshes they name ([`cache::AssetCache`], within a budget).
@@ -1421,7 +1422,7 @@ async fn fetch_assets(
                 format!("{}: fetching {}: {e}", job.scene_name, a.path),
             )
         };
-        if a.size > hypertexture::mesh::MAX_OBJ_BYTES {
+        if a.size > hypertexture::field::mesh::MAX_OBJ_BYTES {
             return Err(failed(format!(
                 "{} bytes is more than a mesh file may be",
                 a.size
@@ -1447,7 +1448,7 @@ async fn fetch_assets(
             }
             bytes.extend_from_slice(&chunk.chunk);
         }
-        let got = hypertexture::mesh::content_hash(&bytes);
+        let got = hypertexture::field::mesh::content_hash(&bytes);
         if bytes.len() as u64 != a.size || got != a.hash {
             return Err(failed(format!(
                 "{} bytes with hash {got:016x} arrived, not {} with hash {:016x}",
@@ -1459,7 +1460,7 @@ async fn fetch_assets(
         let fetched_in = started.elapsed();
         let path = a.path.clone();
         let mesh = tokio::task::spawn_blocking(move || {
-            hypertexture::mesh::Mesh::from_obj(&path, &bytes, Default::default())
+            hypertexture::field::mesh::Mesh::from_obj(&path, &bytes, Default::default())
         })
         .await
         .map_err(|e| failed(format!("the mesh build stopped: {e}")))?
@@ -1590,9 +1591,10 @@ mod tests {
     fn mesh_job(k: u32, hash_of_text: Option<u64>) -> (pb::Job, Fetched) {
         let text = "Scene(\n    image: (width: 8, height: 8),\n    camera: (eye: (0.3, 0.3, 3.0), look_at: (0.3, 0.3, 0.3), up: (0.0, 1.0, 0.0), projection: Perspective(fov_y: 40.0)),\n    march: (bounds: (min: (-0.2, -0.2, -0.2), max: (1.2, 1.2, 1.2)), step: Length(0.05), opacity: 40.0, threshold: 0.99),\n    object: Mesh(path: \"t.obj\", softness: 0.1),\n)\n";
         let obj = cache::tetrahedron_obj(k);
-        let hash = hypertexture::mesh::content_hash(obj.as_bytes());
-        let mesh = hypertexture::mesh::Mesh::from_obj("t.obj", obj.as_bytes(), Default::default())
-            .unwrap();
+        let hash = hypertexture::field::mesh::content_hash(obj.as_bytes());
+        let mesh =
+            hypertexture::field::mesh::Mesh::from_obj("t.obj", obj.as_bytes(), Default::default())
+                .unwrap();
         let job = pb::Job {
             scene_hash: hash_of_text.unwrap_or_else(|| {
                 convert::scene_hash_with_assets(

@@ -13,7 +13,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::store::StoreError;
+use crate::service::store::StoreError;
 
 /// How often a store that fails is probed.
 pub const PROBE_EVERY: Duration = Duration::from_secs(1);

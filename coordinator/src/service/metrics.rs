@@ -9,9 +9,9 @@
 
 use std::fmt::Write;
 
+use crate::farm::scheduler::JobId;
 use crate::farm::{FarmStats, LATENCY_BUCKETS};
-use crate::jobs::{JobState, JobView, WorkerView};
-use crate::scheduler::JobId;
+use crate::service::jobs::{JobState, JobView, WorkerView};
 
 /// What a scrape shows.
 pub struct Snapshot<'a> {

@@ -5,18 +5,24 @@
 //! three things around it: the [`Store`] (SQLite under `--data`), which keeps
 //! every job and every accepted tile of the frames in flight, so a restart
 //! resumes where the last process stopped; the [`Control`] the HTTP API
-//! (`crate::api`) calls to submit, list and cancel jobs; and the supervisor
+//! (`crate::service::api`) calls to submit, list and cancel jobs; and the supervisor
 //! loop, which writes each completed frame to its output, ends failed jobs and,
 //! on SIGTERM or Ctrl-C, drains: nothing more is handed out, the units in
 //! flight get `--drain-timeout` to arrive, and the process exits 0.
 //!
 //! Lock order: a job table lock, then the farm's state, then the store.
 
+pub mod api;
+pub mod client;
+pub mod guard;
 pub mod health;
+pub mod jobs;
 pub mod limits;
 pub mod metrics;
 pub mod outputs;
+pub mod panics;
 pub mod params;
+pub mod store;
 pub mod studio;
 
 pub use outputs::expand_pattern;
@@ -28,15 +34,15 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use hypertexture::interleave::farm_units;
+use hypertexture::render::interleave::farm_units;
 use hypertexture::{Overrides, PixelFormat, Scene};
 use serde::{Deserialize, Serialize};
 
 use crate::cli::{LogFormat, ServeArgs};
+use crate::farm::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
 use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
-use crate::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
-use crate::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
-use crate::store::{Store, StoreError};
+use crate::service::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
+use crate::service::store::{Store, StoreError};
 
 /// How the service runs.
 #[derive(Clone, Debug)]
@@ -111,7 +117,7 @@ struct JobMeta {
     units_per_frame: u64,
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
-    metadata: Option<Arc<crate::output::ImageMetadata>>,
+    metadata: Option<Arc<crate::pipeline::output::ImageMetadata>>,
     /// When it first ran in this process, and its units done then (for the ETA).
     running_since: Option<(Instant, u64)>,
     /// Its progress when it left the scheduler (ended jobs).
@@ -230,7 +236,7 @@ struct Checked {
     format: PixelFormat,
     name: String,
     /// What its images record.
-    metadata: Arc<crate::output::ImageMetadata>,
+    metadata: Arc<crate::pipeline::output::ImageMetadata>,
 }
 
 /// Units per job, for the metrics.
@@ -264,7 +270,7 @@ fn check_spec(
     // Every frame's file has the first one's extension: a `#` run in it
     // would make digits, and no format is named by digits.
     let first = PathBuf::from(expand_pattern(&spec.out, frames.first()));
-    crate::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
+    crate::pipeline::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
     roots
         .resolve(&spec.out, &first, base)
         .map_err(|e| ApiError::Forbidden(e.to_string()))?;
@@ -285,13 +291,13 @@ fn check_spec(
         Some(&hypertexture::scene::Assets::none()),
     )
     .map_err(|e| bad(e.to_string()))?;
-    let metadata = Arc::new(crate::output::ImageMetadata::new(
+    let metadata = Arc::new(crate::pipeline::output::ImageMetadata::new(
         &scene,
         &name,
         &spec.scene,
         &overrides,
     ));
-    let format = crate::output::pixel_format_for([first.as_path()]);
+    let format = crate::pipeline::output::pixel_format_for([first.as_path()]);
     Ok(Checked {
         scene,
         frames,
@@ -622,7 +628,8 @@ impl Service {
                 .roots
                 .prepare(&pattern, &target, &service.base)
                 .map_err(|e| e.to_string())?;
-            crate::output::write_frame_image(&image, &target, &metadata).map_err(|e| e.to_string())
+            crate::pipeline::output::write_frame_image(&image, &target, &metadata)
+                .map_err(|e| e.to_string())
         })
         .await;
         let written = match written {
@@ -900,7 +907,7 @@ impl Control for Arc<Service> {
             .range(..before.unwrap_or(u64::MAX))
             .rev()
             .map(|(&id, meta)| self.view(id, meta, now));
-        crate::jobs::page(older, limit)
+        crate::service::jobs::page(older, limit)
     }
 
     fn job(&self, id: u64) -> Result<JobView, ApiError> {
@@ -1039,7 +1046,7 @@ impl Control for Arc<Service> {
 pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
     crate::logging::init_with(args.quiet, args.log_format == LogFormat::Json);
     let tls = match (&args.tls_cert, &args.tls_key) {
-        (Some(cert), Some(key)) => Some(crate::cert::read_server_tls(cert, key)?),
+        (Some(cert), Some(key)) => Some(crate::farm::cert::read_server_tls(cert, key)?),
         _ => None,
     };
     let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
@@ -1117,7 +1124,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
             local_threads: 1,
             preview_every: None,
             tls: None,
-            interleave: hypertexture::interleave::DEFAULT_INTERLEAVE,
+            interleave: hypertexture::render::interleave::DEFAULT_INTERLEAVE,
             progress: false,
             gate: Default::default(),
             verify: farm::DEFAULT_VERIFY,
@@ -1180,10 +1187,13 @@ pub async fn serve(
         .map_err(ServiceError::Studio)?,
     );
     let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
-        .merge(crate::api::router(control, config.farm.token.clone()))
+        .merge(crate::service::api::router(
+            control,
+            config.farm.token.clone(),
+        ))
         // Every refusal of these routes is a JSON error, the studio's and
         // axum's own (405 on `/`) included; the gRPC routes come after.
-        .layer(axum::middleware::from_fn(crate::api::json_errors));
+        .layer(axum::middleware::from_fn(crate::service::api::json_errors));
     // Units sized as for a LAN farm of the paper's 64 processors (at least one
     // unit each), or for the local workers when there are more.
     let expected = config.farm.local_workers.max(64);

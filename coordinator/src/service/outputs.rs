@@ -5,7 +5,7 @@
 
 use std::path::{Component, Path, PathBuf};
 
-use crate::scheduler::Frames;
+use crate::farm::scheduler::Frames;
 
 /// The longest run of `#`: a frame number (a `u32`, at most 10 digits) padded
 /// to 9 digits covers every sequence of fewer than a billion frames.

@@ -52,16 +52,16 @@ use axum::middleware::{self, Next};
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
-use hypertexture::interleave::{WorkUnit, farm_units};
+use hypertexture::render::interleave::{WorkUnit, farm_units};
 use hypertexture::scene::desc::KnobDesc;
 use hypertexture::{Overrides, PixelFormat, Scene};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
 use super::params::{self, Curve, Param};
+use crate::farm::scheduler::{Accepted, JobId, JobPlan, Resume};
 use crate::farm::{self, Shared, WireJob};
-use crate::jobs::{Control, JobSpec, QualitySpec};
-use crate::scheduler::{Accepted, JobId, JobPlan, Resume};
+use crate::service::jobs::{Control, JobSpec, QualitySpec};
 
 /// Live frames' job ids start here (the store's ids are far below).
 pub const LIVE_JOBS: JobId = 1 << 48;
@@ -602,12 +602,14 @@ impl Studio {
                 knobs: knob_overrides,
                 pixel_format: PixelFormat::Srgb8,
                 // A live frame is drawn in the page, never written to a file.
-                metadata: std::sync::Arc::new(crate::output::ImageMetadata::without_scene(
-                    checked.width,
-                    checked.height,
-                    None,
-                    None,
-                )),
+                metadata: std::sync::Arc::new(
+                    crate::pipeline::output::ImageMetadata::without_scene(
+                        checked.width,
+                        checked.height,
+                        None,
+                        None,
+                    ),
+                ),
                 bake: None,
                 assets: Vec::new(),
             };
@@ -618,7 +620,7 @@ impl Studio {
                 width: checked.width,
                 height: checked.height,
                 format: PixelFormat::Srgb8,
-                frames: crate::scheduler::Frames::one(0),
+                frames: crate::farm::scheduler::Frames::one(0),
                 require_tags: Vec::new(),
             };
             let data = serde_json::json!({
@@ -839,12 +841,12 @@ fn static_file(content_type: &'static str, body: &'static str) -> Response {
 
 /// Refuses a data route without the token (401): it comes in
 /// `Authorization: Bearer <token>`, or for `GET /studio/events` alone in
-/// `?token=<token>` ([`crate::guard::admits`]).
+/// `?token=<token>` ([`crate::service::guard::admits`]).
 async fn check_token(State(ctx): State<Ctx>, request: Request, next: Next) -> Response {
     let Some(token) = &ctx.studio.token else {
         return next.run(request).await;
     };
-    if crate::guard::admits(
+    if crate::service::guard::admits(
         request.method(),
         request.uri(),
         request.headers(),

@@ -19,9 +19,9 @@ use super::eval::{
 use super::parser::{
     BinOp, Block, Expr, ExprKind, FnDef, UnOp, parse_definitions, parse_expression,
 };
-use crate::curve::Curve;
-use crate::density::Density;
-use crate::shaping::{Bias, Gain};
+use crate::field::curve::Curve;
+use crate::field::density::Density;
+use crate::field::shaping::{Bias, Gain};
 
 /// Most scene functions.
 pub const MAX_FUNCTIONS: usize = 64;
@@ -953,7 +953,7 @@ impl<'a> Compiler<'a> {
         if name == "improved"
             && let [S::K(a), S::K(b), S::K(c)] = pv
         {
-            return Ok(Val::S(S::K(crate::noise::improved(a, b, c))));
+            return Ok(Val::S(S::K(crate::field::noise::improved(a, b, c))));
         }
         if name == "project" && self.ctx.surface.is_none() {
             return Err(ExprError::new(
@@ -1331,8 +1331,8 @@ impl<'a> Compiler<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::density::Field;
-    use crate::noise::Noise;
+    use crate::field::density::Field;
+    use crate::field::noise::Noise;
     use glam::Vec3;
 
     fn field(noise: &Noise) -> Field<'_> {
@@ -1369,12 +1369,12 @@ mod tests {
         let f = field(&noise);
         let value = p.eval(super::super::eval::Inputs { x, d: 0.25 }, &f);
         // The lane-parallel register code gives the same bits on every path.
-        let mut points = crate::density::Points::default();
-        for l in 0..crate::simd::LANES {
+        let mut points = crate::field::density::Points::default();
+        for l in 0..crate::math::simd::LANES {
             points.set(l, x);
         }
-        for isa in crate::simd::Isa::available() {
-            let lanes = p.eval_lanes(&points, &[0.25; crate::simd::LANES], &f, isa);
+        for isa in crate::math::simd::Isa::available() {
+            let lanes = p.eval_lanes(&points, &[0.25; crate::math::simd::LANES], &f, isa);
             for (c, lane) in lanes.iter().enumerate() {
                 for v in lane {
                     assert_eq!(v.to_bits(), value[c].to_bits(), "{src} on {isa:?}");
@@ -1395,12 +1395,12 @@ mod tests {
         let ctx = plain_context(&knobs, &functions);
         let noise = Noise::default();
         let f = field(&noise);
-        let mut points = crate::density::Points::default();
+        let mut points = crate::field::density::Points::default();
         let at = |l: usize| Vec3::new(l as f32 * 0.3 - 1.0, (l % 3) as f32 * 0.7, 0.2 * l as f32);
-        for l in 0..crate::simd::LANES {
+        for l in 0..crate::math::simd::LANES {
             points.set(l, at(l));
         }
-        let d: [f32; crate::simd::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
+        let d: [f32; crate::math::simd::LANES] = std::array::from_fn(|l| l as f32 / 8.0);
         for src in [
             "if x.x > 0 { noise(x * freq) } else { sq(x.y) + d }",
             "if x.x > 0.5 { 1 } else if x.y > 0.5 { vnoise(x).y } else if d > 0.3 { 3 } else { x.z }",
@@ -1409,9 +1409,9 @@ mod tests {
             "if x.x > 10 { 1 } else { 2 }",
         ] {
             let p = compile_expression(src, Kind::Probe, &ctx).unwrap();
-            for isa in crate::simd::Isa::available() {
+            for isa in crate::math::simd::Isa::available() {
                 let lanes = p.eval_lanes(&points, &d, &f, isa);
-                for l in 0..crate::simd::LANES {
+                for l in 0..crate::math::simd::LANES {
                     let one = p.eval(super::super::eval::Inputs { x: at(l), d: d[l] }, &f);
                     for c in 0..3 {
                         assert_eq!(
@@ -1501,7 +1501,7 @@ mod tests {
         let g = ctx_eval("bias(0.3, x.x) + gain(0.9, x.x)", p).unwrap()[0];
         assert_eq!(
             g,
-            crate::shaping::bias(0.3, 0.3) + crate::shaping::gain(0.9, 0.3)
+            crate::field::shaping::bias(0.3, 0.3) + crate::field::shaping::gain(0.9, 0.3)
         );
         // dnoise is the gradient: compare with a wider finite difference.
         let dn = Vec3::from_array(ctx_eval("dnoise(x)", p).unwrap());
@@ -1613,8 +1613,12 @@ mod tests {
     /// A random well-typed expression and its value computed directly, in the
     /// same f32 operations: the register code must agree bit for bit (this is
     /// what caught `mix` reusing a live register).
-    fn random_expression(r: &mut crate::random::SplitMix64, x: Vec3, depth: u32) -> (String, f32) {
-        let leaf = |r: &mut crate::random::SplitMix64| match r.below(4) {
+    fn random_expression(
+        r: &mut crate::math::random::SplitMix64,
+        x: Vec3,
+        depth: u32,
+    ) -> (String, f32) {
+        let leaf = |r: &mut crate::math::random::SplitMix64| match r.below(4) {
             0 => ("x.x".to_string(), x.x),
             1 => ("x.y".to_string(), x.y),
             2 => ("x.z".to_string(), x.z),
@@ -1626,7 +1630,7 @@ mod tests {
         if depth == 0 {
             return leaf(r);
         }
-        let sub = |r: &mut crate::random::SplitMix64| random_expression(r, x, depth - 1);
+        let sub = |r: &mut crate::math::random::SplitMix64| random_expression(r, x, depth - 1);
         match r.below(9) {
             0 => leaf(r),
             1 => {
@@ -1682,7 +1686,7 @@ mod tests {
 
     #[test]
     fn register_code_agrees_with_direct_evaluation() {
-        let mut r = crate::random::SplitMix64::new(42);
+        let mut r = crate::math::random::SplitMix64::new(42);
         let mut failures: Vec<String> = Vec::new();
         for _ in 0..5000 {
             let x = Vec3::new(

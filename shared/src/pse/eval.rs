@@ -15,12 +15,12 @@
 
 use glam::Vec3;
 
-use crate::curve::Curve;
-use crate::density::{Density, Field, Points};
-use crate::noise::VNOISE_OFFSET;
-use crate::shaping::{Bias, Gain};
-use crate::simd::Isa;
-use crate::simd::{LANES, Lanes};
+use crate::field::curve::Curve;
+use crate::field::density::{Density, Field, Points};
+use crate::field::noise::VNOISE_OFFSET;
+use crate::field::shaping::{Bias, Gain};
+use crate::math::simd::Isa;
+use crate::math::simd::{LANES, Lanes};
 
 /// Registers per program: `u8` register names index a `[f32; 256]` file.
 pub const MAX_REGISTERS: usize = 256;
@@ -268,8 +268,11 @@ impl Program {
                 Op::Fbm(d, p, o) => r!(d) = fbm(field, v(&r, p), octaves(r!(o))),
                 Op::Improved(d, p) => {
                     let p = v(&r, p);
-                    r!(d) = crate::noise::improved(f64::from(p.x), f64::from(p.y), f64::from(p.z))
-                        as f32;
+                    r!(d) = crate::field::noise::improved(
+                        f64::from(p.x),
+                        f64::from(p.y),
+                        f64::from(p.z),
+                    ) as f32;
                 }
                 Op::Density(d, i, p) => {
                     let p = v(&r, p);
@@ -562,8 +565,11 @@ impl Program {
                     let q = points(&r, p);
                     r[d as usize] = each(&|l| {
                         let p = q.get(l);
-                        crate::noise::improved(f64::from(p.x), f64::from(p.y), f64::from(p.z))
-                            as f32
+                        crate::field::noise::improved(
+                            f64::from(p.x),
+                            f64::from(p.y),
+                            f64::from(p.z),
+                        ) as f32
                     });
                 }
                 Op::ColourMap(d, s) => {

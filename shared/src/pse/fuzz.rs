@@ -8,12 +8,12 @@ use glam::Vec3;
 
 use super::eval::Inputs;
 use super::{Context, Kind, compile_expression, parse_functions};
-use crate::curve::Curve;
-use crate::density::{Density, Field, Points};
-use crate::noise::Noise;
+use crate::field::curve::Curve;
+use crate::field::density::{Density, Field, Points};
+use crate::field::noise::Noise;
+use crate::math::simd::Isa;
+use crate::math::simd::{LANES, Lanes};
 use crate::scene::desc::{ObjectDesc, SphereDesc, V3};
-use crate::simd::Isa;
-use crate::simd::{LANES, Lanes};
 
 /// Parses `functions`, compiles `expression` as every kind of expression, and
 /// evaluates each program that compiles at a few points (finite and not).
@@ -134,7 +134,7 @@ fn support_holds(program: &super::Program, field: &Field) {
     for x in POINTS {
         let outside_ball = ball.is_some_and(|(c, r)| (x - c).length() > r);
         if x.cmplt(lo).any() || x.cmpgt(hi).any() || outside_ball {
-            let f = crate::shaping::clamp01(program.eval_scalar(x, 0.0, field));
+            let f = crate::field::shaping::clamp01(program.eval_scalar(x, 0.0, field));
             assert!(f == 0.0, "{f} at {x}, outside the support {lo} {hi}");
         }
     }
@@ -143,7 +143,7 @@ fn support_holds(program: &super::Program, field: &Field) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::random::SplitMix64;
+    use crate::math::random::SplitMix64;
 
     /// Pieces that make near-valid programs, so that random strings reach deep
     /// into the parser and the compiler rather than failing on the first byte.

@@ -8,9 +8,9 @@ use glam::Vec3;
 
 use super::ExpressionFailure;
 use super::{Context, Kind, Program, compile_expression, parse_functions};
-use crate::curve::Curve;
-use crate::density::{Density, Field};
-use crate::noise::Noise;
+use crate::field::curve::Curve;
+use crate::field::density::{Density, Field};
+use crate::field::noise::Noise;
 use crate::scene::desc::{ObjectDesc, SceneDesc};
 
 /// The compiled shading expressions of a scene: what the marcher's two hooks

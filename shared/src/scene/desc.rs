@@ -344,7 +344,7 @@ impl TryFrom<KnobFields> for KnobDesc {
 }
 
 fn default_seed() -> u64 {
-    crate::noise::DEFAULT_SEED
+    crate::field::noise::DEFAULT_SEED
 }
 
 /// Supersampling and motion blur.
@@ -823,7 +823,7 @@ pub struct MeshDesc {
     /// The loaded mesh, attached before the scene is built
     /// ([`SceneDesc::attach_meshes`]).
     #[serde(skip)]
-    pub mesh: Option<std::sync::Arc<crate::mesh::Mesh>>,
+    pub mesh: Option<std::sync::Arc<crate::field::mesh::Mesh>>,
 }
 
 #[derive(Deserialize)]
@@ -918,11 +918,11 @@ impl SceneDesc {
         paths.into_iter().collect()
     }
 
-    /// Gives every mesh of the scene its loaded [`crate::mesh::Mesh`]; the
+    /// Gives every mesh of the scene its loaded [`crate::field::mesh::Mesh`]; the
     /// first path `find` has none for is the error.
     pub fn attach_meshes(
         &mut self,
-        mut find: impl FnMut(&str) -> Option<std::sync::Arc<crate::mesh::Mesh>>,
+        mut find: impl FnMut(&str) -> Option<std::sync::Arc<crate::field::mesh::Mesh>>,
     ) -> Result<(), String> {
         let mut missing = None;
         let mut attach = |m: &mut MeshDesc| match find(&m.path) {
@@ -1240,7 +1240,7 @@ pub enum GradientDesc {
     /// Dischler shade.
     Central,
     /// The derivative itself, by forward-mode differentiation (dual numbers)
-    /// through the density chain ([`crate::dual`]): one pass, no extra
+    /// through the density chain ([`crate::math::dual`]): one pass, no extra
     /// evaluations; the image differs slightly from the differences'.
     Dual,
 }

@@ -15,14 +15,14 @@ use std::sync::Arc;
 
 use glam::Vec3;
 
-use crate::camera::Camera;
-use crate::curve::Curve;
-use crate::density::{Aabb, Density, Support};
-use crate::mesh::{Mesh, MeshError, MeshLimits};
-use crate::motion::Motion;
-use crate::noise::{Noise, clamped_octaves};
+use crate::field::curve::Curve;
+use crate::field::density::{Aabb, Density, Support};
+use crate::field::mesh::{Mesh, MeshError, MeshLimits};
+use crate::field::motion::Motion;
+use crate::field::noise::{Noise, clamped_octaves};
+use crate::math::simd::Isa;
 use crate::pse::{ExpressionFailure, SceneExpressions};
-use crate::simd::Isa;
+use crate::render::camera::Camera;
 use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, SceneDesc};
 
 /// The largest scene file we read. The paper's whole database was under 5 KB.
@@ -158,21 +158,21 @@ pub fn asset_path(scene_path: &str, asset: &str) -> PathBuf {
     base.join(asset)
 }
 
-/// An asset file's bytes (at most [`crate::mesh::MAX_OBJ_BYTES`]); the error
+/// An asset file's bytes (at most [`crate::field::mesh::MAX_OBJ_BYTES`]); the error
 /// says what the OS said.
 pub fn read_asset(path: &Path) -> Result<Vec<u8>, String> {
     use std::io::Read as _;
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .and_then(|f| {
-            f.take(crate::mesh::MAX_OBJ_BYTES + 1)
+            f.take(crate::field::mesh::MAX_OBJ_BYTES + 1)
                 .read_to_end(&mut bytes)
         })
         .map_err(|e| format!("cannot read the mesh: {e}"))?;
-    if bytes.len() as u64 > crate::mesh::MAX_OBJ_BYTES {
+    if bytes.len() as u64 > crate::field::mesh::MAX_OBJ_BYTES {
         return Err(format!(
             "the file is larger than {} bytes, the most a mesh file may be",
-            crate::mesh::MAX_OBJ_BYTES
+            crate::field::mesh::MAX_OBJ_BYTES
         ));
     }
     Ok(bytes)
@@ -776,7 +776,7 @@ impl Scene {
 
     /// How far any distortion can carry density beyond the undistorted objects.
     pub fn max_displacement(&self) -> f32 {
-        crate::distortion::max_displacement(&self.density)
+        crate::field::distortion::max_displacement(&self.density)
     }
 
     /// The hypertexture H(x) for `frame`, in [0, 1].
@@ -818,7 +818,12 @@ impl Scene {
     /// What indexes the colour map for a sample of density `f` at the
     /// object-space point `object_x`: the density, or the marble strata.
     #[inline]
-    pub(crate) fn colour_key(&self, object_x: Vec3, f: f32, field: &crate::density::Field) -> f32 {
+    pub(crate) fn colour_key(
+        &self,
+        object_x: Vec3,
+        f: f32,
+        field: &crate::field::density::Field,
+    ) -> f32 {
         match self.colour_index {
             ColourIndex::Density => f,
             ColourIndex::Strata {
@@ -840,11 +845,11 @@ impl Scene {
     /// point's sum is then taken in `turbulence`'s order.
     pub(crate) fn colour_keys(
         &self,
-        object_x: &crate::density::Points,
-        f: &crate::simd::Lanes,
+        object_x: &crate::field::density::Points,
+        f: &crate::math::simd::Lanes,
         len: usize,
-        field: &crate::density::Field,
-    ) -> crate::simd::Lanes {
+        field: &crate::field::density::Field,
+    ) -> crate::math::simd::Lanes {
         let ColourIndex::Strata {
             frequency,
             amplitude,
@@ -858,7 +863,7 @@ impl Scene {
         // points as fit in `BATCH`.
         const BATCH: usize = 64;
         let per_call = (BATCH / octaves).max(1);
-        let mut keys = [0.0; crate::simd::LANES];
+        let mut keys = [0.0; crate::math::simd::LANES];
         let mut start = 0;
         while start < len {
             let end = (start + per_call).min(len);
@@ -892,9 +897,9 @@ impl Scene {
     }
 
     /// H(x) for `frame` and its gradient ∇H(x), by forward-mode
-    /// differentiation ([`crate::dual`]), as `gradient: Dual` shades.
+    /// differentiation ([`crate::math::dual`]), as `gradient: Dual` shades.
     pub fn density_gradient_at(&self, x: Vec3, frame: u32) -> (f32, Vec3) {
-        self.density_gradient_with(x, frame, crate::dual::spacing(self.step))
+        self.density_gradient_with(x, frame, crate::math::dual::spacing(self.step))
     }
 
     /// [`Scene::density_gradient_at`] with the parts that have no derivative
@@ -903,21 +908,21 @@ impl Scene {
     pub fn density_gradient_with(&self, x: Vec3, frame: u32, h: f32) -> (f32, Vec3) {
         let g = self
             .density
-            .eval_dual(&crate::dual::DualPoint::at(x), &self.field(frame), h);
+            .eval_dual(&crate::math::dual::DualPoint::at(x), &self.field(frame), h);
         (g.v, g.d)
     }
 
     /// The evaluation context of `frame`.
     #[inline]
-    pub(crate) fn field(&self, frame: u32) -> crate::density::Field<'_> {
+    pub(crate) fn field(&self, frame: u32) -> crate::field::density::Field<'_> {
         self.field_at(frame as f32)
     }
 
     /// The evaluation context at `time` frames (a frame plus a shutter offset).
     #[inline]
-    pub(crate) fn field_at(&self, time: f32) -> crate::density::Field<'_> {
+    pub(crate) fn field_at(&self, time: f32) -> crate::field::density::Field<'_> {
         let pose = self.motion.map(|m| m.at(time));
-        crate::density::Field {
+        crate::field::density::Field {
             noise: &self.noise,
             offset: self.flow * time,
             frame: time as u32,

@@ -1,0 +1,15 @@
+//! The one-shot pipeline: what `coordinator render`, `bake`, `recolor`,
+//! `grid` and `bench` do once and end, on top of the farm.
+//!
+//! - [`output`]: frames to PNG and EXR files.
+//! - [`bake`], [`vdb`]: H(x) sampled on a lattice and written as OpenVDB.
+//! - [`recolor`]: an EXR's density channel mapped through new curves.
+//! - [`grid`]: a painted PNG as a 2D shape transfer function.
+//! - [`bench`]: the farm's measured speedup, and larger farms simulated.
+
+pub mod bake;
+pub mod bench;
+pub mod grid;
+pub mod output;
+pub mod recolor;
+pub mod vdb;

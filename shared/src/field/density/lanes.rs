@@ -1,0 +1,461 @@
+//! The density at [`LANES`] points at once: [`Density::eval_lanes`], the same
+//! bits lane by lane as [`Density::eval`], with the noise and the powers
+//! computed a batch at a time. On a SIMD path the whole tree below a
+//! `#[target_feature]` copy (`x86` below) is `#[inline(always)]`: the
+//! primitives, the warps and value DMFs' lane forms ([`super::dmf`]), noise
+//! and `pow01`, so the lanes stay in that instruction set's registers; only a
+//! non-primitive child node is a call.
+
+use glam::Vec3;
+
+use super::dmf::Settling;
+use super::{Density, Field, Hypertexture};
+use crate::field::soft::{Falloff, ProjectBlock, boolean};
+use crate::math::simd::{Isa, LANES, Lanes, lane_mask};
+
+/// [`LANES`] points, one coordinate per array: the batch the vectorised paths
+/// evaluate (several samples along a ray, or the gradient's neighbours).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Points {
+    /// x of each point.
+    pub x: Lanes,
+    /// y of each point.
+    pub y: Lanes,
+    /// z of each point.
+    pub z: Lanes,
+}
+
+impl Points {
+    /// Point `l`.
+    #[inline(always)]
+    pub fn get(&self, l: usize) -> Vec3 {
+        Vec3::new(self.x[l], self.y[l], self.z[l])
+    }
+
+    /// Sets point `l`.
+    #[inline(always)]
+    pub fn set(&mut self, l: usize, p: Vec3) {
+        self.x[l] = p.x;
+        self.y[l] = p.y;
+        self.z[l] = p.z;
+    }
+
+    /// The points `c + (x − c)·s` lane by lane: a warp's scaling about `centre`.
+    #[inline(always)]
+    pub(crate) fn scale_about(&self, centre: Vec3, s: &Lanes) -> Points {
+        let mut out = Points::default();
+        for (l, &s) in s.iter().enumerate() {
+            out.set(l, centre + (self.get(l) - centre) * s);
+        }
+        out
+    }
+
+    /// The points `f(point)`, lane by lane.
+    #[inline(always)]
+    pub(crate) fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, f(self.get(l)));
+        }
+        out
+    }
+
+    /// The points `f(point, other point)`, lane by lane.
+    #[inline(always)]
+    pub(crate) fn map_with(&self, other: &Points, f: impl Fn(Vec3, Vec3) -> Vec3) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, f(self.get(l), other.get(l)));
+        }
+        out
+    }
+}
+
+/// `f(point)` lane by lane.
+#[inline(always)]
+fn each(x: &Points, f: impl Fn(Vec3) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = f(x.get(l));
+    }
+    out
+}
+
+/// `f(a)` lane by lane: always inlined, where `[f32; N]::map` is left a
+/// call compiled without the path's instruction set.
+#[inline(always)]
+pub(super) fn map(a: &Lanes, f: impl Fn(f32) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        out[l] = f(a[l]);
+    }
+    out
+}
+
+/// `f(a, b)` lane by lane.
+#[inline(always)]
+pub(super) fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        out[l] = f(a[l], b[l]);
+    }
+    out
+}
+
+impl Field<'_> {
+    /// `noise` at the points: the lane kernel itself, inlined into the
+    /// per-instruction-set copy of [`Density::eval_lanes`] (`isa` is a
+    /// constant there).
+    #[inline(always)]
+    pub(super) fn noise_lanes(&self, p: &Points, isa: Isa) -> Lanes {
+        self.noise_lanes_live(p, isa, u32::MAX)
+    }
+
+    /// [`Field::noise_lanes`] at the lanes set in `live` (the others come
+    /// out as anything).
+    #[inline(always)]
+    pub(super) fn noise_lanes_live(&self, p: &Points, isa: Isa, live: u32) -> Lanes {
+        self.noise.noise_lanes_live(isa, live, &p.x, &p.y, &p.z)
+    }
+
+    /// [`Field::noise`] at each point set in `live`, `noise((x − offset) ·
+    /// frequency)` (the others come out as anything).
+    #[inline(always)]
+    pub(super) fn noise_at_live(&self, frequency: f32, x: &Points, isa: Isa, live: u32) -> Lanes {
+        self.noise_at_along(frequency, x, isa, live, false)
+    }
+
+    /// [`Field::noise_lanes_live`]; `runs`: the points lie along a ray at
+    /// a step fine for the frequency ([`crate::field::noise::runs`]).
+    #[inline(always)]
+    pub(super) fn noise_lanes_along(&self, p: &Points, isa: Isa, live: u32, runs: bool) -> Lanes {
+        self.noise
+            .noise_lanes_along(isa, live, runs, &p.x, &p.y, &p.z)
+    }
+
+    /// [`Field::noise_at_live`]; `runs` as in [`Field::noise_lanes_along`].
+    #[inline(always)]
+    pub(super) fn noise_at_along(
+        &self,
+        frequency: f32,
+        x: &Points,
+        isa: Isa,
+        live: u32,
+        runs: bool,
+    ) -> Lanes {
+        self.noise_lanes_along(&x.map(|p| (p - self.offset) * frequency), isa, live, runs)
+    }
+}
+
+impl Density {
+    /// [`Density::project`] at each point.
+    #[inline(always)]
+    pub(crate) fn project_lanes(&self, x: &Points) -> Points {
+        match self {
+            Density::Sphere(s) => x.map(|p| s.project(p)),
+            Density::Box(b) => x.map(|p| b.project(p)),
+            Density::Torus(t) => {
+                let mut p = *x;
+                t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
+                p
+            }
+            Density::Mesh(m) => x.map(|p| m.project(p)),
+            _ => *x,
+        }
+    }
+
+    /// [`Density::project_lanes`] in place (the points are not copied: the
+    /// fur's hot path), of the lanes set in `live` (bit l for lane l): a
+    /// sphere's or a torus's in the blocks of [`crate::math::simd::BLOCK`] lanes
+    /// with one live, the other objects' point by point. The other points
+    /// are left.
+    #[inline(always)]
+    pub(crate) fn project_lanes_in_place(&self, x: &mut Points, live: u32) {
+        #[inline(always)]
+        fn each_live(x: &mut Points, live: u32, project: impl Fn(Vec3) -> Vec3) {
+            for l in 0..LANES {
+                if live & (1 << l) != 0 {
+                    x.set(l, project(x.get(l)));
+                }
+            }
+        }
+        match self {
+            Density::Sphere(s) => s.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
+            Density::Box(b) => each_live(x, live, |p| b.project(p)),
+            Density::Torus(t) => t.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
+            Density::Mesh(m) => each_live(x, live, |p| m.project(p)),
+            _ => {}
+        }
+    }
+
+    /// [`Density::eval`] at [`LANES`] points: the same bits lane by lane, with
+    /// the noise and the powers computed a batch at a time on `isa`.
+    #[inline]
+    pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match isa {
+            Isa::Scalar => each(x, |p| self.eval(p, field)),
+            // SAFETY: a scene only carries a path that `Isa::available`
+            // reported, and `Scene::with_isa` refuses the others.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::eval_lanes_avx512(self, x, field) },
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => each(x, |p| self.eval(p, field)),
+        }
+    }
+
+    /// [`Density::eval_object`] (D without the value DMFs) at [`LANES`]
+    /// points: the same bits lane by lane. A hypertexture's warps and
+    /// distortion and a primitive run on `isa`'s lanes; the other nodes (the
+    /// booleans, motion) point by point.
+    #[inline]
+    pub fn eval_object_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match isa {
+            // SAFETY: as in `eval_lanes`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => unsafe { x86::eval_object_lanes_sse41(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::eval_object_lanes_avx2(self, x, field) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::eval_object_lanes_avx512(self, x, field) },
+            _ => each(x, |p| self.eval_object(p, field)),
+        }
+    }
+
+    /// [`Density::eval_object_lanes`] on a SIMD path: a hypertexture's warps
+    /// and distortion, then its object's D; a boolean of its children's D
+    /// (every child, as `eval_object` folds them); a primitive's density.
+    #[inline(always)]
+    fn eval_object_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let child = |d: &Density| d.eval_object_lanes(x, field, isa);
+        match self {
+            Density::Hypertexture(h) => {
+                let mut p = *x;
+                for w in &h.warps {
+                    p = w.apply_lanes(&p, field, isa);
+                }
+                if let Some(d) = &h.distortion {
+                    p = d.apply_lanes(&p, &h.object, field, isa);
+                }
+                h.object.eval_object_lanes(&p, field, isa)
+            }
+            Density::Union(v) => v
+                .iter()
+                .fold([0.0; LANES], |a, d| zip(&a, &child(d), boolean::union)),
+            Density::Intersection(v) => v.iter().fold([1.0; LANES], |a, d| {
+                zip(&a, &child(d), boolean::intersection)
+            }),
+            Density::Difference(a, b) => zip(&child(a), &child(b), boolean::difference),
+            Density::Complement(a) => child(a).map(boolean::complement),
+            Density::Max(v) => v
+                .iter()
+                .fold([0.0; LANES], |a, d| zip(&a, &child(d), f32::max)),
+            Density::Min(v) => v
+                .iter()
+                .fold([1.0; LANES], |a, d| zip(&a, &child(d), f32::min)),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_object_lanes(&pose.to_object_lanes(x), field, isa),
+                None => child(d),
+            },
+            _ => self.eval_lanes_simd(x, field, isa),
+        }
+    }
+
+    /// [`Density::eval_lanes`] on a SIMD path: written once, inlined into a
+    /// copy per instruction set (`x86` below) together with everything it
+    /// calls but its children, so the lanes stay in that set's registers
+    /// from the points to the powers.
+    #[inline(always)]
+    pub(crate) fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Box(b) => each(x, |p| b.density(p)),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            // The scalar query lane by lane: a tree search per point.
+            Density::Mesh(m) => each(x, |p| m.density(p)),
+            Density::Expression(program) => program.eval_lanes(x, &[0.0; LANES], field, isa)[0]
+                .map(crate::field::shaping::clamp01),
+            Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), boolean::union)
+            }),
+            Density::Intersection(v) => {
+                let mut a = [1.0; LANES];
+                for d in v {
+                    if a.iter().all(|&a| a == 0.0) {
+                        break;
+                    }
+                    let b = d.eval_child(x, field, isa);
+                    // A lane that reached 0 stopped there (`eval` breaks out).
+                    a = zip(&a, &b, |a, b| {
+                        if a == 0.0 {
+                            a
+                        } else {
+                            boolean::intersection(a, b)
+                        }
+                    });
+                }
+                a
+            }
+            Density::Difference(a, b) => {
+                let a = a.eval_child(x, field, isa);
+                if a.iter().all(|&a| a == 0.0) {
+                    return [0.0; LANES];
+                }
+                let b = b.eval_child(x, field, isa);
+                zip(&a, &b, |a, b| {
+                    if a == 0.0 {
+                        0.0
+                    } else {
+                        boolean::difference(a, b)
+                    }
+                })
+            }
+            Density::Complement(a) => a.eval_child(x, field, isa).map(boolean::complement),
+            Density::Max(v) => v.iter().fold([0.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), f32::max)
+            }),
+            Density::Min(v) => v.iter().fold([1.0; LANES], |a, d| {
+                zip(&a, &d.eval_child(x, field, isa), f32::min)
+            }),
+            Density::Hypertexture(h) => h.eval_lanes_simd(x, field, isa),
+            Density::Moving(d) => match &field.pose {
+                Some(pose) => d.eval_child(&pose.to_object_lanes(x), field, isa),
+                None => d.eval_child(x, field, isa),
+            },
+        }
+    }
+}
+
+impl Density {
+    /// A child's lanes inside [`Density::eval_lanes_simd`]: the primitives
+    /// inline, the rest through [`Density::eval_lanes`].
+    #[inline(always)]
+    fn eval_child(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        match self {
+            Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
+            Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
+            _ => self.eval_lanes(x, field, isa),
+        }
+    }
+}
+
+/// The copies of [`Density::eval_lanes_simd`] per instruction set: the one
+/// `#[target_feature]` function at the top of the density's hot path.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::*;
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+    pub(super) fn eval_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx512)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_lanes_simd(x, field, Isa::Sse41)
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+    pub(super) fn eval_object_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Avx512)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) fn eval_object_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Avx2)
+    }
+
+    #[target_feature(enable = "sse4.1")]
+    pub(super) fn eval_object_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
+        d.eval_object_lanes_simd(x, field, Isa::Sse41)
+    }
+}
+
+/// A soft sphere's D at `c + (x − c)·s`, settled when the squared distances
+/// `d2 = |x − c|²` scaled by every s of the range give one value.
+struct SettlingSphere<'a> {
+    d2: Lanes,
+    falloff: &'a Falloff,
+    /// Whether D = 1 counts as settled (the hard region is solid).
+    hard: bool,
+}
+
+impl Settling for SettlingSphere<'_> {
+    #[inline(always)]
+    fn settled(&self, lo: &Lanes, hi: &Lanes) -> u32 {
+        lane_mask(|l| self.falloff.settled(self.d2[l], lo[l], hi[l], self.hard))
+    }
+}
+
+impl Hypertexture {
+    /// The points where D is evaluated: x under the warps and the distortion.
+    /// A sphere under one warp that scales about its centre (the noisy,
+    /// fractal and fiery spheres) lets the warp's octaves stop at the lanes
+    /// whose D is settled: 0 whatever the octaves left add, or 1 in a solid
+    /// hard region (H keeps both), so such a lane's point may differ from
+    /// `eval`'s but never its D nor H.
+    #[inline(always)]
+    fn warped_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Points {
+        if let (true, [w], None, Density::Sphere(sphere)) = (
+            self.settles,
+            self.warps.as_slice(),
+            &self.distortion,
+            &self.object,
+        ) {
+            let c = sphere.centre;
+            let settling = SettlingSphere {
+                d2: each(x, |p| (p - c).length_squared()),
+                falloff: &sphere.falloff,
+                hard: self.solid_core,
+            };
+            return w.apply_lanes_settling(x, field, isa, &settling);
+        }
+        let mut p = *x;
+        for w in &self.warps {
+            p = w.apply_lanes(&p, field, isa);
+        }
+        if let Some(d) = &self.distortion {
+            p = d.apply_lanes(&p, &self.object, field, isa);
+        }
+        p
+    }
+
+    /// [`Hypertexture::eval`] at [`LANES`] points on a SIMD path (see
+    /// [`Density::eval_lanes_simd`]).
+    #[inline(always)]
+    fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let p = self.warped_lanes(x, field, isa);
+        let d = self.object.eval_child(&p, field, isa);
+        // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
+        let kept = d.map(|d| self.keeps(d));
+        if kept.iter().all(|&k| k) {
+            return d;
+        }
+        // Only the other lanes' modulation is used (below): the noise
+        // kernels skip a register's worth of kept lanes.
+        let live = (0..LANES).fold(0u32, |m, l| m | (u32::from(!kept[l]) << l));
+        let mut v = d;
+        for m in &self.modulation {
+            if v.iter().all(|&v| v == 0.0) {
+                break;
+            }
+            let next = m.apply_lanes(&v, &p, &self.object, field, isa, live);
+            // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
+            v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
+        }
+        for l in 0..v.len() {
+            if kept[l] {
+                v[l] = d[l];
+            }
+        }
+        v
+    }
+}

@@ -1,0 +1,17 @@
+//! Density fields: the paper's soft objects and what shapes them.
+//!
+//! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
+//! - [`soft`], [`mesh`]: soft objects and their hard cores, primitives and meshes.
+//! - [`density`]: the density chain, generalized booleans and the DMFs.
+//! - [`distortion`], [`motion`]: Gilet & Dischler's shape transfer functions
+//!   and vector fields, and motion over frames.
+//! - [`curve`]: maps from density to colour, alpha and refractive index.
+
+pub mod curve;
+pub mod density;
+pub mod distortion;
+pub mod mesh;
+pub mod motion;
+pub mod noise;
+pub mod shaping;
+pub mod soft;

@@ -1,0 +1,281 @@
+//! The instruction sets the hot kernels are compiled for, chosen at run time,
+//! and the lanes they work on.
+//!
+//! The bottom layer of the crate: it uses nothing of it. Each kernel (noise in
+//! [`crate::field::noise`], `pow01` in [`crate::math::fastmath`]) is written once,
+//! lane-parallel over [`LANES`] points (noise with SSE intrinsics, 8 lanes in
+//! AVX registers on AVX2, 16 in AVX-512 registers), and compiled for
+//! AVX-512, AVX2 and SSE4.1 behind
+//! `#[target_feature]` beside its scalar form. The hot paths that call them
+//! have their own `#[target_feature]` copies with the kernels inlined
+//! (`density::lanes::x86`, `march::x86`); the rest of the program is built for
+//! the x86-64 baseline (SSE2). Every path does
+//! the same IEEE operations in the same order per lane (no FMA: Rust never
+//! contracts `a * b + c`, and the fused instructions that AVX-512 brings are
+//! never asked for), so [`Isa::Scalar`], [`Isa::Sse41`], [`Isa::Avx2`] and
+//! [`Isa::Avx512`]
+//! give the same bits; `tests/` renders whole images on each and compares them.
+//!
+//! The choice is a field of the scene (`Scene::isa`), not global
+//! state: a test can force any path, and a farm of mixed CPUs stays exact.
+
+use glam::Vec3;
+
+/// Points per batch in the vectorised paths: 16 (a ray's chunk of samples,
+/// or the gradient neighbours of 8 samples). Fewer calls of the kernels per
+/// ray outweigh the lanes evaluated past a ray's end (docs/benchmark-log.md).
+pub const LANES: usize = 16;
+
+/// One f32 per lane.
+pub type Lanes = [f32; LANES];
+
+/// Lanes per block: an AVX register of f32. Lane code that takes a mask of
+/// live lanes skips a block of [`BLOCK`] lanes with none live
+/// ([`live_blocks`]).
+pub const BLOCK: usize = 8;
+
+/// Which lanes of a mask `live` (bit l for lane l) to compute, by whole
+/// blocks of [`BLOCK`]: all [`LANES`] (both blocks live, one register on
+/// AVX-512), the first or the second block only, or none.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LiveBlocks {
+    /// Both blocks.
+    All,
+    /// Lanes 0 .. [`BLOCK`] only.
+    First,
+    /// Lanes [`BLOCK`] .. [`LANES`] only.
+    Second,
+    /// No lane.
+    None,
+}
+
+/// The blocks of `live` to compute.
+#[inline(always)]
+pub fn live_blocks(live: u32) -> LiveBlocks {
+    const MASK: u32 = (1 << BLOCK) - 1;
+    match (live & MASK != 0, (live >> BLOCK) & MASK != 0) {
+        (true, true) => LiveBlocks::All,
+        (true, false) => LiveBlocks::First,
+        (false, true) => LiveBlocks::Second,
+        (false, false) => LiveBlocks::None,
+    }
+}
+
+/// The mask of the lanes where `test` holds (bit l for lane l): each lane's
+/// bit, then their union, two loops that vectorise (a compare and a few
+/// shifts and ors per register, not a chain of 16).
+#[inline(always)]
+pub fn lane_mask(test: impl Fn(usize) -> bool) -> u32 {
+    let mut bits = [0u32; LANES];
+    for (l, bit) in bits.iter_mut().enumerate() {
+        *bit = u32::from(test(l)) << l;
+    }
+    bits.iter().fold(0, |m, b| m | b)
+}
+
+/// The mask of the lanes of `v` that are not +0 (bit l for lane l), on
+/// `isa`'s registers where it is a SIMD path (inlined into that path's
+/// copy): the mask [`lane_mask`] gives.
+#[inline(always)]
+pub fn nonzero_mask(isa: Isa, v: &Lanes) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+        use std::arch::x86_64::*;
+        // SAFETY: the path is AVX2 or AVX-512 only on CPUs that have it, and
+        // this code is inlined into that path's copy; the loads are of 8
+        // lanes within arrays of LANES.
+        return unsafe {
+            let zero = _mm256_setzero_si256();
+            let mut m = 0u32;
+            for h in 0..LANES / 8 {
+                let bits = _mm256_loadu_si256(v.as_ptr().add(8 * h).cast());
+                let zeros = _mm256_castsi256_ps(_mm256_cmpeq_epi32(bits, zero));
+                m |= (_mm256_movemask_ps(zeros) as u32) << (8 * h);
+            }
+            !m & ((1u64 << LANES) - 1) as u32
+        };
+    }
+    let _ = isa;
+    lane_mask(|l| v[l].to_bits() != 0)
+}
+
+/// The mask of the lanes of `v` below `bound` (bit l for lane l; false for
+/// NaN), on `isa`'s registers where it is a SIMD path (inlined into that
+/// path's copy): the mask [`lane_mask`] gives.
+#[inline(always)]
+pub fn below_mask(isa: Isa, v: &Lanes, bound: f32) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+        use std::arch::x86_64::*;
+        // SAFETY: as in `nonzero_mask`.
+        return unsafe {
+            let b = _mm256_set1_ps(bound);
+            let mut m = 0u32;
+            for h in 0..LANES / 8 {
+                let x = _mm256_loadu_ps(v.as_ptr().add(8 * h));
+                let below = _mm256_cmp_ps::<_CMP_LT_OQ>(x, b);
+                m |= (_mm256_movemask_ps(below) as u32) << (8 * h);
+            }
+            m
+        };
+    }
+    let _ = isa;
+    lane_mask(|l| v[l] < bound)
+}
+
+/// An instruction-set path for the batch kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Isa {
+    /// One point at a time through the scalar functions: the reference.
+    Scalar,
+    /// Lane-parallel code compiled for SSE4.1 (4-wide).
+    Sse41,
+    /// Lane-parallel code compiled for AVX2 (8-wide).
+    Avx2,
+    /// Lane-parallel code compiled for AVX-512 F, BW and VBMI (16-wide: all
+    /// [`LANES`] in one register; Ice Lake, Sapphire Rapids, Zen 4 and
+    /// later).
+    Avx512,
+}
+
+impl Isa {
+    /// The path the renderer takes on this CPU: the widest it supports. The
+    /// 16-wide path looks up the noise's permutation by byte permutes
+    /// (VBMI), which leaves it 0.89× the CPU time of AVX2 for the fur and
+    /// 0.88× for the noisy sphere on the Xeon measured (docs/benchmark-log.md).
+    /// [`crate::Scene::set_isa`] asks for another (`ISA=avx2` in the examples).
+    pub fn detect() -> Isa {
+        Isa::available().into_iter().last().unwrap_or(Isa::Scalar)
+    }
+
+    /// Every path this CPU can run, slowest first.
+    pub fn available() -> Vec<Isa> {
+        let mut v = vec![Isa::Scalar];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("sse4.1") {
+                v.push(Isa::Sse41);
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                v.push(Isa::Avx2);
+            }
+            if std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512bw")
+                && std::is_x86_feature_detected!("avx512vbmi")
+            {
+                v.push(Isa::Avx512);
+            }
+        }
+        v
+    }
+
+    /// Whether this CPU can run the path.
+    pub fn is_available(self) -> bool {
+        Isa::available().contains(&self)
+    }
+
+    /// The path's name, as `--isa` spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Isa::Scalar => "scalar",
+            Isa::Sse41 => "sse4.1",
+            Isa::Avx2 => "avx2",
+            Isa::Avx512 => "avx512",
+        }
+    }
+}
+
+/// The x, y and z of 4 `Vec3`s (3 loads and 6 shuffles).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(crate) fn deinterleave(
+    p: &[Vec3],
+) -> (
+    std::arch::x86_64::__m128,
+    std::arch::x86_64::__m128,
+    std::arch::x86_64::__m128,
+) {
+    use std::arch::x86_64::*;
+    const _: () = assert!(std::mem::size_of::<Vec3>() == 12);
+    assert!(p.len() == 4);
+    // SAFETY: 4 `Vec3`s are 12 contiguous f32 (glam's `Vec3` is `repr(C)` of
+    // 3 f32), loaded as 3 unaligned vectors. SSE is part of the x86-64 baseline.
+    unsafe {
+        let f = p.as_ptr().cast::<f32>();
+        let (a, b, c) = (
+            _mm_loadu_ps(f),
+            _mm_loadu_ps(f.add(4)),
+            _mm_loadu_ps(f.add(8)),
+        );
+        // a = x0 y0 z0 x1, b = y1 z1 x2 y2, c = z2 x3 y3 z3.
+        let x = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b11_11_00_00>(a, a),
+            _mm_shuffle_ps::<0b01_01_10_10>(b, c),
+        );
+        let y = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b00_00_01_01>(a, b),
+            _mm_shuffle_ps::<0b10_10_11_11>(b, c),
+        );
+        let z = _mm_shuffle_ps::<0b10_00_10_00>(
+            _mm_shuffle_ps::<0b01_01_10_10>(a, b),
+            _mm_shuffle_ps::<0b11_11_00_00>(c, c),
+        );
+        (x, y, z)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The masks by compare and `movemask` are [`lane_mask`]'s on every
+    /// path, at ±0, NaN, subnormals, the bound itself and its neighbours.
+    #[test]
+    fn masks_on_every_path_are_lane_masks() {
+        let special = [
+            0.0,
+            -0.0,
+            f32::NAN,
+            -f32::NAN,
+            f32::MIN_POSITIVE / 2.0,
+            -f32::MIN_POSITIVE / 2.0,
+            1.0,
+            1.0f32.next_down(),
+            1.0f32.next_up(),
+            0.5,
+            -0.5,
+            f32::INFINITY,
+            -f32::INFINITY,
+            2.0,
+            f32::MAX,
+            -1.0,
+        ];
+        // A xorshift, so that the bottom layer's tests use nothing above it.
+        let mut state = 0x9e37_79b9_u32;
+        for round in 0..200 {
+            let v: Lanes = std::array::from_fn(|l| {
+                state ^= state << 13;
+                state ^= state >> 17;
+                state ^= state << 5;
+                let pick = if round % 2 == 0 {
+                    l * 7 + round
+                } else {
+                    state as usize
+                };
+                special[pick % special.len()]
+            });
+            for isa in Isa::available() {
+                assert_eq!(
+                    nonzero_mask(isa, &v),
+                    lane_mask(|l| v[l].to_bits() != 0),
+                    "{isa:?}: {v:?}"
+                );
+                assert_eq!(
+                    below_mask(isa, &v, 1.0),
+                    lane_mask(|l| v[l] < 1.0),
+                    "{isa:?}: {v:?}"
+                );
+            }
+        }
+    }
+}
