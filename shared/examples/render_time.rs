@@ -1,7 +1,8 @@
 //! Render times on a shared machine: each scene rendered in-process `runs`
 //! times on `threads` threads (no file written), the best run printed in ms.
-//! Build it from two versions and let them take turns (see BENCHMARKS.md) to
-//! compare them fairly while other processes come and go.
+//! Build it from two versions and let them take turns (docs/benchmark-log.md,
+//! "Fair comparisons on a shared machine") to compare them fairly while other
+//! processes come and go.
 //!
 //! `cargo run --release -p hypertexture --example render_time -- SIZE RUNS THREADS SCENE...`
 //! (`ISA=scalar`, `sse4.1`, `avx2` or `avx512` in the environment times that path;

@@ -9,6 +9,37 @@
 //! `α_k = 1 - (1 - density)^(c·step)` so that the picture does not depend on the
 //! step. Where the refractive index changes between samples the ray bends by
 //! Snell's law.
+//!
+//! # What is skipped and what is batched
+//!
+//! Every shortcut below gives the bits of the plain loop above
+//! (`shared/tests/render.rs` renders every scene with skipping off and on
+//! every instruction set):
+//!
+//! - **Chunks.** A ray's samples are evaluated 16 at a time (`Chunk`) by the
+//!   lane code, filled in a `#[target_feature]` copy per instruction set
+//!   (`x86`); a run of +0 samples after a +0 one is stepped over at once.
+//! - **Empty space.** Samples outside the density's support box and ball
+//!   (`Support`) are 0 for certain and are not evaluated; lanes past the ray's
+//!   end are evaluated at a point outside it, where D = 0.
+//! - **Two copies of the loop.** `march::<COMMON, WAIT>`: `COMMON` (the scene's
+//!   `common_case`: no refraction, motion, colour or normal expressions,
+//!   shadows or strata) drops what such scenes never need; `WAIT` (directional
+//!   lights only, no refraction, normal expression or shadows) lets a sample's
+//!   gradient and light wait.
+//! - **Waiting samples.** A waiting sample (`Deferred`) keeps its point, f and
+//!   weight; its gradient neighbours are evaluated 8 samples a call, across
+//!   chunk boundaries, and its light 16 at a time (`shade_lanes`); colours are
+//!   then added in sample order. `trace_group` marches up to `GROUP` rays and
+//!   evaluates their waiting samples together, so the coarse interactive step
+//!   still fills the lanes.
+//! - **Reuse.** A transparent sample (α_k = 0) adds no colour and is passed
+//!   without shading (`latest_normal` finds the normal a later sample falls
+//!   back on); where colour depends only on f, the normal and the ray
+//!   (`position_free_shading`), a sample with the f and normal of the latest
+//!   one shaded takes its colour.
+//!
+//! What each one saved is in docs/benchmark-log.md.
 
 use glam::Vec3;
 
