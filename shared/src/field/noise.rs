@@ -20,7 +20,7 @@
 //!
 //! Beside P and G, [`Noise`] keeps tables derived from them: the hash's inner
 //! two levels for every (j, k), the four corners' bytes of a cell in one
-//! `u32` (`cells`, shared by the scenes of a seed), and G[P[m]] as aligned
+//! `u32` (`cells`, shared by the scenes of a seed), and `G[P[m]]` as aligned
 //! 16-byte rows. So a cell's hash is one look-up (one gather for 8 lanes) and
 //! a corner's gradient one load. The lane kernels do exactly
 //! [`Noise::noise`]'s arithmetic on 4, 8 or 16 lanes. Where the points lie
