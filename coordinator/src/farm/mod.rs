@@ -5,7 +5,10 @@
 //! the gRPC edge: authentication, conversion of refusals to `tonic::Status`, the
 //! run loop (lease expiry, progress, previews, time-outs, finished frames) and
 //! the local workers. A sequence of frames is one session: one server, the same
-//! workers, each frame handed over as soon as it is complete.
+//! workers, each frame handed over as soon as it is complete. The service and
+//! the studio see a running farm through the methods of [`Shared`] in `view`,
+//! which take its lock once and hand back plain values: the scheduler and the
+//! farm's state are private to `farm/`.
 
 pub mod canvas;
 pub mod cert;
@@ -498,10 +501,9 @@ impl Shared {
         }
     }
 
-    /// Adds a job whose units are not rendered twice (the studio's live
-    /// frames: their first coarse image waits for nothing): its wire form and
-    /// its plan; idle workers hear of it at once.
-    pub fn add_job(
+    /// Adds a job whose units are not rendered twice ([`Shared::add_live_frame`]):
+    /// its wire form and its plan; idle workers hear of it at once.
+    fn add_job(
         &self,
         plan: crate::farm::scheduler::JobPlan,
         resume: crate::farm::scheduler::Resume,
@@ -510,8 +512,9 @@ impl Shared {
         self.add_job_verifying(plan, resume, wire, 0.0)
     }
 
-    /// [`Shared::add_job`], with the farm's fraction of units rendered twice
-    /// and compared (verified rendering).
+    /// Adds a job, the farm's fraction of its units rendered twice and
+    /// compared (verified rendering): its wire form and its plan; idle
+    /// workers hear of it at once.
     pub fn add_verified_job(
         &self,
         plan: crate::farm::scheduler::JobPlan,
