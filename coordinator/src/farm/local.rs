@@ -1,6 +1,7 @@
 //! The coordinator's own workers: `worker` processes beside this executable (one
 //! per core by default), or in-process workers when that binary is absent.
 
+use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -172,6 +173,54 @@ impl InProcessPlan {
     }
 }
 
+/// The command that starts local worker `name` dialling `url`: its threads,
+/// its lease, the token in its environment, the CA to trust, and never
+/// outliving this process.
+fn worker_command(
+    path: &Path,
+    config: &FarmConfig,
+    url: &str,
+    token: Option<&str>,
+    ca: Option<&CaFile>,
+    name: &str,
+) -> Command {
+    let mut cmd = Command::new(path);
+    cmd.args([
+        "--coordinator",
+        url,
+        "--threads",
+        &config.local_threads.to_string(),
+    ])
+    .args(["--name", name, "--exit-when-done", "--quiet"])
+    .args(["--lease-timeout", &config.lease.as_secs_f64().to_string()])
+    // A local worker never outlives this process, whatever
+    // ends it: the worker watches its parent, and on Linux
+    // the kernel kills it when this process dies.
+    .args(["--parent-pid", &std::process::id().to_string()])
+    .env_remove("HYPERTEXTURE_TOKEN")
+    .stdin(std::process::Stdio::null())
+    .stderr(std::process::Stdio::piped())
+    .kill_on_drop(true);
+    if let Some(t) = token {
+        cmd.env("HYPERTEXTURE_TOKEN", t);
+    }
+    if let Some(ca) = ca {
+        cmd.arg("--ca").arg(ca.path());
+    }
+    #[cfg(target_os = "linux")]
+    // SAFETY: the closure runs in the child between fork and
+    // exec and calls only prctl, which is async-signal-safe.
+    unsafe {
+        cmd.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    cmd
+}
+
 impl LocalWorkers {
     /// Starts `config.local_workers` workers dialling `url`.
     pub fn start(
@@ -205,40 +254,7 @@ impl LocalWorkers {
                 let mut children = Vec::new();
                 for i in 0..config.local_workers {
                     let name = format!("local-{i}");
-                    let mut cmd = Command::new(&path);
-                    cmd.args([
-                        "--coordinator",
-                        url,
-                        "--threads",
-                        &config.local_threads.to_string(),
-                    ])
-                    .args(["--name", &name, "--exit-when-done", "--quiet"])
-                    .args(["--lease-timeout", &config.lease.as_secs_f64().to_string()])
-                    // A local worker never outlives this process, whatever
-                    // ends it: the worker watches its parent, and on Linux
-                    // the kernel kills it when this process dies.
-                    .args(["--parent-pid", &std::process::id().to_string()])
-                    .env_remove("HYPERTEXTURE_TOKEN")
-                    .stdin(std::process::Stdio::null())
-                    .stderr(std::process::Stdio::piped())
-                    .kill_on_drop(true);
-                    if let Some(t) = token {
-                        cmd.env("HYPERTEXTURE_TOKEN", t);
-                    }
-                    if let Some(ca) = &ca {
-                        cmd.arg("--ca").arg(ca.path());
-                    }
-                    #[cfg(target_os = "linux")]
-                    // SAFETY: the closure runs in the child between fork and
-                    // exec and calls only prctl, which is async-signal-safe.
-                    unsafe {
-                        cmd.pre_exec(|| {
-                            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
-                                return Err(std::io::Error::last_os_error());
-                            }
-                            Ok(())
-                        });
-                    }
+                    let mut cmd = worker_command(&path, config, url, token, ca.as_deref(), &name);
                     let mut child = cmd.spawn().map_err(|source| FarmError::Spawn {
                         path: path.clone(),
                         source,

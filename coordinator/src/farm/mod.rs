@@ -5,7 +5,10 @@
 //! the gRPC edge: authentication, conversion of refusals to `tonic::Status`, the
 //! run loop (lease expiry, progress, previews, time-outs, finished frames) and
 //! the local workers. A sequence of frames is one session: one server, the same
-//! workers, each frame handed over as soon as it is complete.
+//! workers, each frame handed over as soon as it is complete. The service and
+//! the studio see a running farm through the methods of [`Shared`] in `view`,
+//! which take its lock once and hand back plain values: the scheduler and the
+//! farm's state are private to `farm/`.
 
 pub mod canvas;
 pub mod cert;
@@ -13,6 +16,7 @@ pub mod gate;
 pub mod local;
 pub mod progress;
 pub mod scheduler;
+mod view;
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -29,7 +33,9 @@ use tokio::sync::{broadcast, watch};
 use tonic::{Request, Response, Status};
 
 use crate::farm::canvas::FrameImage;
-use crate::farm::scheduler::{Accepted, JobId, Next, Refusal, Scheduler};
+pub use crate::farm::scheduler::{Accepted, JobId};
+use crate::farm::scheduler::{Next, Refusal, Scheduler};
+pub use view::{QueueView, WorkerSummary};
 
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
 /// 16 KiB, less than a tile of whole-set units at 512²).
@@ -383,13 +389,13 @@ impl FarmStats {
 
 /// The farm's state: the scheduler, the jobs' wire forms and the counters,
 /// behind one lock.
-pub struct FarmState {
+struct FarmState {
     /// Who renders what.
-    pub scheduler: Scheduler,
+    scheduler: Scheduler,
     /// Every job in the scheduler, as sent to workers.
-    pub wire: HashMap<JobId, WireJob>,
+    wire: HashMap<JobId, WireJob>,
     /// Counters for the metrics.
-    pub stats: FarmStats,
+    stats: FarmStats,
 }
 
 /// The shared state behind the gRPC service.
@@ -425,6 +431,40 @@ pub struct Shared {
 }
 
 impl Shared {
+    /// The state of a farm starting with `scheduler`: no jobs' wire forms,
+    /// no counters, nothing sent yet.
+    fn new(
+        config: &FarmConfig,
+        scheduler: Scheduler,
+        arithmetic_digest: u64,
+        finished: watch::Sender<bool>,
+        sink: Option<Arc<dyn TileSink>>,
+    ) -> Shared {
+        let token = config.token.clone();
+        Shared {
+            state: Mutex::new(FarmState {
+                scheduler,
+                wire: HashMap::new(),
+                stats: FarmStats::default(),
+            }),
+            gate: crate::farm::gate::Gate::new(token.as_deref(), config.gate, &config.allow_hosts),
+            token,
+            heartbeat: (config.lease / 4).max(Duration::from_millis(50)),
+            arithmetic_digest,
+            finished,
+            jobs_added: watch::channel(0).0,
+            tile_bytes: std::sync::atomic::AtomicU64::new(0),
+            first_assignment: Mutex::new(None),
+            sink,
+            unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
+            withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
+            closing: watch::channel(false).0,
+            assets: Mutex::new(HashMap::new()),
+            verify: config.verify,
+            checks: tokio::sync::Notify::new(),
+        }
+    }
+
     /// The interleave B and the number of workers new jobs' units are sized for.
     pub fn unit_layout(&self) -> (u32, usize) {
         *self.unit_layout.lock().unwrap_or_else(|p| p.into_inner())
@@ -436,7 +476,7 @@ impl Shared {
     }
 
     /// The farm's state, locked.
-    pub fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
         let mut state = self.lock_state();
         state.stats.unauthenticated = self.gate.refused();
         state.stats.handler_panics = crate::service::panics::caught();
@@ -461,10 +501,9 @@ impl Shared {
         }
     }
 
-    /// Adds a job whose units are not rendered twice (the studio's live
-    /// frames: their first coarse image waits for nothing): its wire form and
-    /// its plan; idle workers hear of it at once.
-    pub fn add_job(
+    /// Adds a job whose units are not rendered twice ([`Shared::add_live_frame`]):
+    /// its wire form and its plan; idle workers hear of it at once.
+    fn add_job(
         &self,
         plan: crate::farm::scheduler::JobPlan,
         resume: crate::farm::scheduler::Resume,
@@ -473,8 +512,9 @@ impl Shared {
         self.add_job_verifying(plan, resume, wire, 0.0)
     }
 
-    /// [`Shared::add_job`], with the farm's fraction of units rendered twice
-    /// and compared (verified rendering).
+    /// Adds a job, the farm's fraction of its units rendered twice and
+    /// compared (verified rendering): its wire form and its plan; idle
+    /// workers hear of it at once.
     pub fn add_verified_job(
         &self,
         plan: crate::farm::scheduler::JobPlan,
@@ -1079,6 +1119,88 @@ pub fn arithmetic_digest() -> Result<u64, hypertexture::render::probe::ProbeErro
     Ok(*DIGEST.get_or_init(|| d))
 }
 
+/// Binds `config.listen`; beyond loopback only with a token.
+async fn bind(config: &FarmConfig) -> Result<(tokio::net::TcpListener, SocketAddr), FarmError> {
+    let loopback = config.listen.ip().is_loopback();
+    if !loopback && config.token.is_none() {
+        return Err(FarmError::TokenRequired(config.listen));
+    }
+    // On loopback without a token anyone on this machine may join (as the user's
+    // own `worker` processes do); beyond loopback a token is required (above).
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .map_err(|source| FarmError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+    let addr = listener.local_addr().map_err(|source| FarmError::Bind {
+        addr: config.listen,
+        source,
+    })?;
+    Ok((listener, addr))
+}
+
+/// The server's task and the sender that stops it.
+type Server = (
+    tokio::sync::oneshot::Sender<()>,
+    tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+);
+
+/// Serves the workers' gRPC (and `routes` beside it) on `listener`, behind
+/// the gate, over TLS when `config.tls` is set. Returns the URL scheme and
+/// the server.
+fn serve(
+    shared: &Arc<Shared>,
+    config: &FarmConfig,
+    routes: Option<axum::Router>,
+    listener: tokio::net::TcpListener,
+) -> Result<(&'static str, Server), FarmError> {
+    // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
+    // write for the worker and one wake-up here instead of two or three.
+    // Each connection gets a bounded share of streams; HTTP/2 and TCP
+    // keepalive drop peers that went away without closing.
+    let mut server = tonic::transport::Server::builder()
+        .max_frame_size(MAX_FRAME_BYTES)
+        .max_concurrent_streams(MAX_STREAMS)
+        .http2_keepalive_interval(Some(KEEPALIVE))
+        .http2_keepalive_timeout(Some(KEEPALIVE))
+        .tcp_keepalive(Some(KEEPALIVE))
+        .accept_http1(routes.is_some());
+    let scheme = if let Some((cert, key)) = &config.tls {
+        let identity = tonic::transport::Identity::from_pem(cert, key);
+        server = server
+            .tls_config(
+                tonic::transport::ServerTlsConfig::new()
+                    .identity(identity)
+                    .timeout(config.gate.handshake),
+            )
+            .map_err(|e| FarmError::Tls(e.to_string()))?;
+        "https"
+    } else {
+        "http"
+    };
+    let service = FarmServer::new(Service(Arc::clone(shared)))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let router = match routes {
+        Some(routes) => tonic::service::Routes::from(routes).add_service(service),
+        None => tonic::service::Routes::new(service),
+    };
+    let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
+    let gate = Arc::clone(&shared.gate);
+    let server_task = tokio::spawn(
+        server
+            // Outermost: a handler's panic fails its request alone.
+            .layer(crate::service::panics::CatchLayer)
+            .layer(crate::farm::gate::GateLayer(Arc::clone(&gate)))
+            .add_routes(router)
+            .serve_with_incoming_shutdown(gate.incoming(listener), async {
+                let _ = server_stopped.await;
+            }),
+    );
+    Ok((scheme, (stop_server, server_task)))
+}
+
 /// What one turn of the supervisor found.
 #[derive(Debug, Default)]
 pub struct Tick {
@@ -1123,96 +1245,20 @@ impl Farm {
         routes: Option<axum::Router>,
         sink: Option<Arc<dyn TileSink>>,
     ) -> Result<Farm, FarmError> {
-        let loopback = config.listen.ip().is_loopback();
-        if !loopback && config.token.is_none() {
-            return Err(FarmError::TokenRequired(config.listen));
-        }
-        // On loopback without a token anyone on this machine may join (as the user's
-        // own `worker` processes do); beyond loopback a token is required (above).
-        let token = config.token.clone();
-        let listener = tokio::net::TcpListener::bind(config.listen)
-            .await
-            .map_err(|source| FarmError::Bind {
-                addr: config.listen,
-                source,
-            })?;
-        let addr = listener.local_addr().map_err(|source| FarmError::Bind {
-            addr: config.listen,
-            source,
-        })?;
+        let (listener, addr) = bind(&config).await?;
         let arithmetic_digest = tokio::task::spawn_blocking(arithmetic_digest)
             .await
             .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
         let (finished_tx, finished_rx) = watch::channel(false);
-        let heartbeat = (config.lease / 4).max(Duration::from_millis(50));
-        let shared = Arc::new(Shared {
-            state: Mutex::new(FarmState {
-                scheduler,
-                wire: HashMap::new(),
-                stats: FarmStats::default(),
-            }),
-            token: token.clone(),
-            heartbeat,
+        let shared = Arc::new(Shared::new(
+            &config,
+            scheduler,
             arithmetic_digest,
-            finished: finished_tx,
-            jobs_added: watch::channel(0).0,
-            tile_bytes: std::sync::atomic::AtomicU64::new(0),
-            first_assignment: Mutex::new(None),
+            finished_tx,
             sink,
-            unit_layout: Mutex::new((config.interleave, config.local_workers.max(1))),
-            withdrawals: broadcast::channel(WITHDRAWALS_CAPACITY).0,
-            closing: watch::channel(false).0,
-            gate: crate::farm::gate::Gate::new(token.as_deref(), config.gate, &config.allow_hosts),
-            assets: Mutex::new(HashMap::new()),
-            verify: config.verify,
-            checks: tokio::sync::Notify::new(),
-        });
+        ));
         let checker = tokio::spawn(run_checks(Arc::clone(&shared)));
-
-        // A tile arrives in one HTTP/2 DATA frame rather than 16 KB pieces: one
-        // write for the worker and one wake-up here instead of two or three.
-        // Each connection gets a bounded share of streams; HTTP/2 and TCP
-        // keepalive drop peers that went away without closing.
-        let mut server = tonic::transport::Server::builder()
-            .max_frame_size(MAX_FRAME_BYTES)
-            .max_concurrent_streams(MAX_STREAMS)
-            .http2_keepalive_interval(Some(KEEPALIVE))
-            .http2_keepalive_timeout(Some(KEEPALIVE))
-            .tcp_keepalive(Some(KEEPALIVE))
-            .accept_http1(routes.is_some());
-        let scheme = if let Some((cert, key)) = &config.tls {
-            let identity = tonic::transport::Identity::from_pem(cert, key);
-            server = server
-                .tls_config(
-                    tonic::transport::ServerTlsConfig::new()
-                        .identity(identity)
-                        .timeout(config.gate.handshake),
-                )
-                .map_err(|e| FarmError::Tls(e.to_string()))?;
-            "https"
-        } else {
-            "http"
-        };
-        let service = FarmServer::new(Service(Arc::clone(&shared)))
-            .max_decoding_message_size(MAX_MESSAGE_BYTES)
-            .max_encoding_message_size(MAX_MESSAGE_BYTES);
-        let router = match routes {
-            Some(routes) => tonic::service::Routes::from(routes).add_service(service),
-            None => tonic::service::Routes::new(service),
-        };
-        let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
-        let gate = Arc::clone(&shared.gate);
-        let server_task = tokio::spawn(
-            server
-                // Outermost: a handler's panic fails its request alone.
-                .layer(crate::service::panics::CatchLayer)
-                .layer(crate::farm::gate::GateLayer(Arc::clone(&gate)))
-                .add_routes(router)
-                .serve_with_incoming_shutdown(gate.incoming(listener), async {
-                    let _ = server_stopped.await;
-                }),
-        );
-
+        let (scheme, (stop_server, server_task)) = serve(&shared, &config, routes, listener)?;
         let public = if addr.ip().is_unspecified() {
             "THIS-HOST".to_string()
         } else {
@@ -1237,7 +1283,7 @@ impl Farm {
             addr.port()
         );
         let locals =
-            crate::farm::local::LocalWorkers::start(&config, &local_url, token.as_deref())?;
+            crate::farm::local::LocalWorkers::start(&config, &local_url, config.token.as_deref())?;
         Ok(Farm {
             shared,
             finished_rx,
@@ -1765,3 +1811,6 @@ pub fn read_pem(path: &Path) -> Result<Vec<u8>, FarmError> {
     crate::files::read_capped(path, crate::files::MAX_PEM_BYTES, "PEM file")
         .map_err(|e| FarmError::Tls(e.to_string()))
 }
+
+#[cfg(test)]
+mod tests;

@@ -70,6 +70,61 @@ fn same(a: &Film, b: &Film) -> bool {
 pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     let (text, scene) = load(&config.scene, config.width, config.height)?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let (serial_film, serial) = in_process_rows(config, &scene, cores)?;
+    let encode_per_pixel = encode_cost(config.pixel_format, &serial_film);
+
+    // As in `coordinator --local-workers N`: the farm is served on one thread.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(CoordinatorError::Runtime)?;
+    // The coordinator's known-answer probe is computed once per process: here,
+    // before the farms, so that each farm's row shows what a frame costs.
+    let probe_started = Instant::now();
+    crate::farm::arithmetic_digest().map_err(crate::farm::FarmError::from)?;
+    let probe_time = probe_started.elapsed().as_secs_f64();
+    let reference = Reference {
+        film: &serial_film,
+        seconds: serial,
+        cores,
+    };
+    let (call_points, render_thread_wait) =
+        farm_rows(config, &runtime, (&text, &scene), &reference)?;
+    println!();
+    println!(
+        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip). Not in the coordinator's rows: its known-answer probe, once per process before them, {:.1} ms (each worker process's own probe is in the workers' CPU).",
+        encode_per_pixel * 1e9,
+        render_thread_wait * 1e3,
+        probe_time * 1e3,
+    );
+
+    if config.simulate.is_empty() {
+        return Ok(());
+    }
+    simulated_rows(
+        config,
+        &runtime,
+        (&text, &scene),
+        call_points,
+        encode_per_pixel,
+    )
+}
+
+/// The in-process render every farm is compared with: its image, its wall
+/// time on one thread, and the cores of this machine.
+struct Reference<'a> {
+    film: &'a Film,
+    seconds: f64,
+    cores: usize,
+}
+
+/// Prints the title, the table's header and the in-process rows (one
+/// thread, every core); returns the one-thread image and its wall seconds.
+fn in_process_rows(
+    config: &BenchConfig,
+    scene: &Scene,
+    cores: usize,
+) -> Result<(Film, f64), CoordinatorError> {
     println!(
         "# coordinator bench: {} at {}×{}, {cores} cores",
         config.scene.display(),
@@ -82,10 +137,10 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---|");
 
-    let (serial_film, serial) = crate::render_in_process(&scene, 0, 1, false)?;
+    let (serial_film, serial) = crate::render_in_process(scene, 0, 1, false)?;
     let serial = serial.as_secs_f64();
     println!("| in-process, 1 thread | {serial:.3} | 1.00 | 100% | – | – | – | reference |");
-    let (film, all) = crate::render_in_process(&scene, 0, cores, false)?;
+    let (film, all) = crate::render_in_process(scene, 0, cores, false)?;
     let all = all.as_secs_f64();
     println!(
         "| in-process, {cores} threads | {all:.3} | {:.2} | {:.0}% | – | – | – | {} |",
@@ -97,57 +152,48 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             "NO"
         }
     );
+    Ok((serial_film, serial))
+}
 
-    // A worker encodes each tile on its render thread (counted in its unit's
-    // cost); in-process, the image is encoded after the render. The
-    // simulation adds this per pixel to the render's cost.
-    let encode_per_pixel = (0..3)
+/// Seconds a worker spends encoding a pixel of its tile (on its render
+/// thread, counted in its unit's cost; in-process, the image is encoded
+/// after the render): the fastest of three encodings of `film`.
+fn encode_cost(format: hypertexture::PixelFormat, film: &Film) -> f64 {
+    (0..3)
         .map(|_| {
             let t = Instant::now();
-            std::hint::black_box(config.pixel_format.encode(serial_film.pixels()));
+            std::hint::black_box(format.encode(film.pixels()));
             t.elapsed().as_secs_f64()
         })
         .fold(f64::INFINITY, f64::min)
-        / serial_film.pixels().len().max(1) as f64;
+        / film.pixels().len().max(1) as f64
+}
 
-    // As in `coordinator --local-workers N`: the farm is served on one thread.
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .map_err(CoordinatorError::Runtime)?;
-    // (render µs, calls µs) of each tile of 1-worker farms but their first.
+/// Prints a row per farm size of `config.workers`. Returns the (render µs,
+/// calls µs) of each tile of a 1-worker farm but its first, and how long
+/// that farm's render thread did not render.
+fn farm_rows(
+    config: &BenchConfig,
+    runtime: &tokio::runtime::Runtime,
+    (text, scene): (&str, &Scene),
+    reference: &Reference<'_>,
+) -> Result<(Vec<(f64, u64)>, f64), CoordinatorError> {
+    let (serial, cores) = (reference.seconds, reference.cores);
     let mut call_points: Vec<(f64, u64)> = Vec::new();
     let mut render_thread_wait = 0.0f64;
-    let on_farm = |text: &str, path: &std::path::Path, scene: &Scene, n: usize| {
-        farm_render(&runtime, text, path, scene, config.pixel_format, n)
-    };
-    // The coordinator's known-answer probe is computed once per process: here,
-    // before the farms, so that each farm's row shows what a frame costs.
-    let probe_started = Instant::now();
-    crate::farm::arithmetic_digest().map_err(crate::farm::FarmError::from)?;
-    let probe_time = probe_started.elapsed().as_secs_f64();
     for &n in &config.workers {
         let (self0, children0) = (
             cpu_seconds(libc::RUSAGE_SELF),
             cpu_seconds(libc::RUSAGE_CHILDREN),
         );
         let start = Instant::now();
-        let report = on_farm(&text, &config.scene, &scene, n)?;
+        let report = farm_render(runtime, text, &config.scene, scene, config.pixel_format, n)?;
         let total = start.elapsed().as_secs_f64();
         // As for the in-process rows: the render itself, first unit out to last tile in.
         let wall = report.render_time.as_secs_f64();
         let own = cpu_seconds(libc::RUSAGE_SELF) - self0;
         let workers = cpu_seconds(libc::RUSAGE_CHILDREN) - children0;
-        // Units differ in size (guided self-scheduling): compare cost per pixel.
-        let sizes = farm_units(scene.width(), scene.height(), DEFAULT_INTERLEAVE, n);
         let costs: Vec<f64> = report.unit_costs.iter().map(|&c| c as f64).collect();
-        let per_pixel: Vec<f64> = costs
-            .iter()
-            .zip(&sizes)
-            .map(|(c, u)| c / u.pixel_count(scene.width()).max(1) as f64)
-            .collect();
-        let mean = per_pixel.iter().sum::<f64>() / per_pixel.len().max(1) as f64;
-        let max = per_pixel.iter().cloned().fold(0.0, f64::max);
         if n == 1 {
             call_points.extend(unit_call_points(&report));
             // For the record: how long its render thread did not render
@@ -164,10 +210,10 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             100.0 * own / (own + workers).max(1e-9),
             own * 1e3,
             report.tile_bytes,
-            if mean > 0.0 { max / mean } else { 0.0 },
+            imbalance(scene, n, &costs),
             if match &report.image {
-                FrameImage::Film(film) => same(film, &serial_film),
-                image => image.srgb8() == serial_film.to_srgb8(),
+                FrameImage::Film(film) => same(film, reference.film),
+                image => image.srgb8() == reference.film.to_srgb8(),
             } {
                 "yes"
             } else {
@@ -175,17 +221,35 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
             }
         );
     }
-    println!();
-    println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip). Not in the coordinator's rows: its known-answer probe, once per process before them, {:.1} ms (each worker process's own probe is in the workers' CPU).",
-        encode_per_pixel * 1e9,
-        render_thread_wait * 1e3,
-        probe_time * 1e3,
-    );
+    Ok((call_points, render_thread_wait))
+}
 
-    if config.simulate.is_empty() {
-        return Ok(());
-    }
+/// The largest unit cost per pixel over the mean (0 without costs): units
+/// differ in size (guided self-scheduling), so cost per pixel is compared.
+fn imbalance(scene: &Scene, n: usize, costs: &[f64]) -> f64 {
+    let sizes = farm_units(scene.width(), scene.height(), DEFAULT_INTERLEAVE, n);
+    let per_pixel: Vec<f64> = costs
+        .iter()
+        .zip(&sizes)
+        .map(|(c, u)| c / u.pixel_count(scene.width()).max(1) as f64)
+        .collect();
+    let mean = per_pixel.iter().sum::<f64>() / per_pixel.len().max(1) as f64;
+    let max = per_pixel.iter().cloned().fold(0.0, f64::max);
+    if mean > 0.0 { max / mean } else { 0.0 }
+}
+
+/// Fits what a unit's calls cost a worker and prints the simulated farms of
+/// `config.simulate` sizes, for the scene and the unbalanced one.
+fn simulated_rows(
+    config: &BenchConfig,
+    runtime: &tokio::runtime::Runtime,
+    (text, scene): (&str, &Scene),
+    mut call_points: Vec<(f64, u64)>,
+    encode_per_pixel: f64,
+) -> Result<(), CoordinatorError> {
+    let on_farm = |text: &str, path: &std::path::Path, scene: &Scene, n: usize| {
+        farm_render(runtime, text, path, scene, config.pixel_format, n)
+    };
     // What a unit costs a worker beyond its pixels (rendering and encoding
     // them: the unit costs are its render thread's CPU): its async thread's
     // CPU (the calls), which on a worker whose render threads fill its cores
@@ -193,7 +257,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
     // `UnitCalls`), so it is fitted over 1-worker farms of both scenes, whose
     // units render from about 1 ms to 10 ms.
     if !config.workers.contains(&1) {
-        let report = on_farm(&text, &config.scene, &scene, 1)?;
+        let report = on_farm(text, &config.scene, scene, 1)?;
         call_points.extend(unit_call_points(&report));
     }
     let (unbalanced_text, unbalanced) = load(&config.unbalanced, config.width, config.height)?;
@@ -218,7 +282,7 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         "| scene | workers | units | pull speedup | pull efficiency | blocks speedup | blocks efficiency |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|");
-    for (name, s) in [("fur", &scene), ("unbalanced (corner)", &unbalanced)] {
+    for (name, s) in [("fur", scene), ("unbalanced (corner)", &unbalanced)] {
         let costs: Vec<f64> = pixel_costs(s)
             .into_iter()
             .map(|c| c + encode_per_pixel)

@@ -66,8 +66,18 @@ fn header(out: &mut String, name: &str, kind: &str, help: &str) {
 /// The exposition text.
 pub fn render(s: &Snapshot<'_>) -> String {
     let mut out = String::new();
+    health(&mut out, s);
+    units(&mut out, s);
+    jobs_and_workers(&mut out, s);
+    latency(&mut out, s.stats);
+    counters(&mut out, s.stats);
+    out
+}
+
+/// Whether the store writes, the tiles it dropped, the workers connected.
+fn health(out: &mut String, s: &Snapshot<'_>) {
     header(
-        &mut out,
+        out,
         "hypertexture_store_writable",
         "gauge",
         "1 while the store writes; 0 while its writes fail (disk full, I/O error): tiles are refused and handed out again, submissions refused.",
@@ -78,7 +88,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         u8::from(s.store.writable)
     );
     header(
-        &mut out,
+        out,
         "hypertexture_store_tiles_dropped_total",
         "counter",
         "Stored tiles read back whose bytes did not match their checksum: dropped and rendered again.",
@@ -89,15 +99,18 @@ pub fn render(s: &Snapshot<'_>) -> String {
         s.store.tiles_dropped
     );
     header(
-        &mut out,
+        out,
         "hypertexture_workers_connected",
         "gauge",
         "Workers connected to the farm.",
     );
     let _ = writeln!(out, "hypertexture_workers_connected {}", s.workers.len());
+}
 
+/// Units queued (over every job and by running job), in flight and done.
+fn units(out: &mut String, s: &Snapshot<'_>) {
     header(
-        &mut out,
+        out,
         "hypertexture_farm_units_queued",
         "gauge",
         "Units waiting to be handed out, over every job (what an autoscaler watches).",
@@ -105,7 +118,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
     let _ = writeln!(out, "hypertexture_farm_units_queued {}", s.queued_all);
 
     header(
-        &mut out,
+        out,
         "hypertexture_units_queued",
         "gauge",
         "Units of the frame rendering waiting to be handed out, by running job.",
@@ -114,7 +127,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         let _ = writeln!(out, "hypertexture_units_queued{{job=\"{job}\"}} {n}");
     }
     header(
-        &mut out,
+        out,
         "hypertexture_units_in_flight",
         "gauge",
         "Units held by workers, by running job.",
@@ -123,7 +136,7 @@ pub fn render(s: &Snapshot<'_>) -> String {
         let _ = writeln!(out, "hypertexture_units_in_flight{{job=\"{job}\"}} {n}");
     }
     header(
-        &mut out,
+        out,
         "hypertexture_units_done",
         "gauge",
         "Units complete, over every frame, by running job.",
@@ -135,12 +148,16 @@ pub fn render(s: &Snapshot<'_>) -> String {
             j.id, j.units_done
         );
     }
-    header(&mut out, "hypertexture_jobs", "gauge", "Jobs by state.");
+}
+
+/// Jobs by state, and each worker's pixels per second.
+fn jobs_and_workers(out: &mut String, s: &Snapshot<'_>) {
+    header(out, "hypertexture_jobs", "gauge", "Jobs by state.");
     for (state, n) in JobState::ALL.iter().zip(s.job_states) {
         let _ = writeln!(out, "hypertexture_jobs{{state=\"{}\"}} {n}", state.as_str());
     }
     header(
-        &mut out,
+        out,
         "hypertexture_worker_pixels_per_second",
         "gauge",
         "Pixels per second over the last minute, by worker.",
@@ -154,21 +171,25 @@ pub fn render(s: &Snapshot<'_>) -> String {
             w.pixels_per_second
         );
     }
+}
+
+/// The histogram of unit latencies, from assignment to accepted tile.
+fn latency(out: &mut String, stats: &FarmStats) {
     header(
-        &mut out,
+        out,
         "hypertexture_unit_latency_seconds",
         "histogram",
         "From a unit's assignment to its accepted tile.",
     );
     let mut cumulative = 0;
     for (i, bound) in LATENCY_BUCKETS.iter().enumerate() {
-        cumulative += s.stats.latency_buckets[i];
+        cumulative += stats.latency_buckets[i];
         let _ = writeln!(
             out,
             "hypertexture_unit_latency_seconds_bucket{{le=\"{bound}\"}} {cumulative}"
         );
     }
-    cumulative += s.stats.latency_buckets[LATENCY_BUCKETS.len()];
+    cumulative += stats.latency_buckets[LATENCY_BUCKETS.len()];
     let _ = writeln!(
         out,
         "hypertexture_unit_latency_seconds_bucket{{le=\"+Inf\"}} {cumulative}"
@@ -176,44 +197,47 @@ pub fn render(s: &Snapshot<'_>) -> String {
     let _ = writeln!(
         out,
         "hypertexture_unit_latency_seconds_sum {}",
-        s.stats.latency_sum
+        stats.latency_sum
     );
     let _ = writeln!(
         out,
         "hypertexture_unit_latency_seconds_count {}",
-        s.stats.latency_count
+        stats.latency_count
     );
+}
+
+/// The farm's counters.
+fn counters(out: &mut String, stats: &FarmStats) {
     for (name, help, value) in [
         (
             "hypertexture_unit_retries_total",
             "Units given back by a worker (ReportFailure) and queued again.",
-            s.stats.retries,
+            stats.retries,
         ),
         (
             "hypertexture_workers_blocklisted_total",
             "Workers blocklisted for a job after failing 3 of its units.",
-            s.stats.blocklisted,
+            stats.blocklisted,
         ),
         (
             "hypertexture_workers_refused_total",
             "Registrations refused (protocol or arithmetic mismatch).",
-            s.stats.refused_workers,
+            stats.refused_workers,
         ),
         (
             "hypertexture_calls_unauthenticated_total",
             "Worker calls refused for a missing or wrong token.",
-            s.stats.unauthenticated,
+            stats.unauthenticated,
         ),
         (
             "hypertexture_handler_panics_total",
             "Requests whose handler panicked: each answered 500 (gRPC: INTERNAL), the service going on.",
-            s.stats.handler_panics,
+            stats.handler_panics,
         ),
     ] {
-        header(&mut out, name, "counter", help);
+        header(out, name, "counter", help);
         let _ = writeln!(out, "{name} {value}");
     }
-    out
 }
 
 #[cfg(test)]

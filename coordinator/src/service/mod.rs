@@ -373,10 +373,7 @@ impl Service {
     }
 
     fn view(&self, id: JobId, meta: &JobMeta, now: Instant) -> JobView {
-        let progress = self
-            .farm
-            .get()
-            .and_then(|f| f.lock().scheduler.job_progress(id));
+        let progress = self.farm.get().and_then(|f| f.job_progress(id));
         let frames_total = meta.frames.len() as u32;
         let units_total = meta.units_per_frame * u64::from(frames_total);
         let units_done = match (&progress, meta.state) {
@@ -393,7 +390,7 @@ impl Service {
             _ => None,
         };
         let blocklisted = match self.farm.get() {
-            Some(f) if !meta.state.is_final() => f.lock().scheduler.blocklisted(id),
+            Some(f) if !meta.state.is_final() => f.blocklisted(id),
             _ => meta.final_blocklisted.clone(),
         };
         JobView {
@@ -475,12 +472,11 @@ impl Service {
     /// Takes a job out of the farm, keeping its progress for its view.
     fn leave_farm(&self, id: JobId, meta: &mut JobMeta) {
         if let Some(shared) = self.farm.get() {
-            let state = shared.lock();
-            if let Some(p) = state.scheduler.job_progress(id) {
+            let (progress, blocklisted) = shared.job_standing(id);
+            if let Some(p) = progress {
                 meta.final_units = p.units_done;
             }
-            meta.final_blocklisted = state.scheduler.blocklisted(id);
-            drop(state);
+            meta.final_blocklisted = blocklisted;
             shared.remove_job(id);
         }
     }
@@ -539,11 +535,7 @@ impl Service {
             *pending = left;
         }
         if let Some(shared) = self.farm.get() {
-            let writable = self.health.writable();
-            let mut state = shared.lock();
-            if state.scheduler.paused() == writable {
-                state.scheduler.pause(!writable);
-            }
+            shared.set_writable(self.health.writable());
         }
     }
 
@@ -586,7 +578,7 @@ impl Service {
             if meta.state.is_final() {
                 continue;
             }
-            let Some(p) = shared.lock().scheduler.job_progress(id) else {
+            let Some(p) = shared.job_progress(id) else {
                 continue;
             };
             if meta.running_since.is_none() && p.units_in_flight + p.units_done > 0 {
@@ -665,10 +657,7 @@ impl Service {
             .outcome(recorded, || format!("job {id} frame {frame}'s record"))?;
         let path = path.to_string();
         // A frame rendered again (it held a liar's tiles) replaced its file.
-        let rendering_again = self
-            .farm
-            .get()
-            .is_some_and(|farm| !farm.lock().scheduler.job_finished(id));
+        let rendering_again = self.farm.get().is_some_and(|farm| !farm.job_finished(id));
         let finished = {
             let mut jobs = self.jobs_lock();
             match jobs.get_mut(&id) {
@@ -943,24 +932,21 @@ impl Control for Arc<Service> {
         let Some(shared) = self.farm.get() else {
             return Vec::new();
         };
-        let now = Instant::now();
-        let state = shared.lock();
-        let s = &state.scheduler;
-        let mut views: Vec<(Instant, WorkerView)> = s
-            .workers()
-            .filter(|w| w.alive)
+        let mut views: Vec<(Instant, WorkerView)> = shared
+            .workers(Instant::now())
+            .into_iter()
             .map(|w| {
                 (
                     w.joined,
                     WorkerView {
-                        id: w.id.clone(),
-                        name: w.name.clone(),
-                        tags: w.tags.clone(),
+                        id: w.id,
+                        name: w.name,
+                        tags: w.tags,
                         threads: w.threads,
-                        pixels_per_second: w.pixels_per_second(now),
-                        current_job: s.current_job(&w.id),
+                        pixels_per_second: w.pixels_per_second,
+                        current_job: w.current_job,
                         units: w.units,
-                        blocklisted_for: s.blocklisted_for(&w.id),
+                        blocklisted_for: w.blocklisted_for,
                     },
                 )
             })
@@ -991,23 +977,12 @@ impl Control for Arc<Service> {
         let (stats, queued_all, queued, in_flight): (_, u64, PerJob, PerJob) = match self.farm.get()
         {
             Some(shared) => {
-                let state = shared.lock();
-                let mut all = 0;
-                let mut per_job: Vec<(JobId, u64, u64)> = Vec::new();
-                for id in state.scheduler.job_ids() {
-                    let Some(p) = state.scheduler.job_progress(id) else {
-                        continue;
-                    };
-                    all += p.units_queued;
-                    if p.started {
-                        per_job.push((id, p.units_queued, p.units_in_flight));
-                    }
-                }
+                let queue = shared.queue();
                 (
-                    state.stats.clone(),
-                    all,
-                    per_job.iter().map(|&(id, q, _)| (id, q)).collect(),
-                    per_job.iter().map(|&(id, _, f)| (id, f)).collect(),
+                    queue.stats,
+                    queue.queued_all,
+                    queue.started.iter().map(|&(id, q, _)| (id, q)).collect(),
+                    queue.started.iter().map(|&(id, _, f)| (id, f)).collect(),
                 )
             }
             None => Default::default(),
@@ -1244,7 +1219,7 @@ pub async fn serve(
                 );
                 service.draining.store(true, std::sync::atomic::Ordering::Relaxed);
                 studio.stop();
-                farm.shared().lock().scheduler.drain();
+                farm.shared().drain();
                 drain_deadline = Some(Instant::now() + config.drain_timeout);
             }
         }
@@ -1275,7 +1250,7 @@ pub async fn serve(
             service.prune_ended();
         }
         if let Some(deadline) = drain_deadline {
-            let in_flight = farm.shared().lock().scheduler.in_flight();
+            let in_flight = farm.shared().in_flight();
             if in_flight == 0 {
                 tracing::info!("drained: every unit in flight has arrived");
                 break;

@@ -59,8 +59,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
 use super::params::{self, Curve, Param};
-use crate::farm::scheduler::{Accepted, JobId, JobPlan, Resume};
-use crate::farm::{self, Shared, WireJob};
+use crate::farm::{self, Accepted, JobId, Shared, WireJob};
 use crate::service::jobs::{Control, JobSpec, QualitySpec};
 
 /// Live frames' job ids start here (the store's ids are far below).
@@ -613,16 +612,7 @@ impl Studio {
                 bake: None,
                 assets: Vec::new(),
             };
-            let plan = JobPlan {
-                id: job,
-                priority: i32::MAX,
-                units: units.clone(),
-                width: checked.width,
-                height: checked.height,
-                format: PixelFormat::Srgb8,
-                frames: crate::farm::scheduler::Frames::one(0),
-                require_tags: Vec::new(),
-            };
+            let frame_units = units.clone();
             let data = serde_json::json!({
                 "generation": live.generation,
                 "width": checked.width,
@@ -649,7 +639,13 @@ impl Studio {
                 flush_at: None,
             });
             shared
-                .add_job(plan, Resume::default(), WireJob::of(&frame_job))
+                .add_live_frame(
+                    job,
+                    frame_units,
+                    (checked.width, checked.height),
+                    PixelFormat::Srgb8,
+                    WireJob::of(&frame_job),
+                )
                 .map_err(|e| e.to_string())?;
         }
         live.text = checked.text;
