@@ -14,9 +14,9 @@
 
 use glam::Vec3;
 
+use crate::desc::TransformDesc;
 use crate::field::density::{Aabb, Points, Support};
 use crate::math::simd::LANES;
-use crate::scene::desc::TransformDesc;
 
 /// The object's motion over time.
 #[derive(Clone, Copy, Debug, PartialEq)]
