@@ -26,6 +26,11 @@
 //! The unit is the file: an inline module (`mod x86 { … }`) belongs to the
 //! file it is written in, so its arrows are that file's.
 //!
+//! What the check cannot see: a method call (`x.support()`) names no path,
+//! so the module that defines the method is known only to the type checker;
+//! the check counts the paths (types, functions, constants, variants, traits)
+//! a module writes.
+//!
 //! Re-exports are seen through: a path that reaches an item through a `use`
 //! (public or private) is followed to the module that defines it, so a
 //! re-export never hides an arrow. A `use` line counts as an arrow itself
@@ -42,8 +47,9 @@ use proc_macro2::{TokenStream, TokenTree};
 use syn::spanned::Spanned;
 use syn::visit::Visit;
 
-/// The rooms of each crate, bottom level first. Rooms on one level must not
-/// use each other.
+/// The rooms of each crate, bottom level first: the crate root's children,
+/// and `crate` for the items written in `lib.rs` itself. Rooms on one level
+/// must not use each other.
 const LAYERS: &[(&str, &[&[&str]])] = &[
     (
         "hypertexture",

@@ -11,6 +11,7 @@
 
 pub mod camera;
 mod diagnostic;
+pub mod ron_text;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
