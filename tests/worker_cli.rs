@@ -297,7 +297,7 @@ fn sphere_obj(k: u32) -> Vec<u8> {
 fn mesh_job(name: &str, obj: &[u8], forged: bool) -> hypertexture_proto::pb::Job {
     use hypertexture_proto::{convert, pb};
     let text = "Scene(\n    image: (width: 8, height: 8),\n    camera: (eye: (0.0, 0.0, 3.0), look_at: (0.0, 0.0, 0.0), up: (0.0, 1.0, 0.0), projection: Perspective(fov_y: 40.0)),\n    march: (bounds: (min: (-0.7, -0.7, -0.7), max: (0.7, 0.7, 0.7)), step: Length(0.05), opacity: 40.0, threshold: 0.99),\n    object: Mesh(path: \"sphere.obj\", softness: 0.1),\n)\n";
-    let hash = hypertexture::field::mesh::content_hash(obj);
+    let hash = hypertexture::mesh::content_hash(obj);
     let scene_hash = convert::scene_hash_with_assets(
         convert::scene_hash(text, 8, 8, 0, 0, &[]),
         &[("sphere.obj".to_string(), hash)],
@@ -378,7 +378,7 @@ fn coordinator_of(
         files: std::sync::Arc::new(
             files
                 .into_iter()
-                .map(|f| (hypertexture::field::mesh::content_hash(&f), f))
+                .map(|f| (hypertexture::mesh::content_hash(&f), f))
                 .collect(),
         ),
         state: Default::default(),
@@ -404,7 +404,7 @@ fn a_hostile_coordinators_meshes_stay_within_the_cache_budget() {
     let (log, peak) = work_for(&c, &["--asset-cache-mb", "4"]);
     let s = c.state();
     assert!(s.failures.is_empty(), "{:?}\n{log}", s.failures);
-    let fetches = |f: &[u8]| s.fetches[&hypertexture::field::mesh::content_hash(f)];
+    let fetches = |f: &[u8]| s.fetches[&hypertexture::mesh::content_hash(f)];
     assert_eq!(
         fetches(&files[MESHES as usize - 1]),
         1,
@@ -441,7 +441,7 @@ fn a_mesh_is_kept_only_once_its_scenes_hash_matches() {
     );
     assert_eq!(s.tiles, [2], "{log}");
     assert_eq!(
-        s.fetches[&hypertexture::field::mesh::content_hash(&obj)],
+        s.fetches[&hypertexture::mesh::content_hash(&obj)],
         2,
         "the forged job's mesh was kept"
     );

@@ -708,7 +708,7 @@ fn fraction(s: &str) -> Result<f64, String> {
 
 /// A host name for `--allow-host`, in lower case.
 fn allowed_host(s: &str) -> Result<String, String> {
-    match crate::service::guard::host_name(s) {
+    match crate::guard::host_name(s) {
         Some(name) if !s.contains(':') || s.starts_with('[') && s.ends_with(']') => Ok(name),
         _ => Err(format!(
             "expected a host name without a port (letters, digits, `-` and `.`, or an IPv6 \

@@ -8,7 +8,7 @@ use coordinator::cli::{Cli, Command};
 
 fn main() -> ExitCode {
     let mut cli = Cli::parse();
-    coordinator::service::panics::install();
+    coordinator::farm::panics::install();
     let result: Result<ExitCode, String> = match cli.command.take() {
         Some(Command::Bench(args)) => {
             coordinator::logging::init(true);

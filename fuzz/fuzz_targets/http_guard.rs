@@ -1,10 +1,10 @@
 //! Any bytes as the parts of an HTTP request that the service reads itself
-//! before a route does (`coordinator::service::guard`): the bearer token, the query's
+//! before a route does (`coordinator::guard`): the bearer token, the query's
 //! percent-decoding, the event stream's query token, the `Host` and `Origin`
 //! checks. None may panic, whatever the bytes.
 #![no_main]
 
-use coordinator::service::guard;
+use coordinator::guard;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -7,13 +7,19 @@
 //! The layers, each a folder that uses only the ones below it:
 //!
 //! - [`math`]: SIMD paths, fast approximations, hashing, dual numbers.
-//! - [`field`]: noise, bias and gain, soft objects, meshes, the density chain.
+//! - [`mesh`]: triangle meshes read from OBJ files, closest points through a BVH.
+//! - [`desc`]: the scene as written, plain data checked while it is read.
+//! - [`field`]: noise, bias and gain, soft objects, the density chain, each
+//!   built from its description.
 //! - [`pse`]: the Pixel Stream Editor, expressions compiled to register code.
-//! - [`scene`]: RON scene files → a checked description → a runtime [`Scene`].
-//! - [`render`]: camera, ray marcher, lighting, sampling, film, the drivers.
+//! - [`scene`]: RON scene files → a checked description → a runtime [`Scene`],
+//!   with its camera.
+//! - [`render`]: ray marcher, lighting, sampling, film, the drivers.
 
+pub mod desc;
 pub mod field;
 pub mod math;
+pub mod mesh;
 pub mod pse;
 pub mod render;
 pub mod scene;

@@ -5,7 +5,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use hypertexture::field::mesh::Mesh;
+use hypertexture::mesh::Mesh;
 
 /// The default budget of `--asset-cache-mb`.
 pub const DEFAULT_ASSET_CACHE_MB: u64 = 512;

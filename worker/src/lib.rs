@@ -1163,9 +1163,8 @@ impl UnitRenderer {
                     ),
                 )
             })?;
-            let mesh =
-                hypertexture::field::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
-                    .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+            let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
+                .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
             fetched.insert(a.hash, Arc::new(mesh));
         }
         self.scenes.get(job, &fetched)
@@ -1208,7 +1207,7 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
 
 /// Meshes fetched for one assignment and not kept yet: the cache takes them
 /// only once the scene's hash has matched and the scene has built.
-type Fetched = HashMap<u64, Arc<hypertexture::field::mesh::Mesh>>;
+type Fetched = HashMap<u64, Arc<hypertexture::mesh::Mesh>>;
 
 /// Scenes built from assignments, by content hash (a worker holds a few at
 /// most), and the meshes they name ([`cache::AssetCache`], within a budget).
@@ -1422,7 +1421,7 @@ async fn fetch_assets(
                 format!("{}: fetching {}: {e}", job.scene_name, a.path),
             )
         };
-        if a.size > hypertexture::field::mesh::MAX_OBJ_BYTES {
+        if a.size > hypertexture::mesh::MAX_OBJ_BYTES {
             return Err(failed(format!(
                 "{} bytes is more than a mesh file may be",
                 a.size
@@ -1448,7 +1447,7 @@ async fn fetch_assets(
             }
             bytes.extend_from_slice(&chunk.chunk);
         }
-        let got = hypertexture::field::mesh::content_hash(&bytes);
+        let got = hypertexture::mesh::content_hash(&bytes);
         if bytes.len() as u64 != a.size || got != a.hash {
             return Err(failed(format!(
                 "{} bytes with hash {got:016x} arrived, not {} with hash {:016x}",
@@ -1460,7 +1459,7 @@ async fn fetch_assets(
         let fetched_in = started.elapsed();
         let path = a.path.clone();
         let mesh = tokio::task::spawn_blocking(move || {
-            hypertexture::field::mesh::Mesh::from_obj(&path, &bytes, Default::default())
+            hypertexture::mesh::Mesh::from_obj(&path, &bytes, Default::default())
         })
         .await
         .map_err(|e| failed(format!("the mesh build stopped: {e}")))?
@@ -1591,10 +1590,9 @@ mod tests {
     fn mesh_job(k: u32, hash_of_text: Option<u64>) -> (pb::Job, Fetched) {
         let text = "Scene(\n    image: (width: 8, height: 8),\n    camera: (eye: (0.3, 0.3, 3.0), look_at: (0.3, 0.3, 0.3), up: (0.0, 1.0, 0.0), projection: Perspective(fov_y: 40.0)),\n    march: (bounds: (min: (-0.2, -0.2, -0.2), max: (1.2, 1.2, 1.2)), step: Length(0.05), opacity: 40.0, threshold: 0.99),\n    object: Mesh(path: \"t.obj\", softness: 0.1),\n)\n";
         let obj = cache::tetrahedron_obj(k);
-        let hash = hypertexture::field::mesh::content_hash(obj.as_bytes());
-        let mesh =
-            hypertexture::field::mesh::Mesh::from_obj("t.obj", obj.as_bytes(), Default::default())
-                .unwrap();
+        let hash = hypertexture::mesh::content_hash(obj.as_bytes());
+        let mesh = hypertexture::mesh::Mesh::from_obj("t.obj", obj.as_bytes(), Default::default())
+            .unwrap();
         let job = pb::Job {
             scene_hash: hash_of_text.unwrap_or_else(|| {
                 convert::scene_hash_with_assets(

@@ -2,13 +2,13 @@
 //! any body is read.
 //!
 //! First, every request passes the `Host` and `Origin` checks of
-//! [`crate::service::guard::Hosts`] (refused with 400 or 403, a gRPC call with
+//! [`crate::guard::Hosts`] (refused with 400 or 403, a gRPC call with
 //! `PERMISSION_DENIED`): without a token only loopback names and
 //! `--allow-host` names are served, and a foreign `Origin` changes nothing.
 //!
 //! With a token, a connection is *unauthenticated* until one of its requests
 //! carries `Authorization: Bearer <token>` (or, for the studio's event
-//! stream alone, `?token=<token>`; see [`crate::service::guard::admits`]). Unauthenticated connections are limited in
+//! stream alone, `?token=<token>`; see [`crate::guard::admits`]). Unauthenticated connections are limited in
 //! number ([`GateLimits::unauthenticated`]); when one more arrives, the
 //! oldest of the peer address holding the most of them is closed, so a flood
 //! from one address cannot keep another address out. An unauthenticated
@@ -99,7 +99,7 @@ struct Conns {
 pub struct Gate {
     token: Option<Vec<u8>>,
     /// The `Host` and `Origin` rules.
-    hosts: crate::service::guard::Hosts,
+    hosts: crate::guard::Hosts,
     limits: GateLimits,
     conns: Mutex<Conns>,
     refusals: Mutex<HashMap<IpAddr, Refusals>>,
@@ -115,7 +115,7 @@ impl Gate {
     pub fn new(token: Option<&str>, limits: GateLimits, allow_hosts: &[String]) -> Arc<Gate> {
         Arc::new(Gate {
             token: token.map(|t| t.as_bytes().to_vec()),
-            hosts: crate::service::guard::Hosts::new(allow_hosts, token.is_some()),
+            hosts: crate::guard::Hosts::new(allow_hosts, token.is_some()),
             limits,
             conns: Mutex::default(),
             refusals: Mutex::default(),
@@ -202,12 +202,12 @@ impl Gate {
 
     /// Whether the request carries the token: in its headers, or for the
     /// studio's event stream, its `token` query parameter
-    /// ([`crate::service::guard::admits`]).
+    /// ([`crate::guard::admits`]).
     fn admits<B>(&self, request: &Request<B>) -> bool {
         let Some(token) = &self.token else {
             return true;
         };
-        crate::service::guard::admits(request.method(), request.uri(), request.headers(), token)
+        crate::guard::admits(request.method(), request.uri(), request.headers(), token)
     }
 
     /// Counts a refusal of `peer`; logs it when the peer's last line is a

@@ -1,14 +1,49 @@
 //! The coordinator's own workers: `worker` processes beside this executable (one
 //! per core by default), or in-process workers when that binary is absent.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use tokio::process::{Child, Command};
 use tokio::sync::watch;
 
-use crate::farm::{FarmConfig, FarmError, worker_binary};
+/// What the local workers are: how many, with how many threads, trusting
+/// which certificate, on what lease.
+#[derive(Clone, Copy, Debug)]
+pub struct LocalSpec<'a> {
+    /// Workers to start (0: none).
+    pub count: usize,
+    /// Threads per worker.
+    pub threads: usize,
+    /// The server's certificate (PEM) when the farm speaks TLS.
+    pub cert: Option<&'a [u8]>,
+    /// A worker silent this long loses its units.
+    pub lease: Duration,
+}
+
+/// Why the local workers could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum LocalError {
+    /// The CA file for the workers could not be written.
+    #[error("{0}")]
+    Ca(String),
+    /// A worker process could not be started.
+    #[error("cannot start local worker {path}: {source}")]
+    Spawn {
+        /// The binary.
+        path: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+}
+
+/// The `worker` binary beside this executable, if there is one.
+pub fn worker_binary() -> Option<PathBuf> {
+    let exe = std::env::current_exe().ok()?;
+    let path = exe.with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
+    path.is_file().then_some(path)
+}
 
 /// A local worker process.
 pub struct LocalProcess {
@@ -178,29 +213,24 @@ impl InProcessPlan {
 /// outliving this process.
 fn worker_command(
     path: &Path,
-    config: &FarmConfig,
+    spec: &LocalSpec<'_>,
     url: &str,
     token: Option<&str>,
     ca: Option<&CaFile>,
     name: &str,
 ) -> Command {
     let mut cmd = Command::new(path);
-    cmd.args([
-        "--coordinator",
-        url,
-        "--threads",
-        &config.local_threads.to_string(),
-    ])
-    .args(["--name", name, "--exit-when-done", "--quiet"])
-    .args(["--lease-timeout", &config.lease.as_secs_f64().to_string()])
-    // A local worker never outlives this process, whatever
-    // ends it: the worker watches its parent, and on Linux
-    // the kernel kills it when this process dies.
-    .args(["--parent-pid", &std::process::id().to_string()])
-    .env_remove("HYPERTEXTURE_TOKEN")
-    .stdin(std::process::Stdio::null())
-    .stderr(std::process::Stdio::piped())
-    .kill_on_drop(true);
+    cmd.args(["--coordinator", url, "--threads", &spec.threads.to_string()])
+        .args(["--name", name, "--exit-when-done", "--quiet"])
+        .args(["--lease-timeout", &spec.lease.as_secs_f64().to_string()])
+        // A local worker never outlives this process, whatever
+        // ends it: the worker watches its parent, and on Linux
+        // the kernel kills it when this process dies.
+        .args(["--parent-pid", &std::process::id().to_string()])
+        .env_remove("HYPERTEXTURE_TOKEN")
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .kill_on_drop(true);
     if let Some(t) = token {
         cmd.env("HYPERTEXTURE_TOKEN", t);
     }
@@ -222,29 +252,29 @@ fn worker_command(
 }
 
 impl LocalWorkers {
-    /// Starts `config.local_workers` workers dialling `url`.
+    /// Starts `spec.count` workers dialling `url`.
     pub fn start(
-        config: &FarmConfig,
+        spec: LocalSpec<'_>,
         url: &str,
         token: Option<&str>,
-    ) -> Result<LocalWorkers, FarmError> {
-        if config.local_workers == 0 {
+    ) -> Result<LocalWorkers, LocalError> {
+        if spec.count == 0 {
             return Ok(LocalWorkers::Processes(Vec::new(), None));
         }
         let plan = InProcessPlan {
-            count: config.local_workers,
-            threads: config.local_threads,
+            count: spec.count,
+            threads: spec.threads,
             url: url.to_string(),
             token: token.map(str::to_string),
-            ca: config.tls.as_ref().map(|(cert, _)| cert.clone()),
-            lease: config.lease,
+            ca: spec.cert.map(<[u8]>::to_vec),
+            lease: spec.lease,
             all_refused: true,
         };
         match worker_binary() {
             Some(path) => {
-                let ca = match &config.tls {
-                    Some((cert, _)) => Some(Arc::new(CaFile::write(cert).map_err(|e| {
-                        FarmError::Tls(format!(
+                let ca = match spec.cert {
+                    Some(cert) => Some(Arc::new(CaFile::write(cert).map_err(|e| {
+                        LocalError::Ca(format!(
                             "cannot write the local workers' CA file in {}: {e}",
                             std::env::temp_dir().display()
                         ))
@@ -252,10 +282,10 @@ impl LocalWorkers {
                     None => None,
                 };
                 let mut children = Vec::new();
-                for i in 0..config.local_workers {
+                for i in 0..spec.count {
                     let name = format!("local-{i}");
-                    let mut cmd = worker_command(&path, config, url, token, ca.as_deref(), &name);
-                    let mut child = cmd.spawn().map_err(|source| FarmError::Spawn {
+                    let mut cmd = worker_command(&path, &spec, url, token, ca.as_deref(), &name);
+                    let mut child = cmd.spawn().map_err(|source| LocalError::Spawn {
                         path: path.clone(),
                         source,
                     })?;

@@ -14,6 +14,7 @@ pub mod canvas;
 pub mod cert;
 pub mod gate;
 pub mod local;
+pub mod panics;
 pub mod progress;
 pub mod scheduler;
 mod view;
@@ -76,7 +77,7 @@ pub struct FarmConfig {
     /// rendering, 0 to 1; 0: none).
     pub verify: f64,
     /// Host names served besides loopback ones when there is no token
-    /// (`--allow-host`; see [`crate::service::guard`]).
+    /// (`--allow-host`; see [`crate::guard`]).
     pub allow_hosts: Vec<String>,
 }
 
@@ -182,7 +183,7 @@ pub struct FrameJob {
 pub struct Asset {
     /// The path as the scene writes it.
     pub path: String,
-    /// FNV-1a of the bytes ([`hypertexture::field::mesh::content_hash`]).
+    /// FNV-1a of the bytes ([`hypertexture::mesh::content_hash`]).
     pub hash: u64,
     /// The file.
     pub bytes: Arc<Vec<u8>>,
@@ -199,7 +200,7 @@ impl Asset {
                 let file = hypertexture::scene::asset_path(scene_name, path);
                 let bytes = hypertexture::scene::read_asset(&file)
                     .map_err(|e| format!("{}: {e}", file.display()))?;
-                if hypertexture::field::mesh::content_hash(&bytes) != *hash {
+                if hypertexture::mesh::content_hash(&bytes) != *hash {
                     return Err(format!(
                         "{}: the file changed after the scene was loaded",
                         file.display()
@@ -479,7 +480,7 @@ impl Shared {
     fn lock(&self) -> std::sync::MutexGuard<'_, FarmState> {
         let mut state = self.lock_state();
         state.stats.unauthenticated = self.gate.refused();
-        state.stats.handler_panics = crate::service::panics::caught();
+        state.stats.handler_panics = crate::farm::panics::caught();
         state
     }
 
@@ -619,7 +620,7 @@ impl Service {
             .metadata()
             .get(hypertexture_proto::AUTHORIZATION)
             .map(|v| v.as_bytes());
-        if crate::service::guard::bearer_is(presented, token.as_bytes()) {
+        if crate::guard::bearer_is(presented, token.as_bytes()) {
             Ok(())
         } else {
             // The gate refuses such calls from their headers (and logs them);
@@ -1191,7 +1192,7 @@ fn serve(
     let server_task = tokio::spawn(
         server
             // Outermost: a handler's panic fails its request alone.
-            .layer(crate::service::panics::CatchLayer)
+            .layer(crate::farm::panics::CatchLayer)
             .layer(crate::farm::gate::GateLayer(Arc::clone(&gate)))
             .add_routes(router)
             .serve_with_incoming_shutdown(gate.incoming(listener), async {
@@ -1211,7 +1212,7 @@ pub struct Tick {
     pub gave_up: Vec<(JobId, crate::farm::scheduler::GiveUp)>,
     /// Workers with a live connection that can render the one-shot job.
     pub able: usize,
-    /// The first panic in this process ([`crate::service::panics`]): the render (or
+    /// The first panic in this process ([`crate::farm::panics`]): the render (or
     /// the service) must stop with it.
     pub panicked: Option<String>,
 }
@@ -1282,8 +1283,11 @@ impl Farm {
             },
             addr.port()
         );
-        let locals =
-            crate::farm::local::LocalWorkers::start(&config, &local_url, config.token.as_deref())?;
+        let locals = crate::farm::local::LocalWorkers::start(
+            local_spec(&config),
+            &local_url,
+            config.token.as_deref(),
+        )?;
         Ok(Farm {
             shared,
             finished_rx,
@@ -1341,7 +1345,7 @@ impl Farm {
                 completed,
                 gave_up,
                 able: s.scheduler.able(),
-                panicked: crate::service::panics::first().map(str::to_string),
+                panicked: crate::farm::panics::first().map(str::to_string),
             }
         };
         if let Some(e) = self.locals.check() {
@@ -1799,11 +1803,23 @@ fn report_verdict(
     }
 }
 
-/// The `worker` binary beside this executable, if there is one.
-pub fn worker_binary() -> Option<PathBuf> {
-    let exe = std::env::current_exe().ok()?;
-    let path = exe.with_file_name(format!("worker{}", std::env::consts::EXE_SUFFIX));
-    path.is_file().then_some(path)
+/// The local workers a farm configuration asks for.
+fn local_spec(config: &FarmConfig) -> local::LocalSpec<'_> {
+    local::LocalSpec {
+        count: config.local_workers,
+        threads: config.local_threads,
+        cert: config.tls.as_ref().map(|(cert, _)| cert.as_slice()),
+        lease: config.lease,
+    }
+}
+
+impl From<local::LocalError> for FarmError {
+    fn from(error: local::LocalError) -> FarmError {
+        match error {
+            local::LocalError::Ca(message) => FarmError::Tls(message),
+            local::LocalError::Spawn { path, source } => FarmError::Spawn { path, source },
+        }
+    }
 }
 
 /// Reads a PEM file for TLS (at most [`crate::files::MAX_PEM_BYTES`]).

@@ -191,7 +191,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         None => vec![config.frame],
     };
     let range = crate::farm::scheduler::Frames::new(frames[0], frames[frames.len() - 1]);
-    crate::service::outputs::check_pattern(&config.out, range, Path::new(""))
+    crate::pipeline::destination::check_pattern(&config.out, range, Path::new(""))
         .map_err(|e| CoordinatorError::Bake(format!("--{e}")))?;
     if !(2..=MAX_RESOLUTION).contains(&config.resolution) {
         return Err(CoordinatorError::Bake(format!(
@@ -199,7 +199,10 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
             config.resolution
         )));
     }
-    let first = PathBuf::from(crate::service::expand_pattern(&config.out, frames[0]));
+    let first = PathBuf::from(crate::pipeline::destination::expand_pattern(
+        &config.out,
+        frames[0],
+    ));
     crate::files::check_writable(&first)?;
     let text = hypertexture::scene::read_text(&config.scene)?;
     let name = config.scene.display().to_string();
@@ -227,7 +230,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
     frames
         .into_iter()
         .map(|frame| {
-            let out = PathBuf::from(crate::service::expand_pattern(&config.out, frame));
+            let out = PathBuf::from(crate::pipeline::destination::expand_pattern(&config.out, frame));
             let lattice = Lattice::of(&scene, frame, config.resolution);
             let (leaves, bake_time, how) = match (&pool, &config.farm) {
                 (Some((pool, threads)), _) => {
@@ -287,7 +290,7 @@ fn bake_on_farm(
         CoordinatorError::Bake(format!(
             "--resolution {}: the farm bakes at most {} voxels and this lattice has {nx}×{ny}×{nz}; lower --resolution or bake with --in-process",
             config.resolution,
-            hypertexture::scene::desc::MAX_PIXELS
+            hypertexture::desc::MAX_PIXELS
         ))
     })?;
     let job = crate::farm::FrameJob {

@@ -8,7 +8,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use hypertexture::scene::distortion::MAX_GRID_SIDE;
+use hypertexture::desc::distortion::MAX_GRID_SIDE;
 
 use crate::CoordinatorError;
 

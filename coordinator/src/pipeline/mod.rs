@@ -1,6 +1,7 @@
 //! The one-shot pipeline: what `coordinator render`, `bake`, `recolor`,
 //! `grid` and `bench` do once and end, on top of the farm.
 //!
+//! - [`destination`]: where a job's images may go: output patterns and roots.
 //! - [`output`]: frames to PNG and EXR files.
 //! - [`bake`], [`vdb`]: H(x) sampled on a lattice and written as OpenVDB.
 //! - [`recolor`]: an EXR's density channel mapped through new curves.
@@ -9,6 +10,7 @@
 
 pub mod bake;
 pub mod bench;
+pub mod destination;
 pub mod grid;
 pub mod output;
 pub mod recolor;

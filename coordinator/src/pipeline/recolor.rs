@@ -68,7 +68,7 @@ pub fn read_density(path: &Path) -> Result<DensityImage, CoordinatorError> {
         u32::try_from(size.width()).map_err(|_| fail("image too wide".into()))?,
         u32::try_from(size.height()).map_err(|_| fail("image too tall".into()))?,
     );
-    hypertexture::scene::desc::check_resolution(width, height).map_err(fail)?;
+    hypertexture::desc::check_resolution(width, height).map_err(fail)?;
     let attributes = &image.layer_data.attributes;
     let channels = &image.layer_data.channel_data.pixels.1;
     Ok(DensityImage {

@@ -480,7 +480,7 @@ impl Auth {
         let Some(token) = &self.token else {
             return true;
         };
-        crate::service::guard::bearer_is(
+        crate::guard::bearer_is(
             headers.get(header::AUTHORIZATION).map(|v| v.as_bytes()),
             token,
         )

@@ -14,18 +14,13 @@
 
 pub mod api;
 pub mod client;
-pub mod guard;
 pub mod health;
 pub mod jobs;
 pub mod limits;
 pub mod metrics;
-pub mod outputs;
-pub mod panics;
 pub mod params;
 pub mod store;
 pub mod studio;
-
-pub use outputs::expand_pattern;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -41,6 +36,7 @@ use serde::{Deserialize, Serialize};
 use crate::cli::{LogFormat, ServeArgs};
 use crate::farm::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
 use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
+use crate::pipeline::destination::{self, expand_pattern};
 use crate::service::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
 use crate::service::store::{Store, StoreError};
 
@@ -58,7 +54,7 @@ pub struct ServiceConfig {
     /// Open a store older than its generation file (`--accept-older-store`).
     pub accept_older_store: bool,
     /// The directories outputs may be written in.
-    pub output_roots: outputs::OutputRoots,
+    pub output_roots: destination::OutputRoots,
     /// Jobs not ended the queue holds; one more submission is refused (429).
     pub max_queued: usize,
     /// How long ended jobs are kept.
@@ -140,7 +136,7 @@ pub struct Service {
     /// Records the store could not take yet, in order: retried while it fails.
     pending: Mutex<Vec<Pending>>,
     /// Where outputs may be written.
-    roots: outputs::OutputRoots,
+    roots: destination::OutputRoots,
     /// What relative outputs are relative to: the directory serve started in.
     base: PathBuf,
     /// Jobs not ended the queue holds.
@@ -243,12 +239,12 @@ struct Checked {
 type PerJob = Vec<(JobId, u64)>;
 
 /// Builds the scene of a job (its checks) and the job's plan pieces. Its
-/// output pattern is checked ([`outputs::check_pattern`]) and its first
+/// output pattern is checked ([`destination::check_pattern`]) and its first
 /// frame's file placed inside `roots` (relative paths against `base`); no
 /// other frame is expanded.
 fn check_spec(
     spec: &JobSpec,
-    roots: &outputs::OutputRoots,
+    roots: &destination::OutputRoots,
     base: &Path,
 ) -> Result<Checked, ApiError> {
     let bad = ApiError::BadRequest;
@@ -266,7 +262,7 @@ fn check_spec(
         .unwrap_or_else(|| "scene.ron".into());
     let name = hypertexture_proto::convert::untrusted(&name, 256);
     let frames = frames_of(spec).map_err(bad)?;
-    outputs::check_pattern(&spec.out, frames, base).map_err(|e| bad(e.to_string()))?;
+    destination::check_pattern(&spec.out, frames, base).map_err(|e| bad(e.to_string()))?;
     // Every frame's file has the first one's extension: a `#` run in it
     // would make digits, and no format is named by digits.
     let first = PathBuf::from(expand_pattern(&spec.out, frames.first()));
@@ -1030,7 +1026,7 @@ pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
             "cannot read the working directory: {e}"
         ))))
     })?;
-    let output_roots = outputs::OutputRoots::for_serve(&args.output_root, &cwd)
+    let output_roots = destination::OutputRoots::for_serve(&args.output_root, &cwd)
         .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
     let config = ServiceConfig {
         data: args.data,
@@ -1086,7 +1082,7 @@ pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::Coordinator
     {
         dirs.push(cwd);
     }
-    let output_roots = outputs::OutputRoots::new(&dirs)
+    let output_roots = destination::OutputRoots::new(&dirs)
         .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
     let config = ServiceConfig {
         data,

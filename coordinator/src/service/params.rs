@@ -14,6 +14,7 @@
 
 use std::collections::BTreeMap;
 
+use hypertexture::scene::ron_text;
 use serde::Serialize;
 
 /// A number in the text.
@@ -59,123 +60,47 @@ fn join(path: &str, segment: &str) -> String {
 /// comments and strings are not numbers of the scene.
 pub fn numbers(text: &str) -> Vec<Number> {
     let bytes = text.as_bytes();
-    let mut out = Vec::new();
-    // The outermost `Scene(` opens the root: its fields' paths start bare.
-    let mut levels: Vec<Level> = Vec::new();
-    // An identifier just read (a field name before `:`, or a variant before `(`).
-    let mut ident: Option<String> = None;
+    let mut scan = NumberScan {
+        text,
+        out: Vec::new(),
+        levels: Vec::new(),
+        ident: None,
+    };
     let mut i = 0;
     while i < bytes.len() {
         let c = bytes[i];
         match c {
             b'/' if bytes.get(i + 1) == Some(&b'/') => {
-                while i < bytes.len() && bytes[i] != b'\n' {
-                    i += 1;
-                }
+                i = ron_text::line_comment_end(bytes, i);
                 continue;
             }
             b'/' if bytes.get(i + 1) == Some(&b'*') => {
-                // RON's block comments nest.
-                let mut depth = 0;
-                while i < bytes.len() {
-                    if bytes[i..].starts_with(b"/*") {
-                        depth += 1;
-                        i += 2;
-                    } else if bytes[i..].starts_with(b"*/") {
-                        depth -= 1;
-                        i += 2;
-                        if depth == 0 {
-                            break;
-                        }
-                    } else {
-                        i += 1;
-                    }
-                }
+                i = ron_text::block_comment_end(bytes, i);
                 continue;
             }
             b'"' => {
-                i += 1;
-                while i < bytes.len() && bytes[i] != b'"' {
-                    i += if bytes[i] == b'\\' { 2 } else { 1 };
-                }
-                i += 1;
-                ident = None;
+                i = ron_text::string_end(text, i).unwrap_or(bytes.len());
+                scan.ident = None;
                 continue;
             }
             b'r' if matches!(bytes.get(i + 1), Some(b'"' | b'#')) => {
-                // A raw string r"…" or r#"…"#.
-                let hashes = bytes[i + 1..].iter().take_while(|&&b| b == b'#').count();
-                let close: Vec<u8> = std::iter::once(b'"')
-                    .chain(std::iter::repeat_n(b'#', hashes))
-                    .collect();
-                i += 2 + hashes;
-                while i < bytes.len() && !bytes[i..].starts_with(&close) {
-                    i += 1;
-                }
-                i += close.len();
-                ident = None;
+                i = raw_string_end(bytes, i);
+                scan.ident = None;
                 continue;
             }
-            b'(' | b'[' => {
-                let path = match levels.last() {
-                    None => String::new(),
-                    Some(level) => {
-                        let item = level.item();
-                        match ident.take() {
-                            Some(variant) => join(&item, &variant),
-                            None => item,
-                        }
-                    }
-                };
-                ident = None;
-                levels.push(Level {
-                    path,
-                    index: 0,
-                    key: None,
-                });
-            }
+            b'(' | b'[' => scan.open(),
             b')' | b']' => {
-                levels.pop();
-                ident = None;
+                scan.levels.pop();
+                scan.ident = None;
             }
-            b',' => {
-                if let Some(level) = levels.last_mut() {
-                    level.index += 1;
-                    level.key = None;
-                }
-                ident = None;
-            }
+            b',' => scan.comma(),
             b':' => {
-                if let Some(level) = levels.last_mut() {
-                    level.key = ident.take();
+                if let Some(level) = scan.levels.last_mut() {
+                    level.key = scan.ident.take();
                 }
             }
             b'-' | b'+' | b'.' | b'0'..=b'9' => {
-                let start = i;
-                let mut end = i + 1;
-                while end < bytes.len()
-                    && (bytes[end].is_ascii_alphanumeric()
-                        || bytes[end] == b'.'
-                        || bytes[end] == b'_'
-                        || (matches!(bytes[end], b'-' | b'+')
-                            && matches!(bytes[end - 1], b'e' | b'E')))
-                {
-                    end += 1;
-                }
-                let literal = &text[start..end];
-                let plain = literal.replace('_', "");
-                if let (Some(level), Ok(value)) = (levels.last(), plain.parse::<f64>())
-                    && value.is_finite()
-                {
-                    out.push(Number {
-                        path: level.item(),
-                        value,
-                        integer: !plain.contains(['.', 'e', 'E']),
-                        span: start..end,
-                    });
-                }
-                ident = None;
-                i = end;
+                i = scan.number(i);
                 continue;
             }
             c if c.is_ascii_alphabetic() || c == b'_' => {
@@ -183,14 +108,99 @@ pub fn numbers(text: &str) -> Vec<Number> {
                 while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
                     i += 1;
                 }
-                ident = Some(text[start..i].to_string());
+                scan.ident = Some(text[start..i].to_string());
                 continue;
             }
             _ => {}
         }
         i += 1;
     }
-    out
+    scan.out
+}
+
+/// Just after a raw string `r"…"` or `r#"…"#` starting at `at` (the `r`),
+/// taking the `#`s after `r` as its opening whatever follows them; past the
+/// end of the text when it is not closed.
+fn raw_string_end(bytes: &[u8], at: usize) -> usize {
+    let hashes = bytes[at + 1..].iter().take_while(|&&b| b == b'#').count();
+    let close: Vec<u8> = std::iter::once(b'"')
+        .chain(std::iter::repeat_n(b'#', hashes))
+        .collect();
+    let mut i = at + 2 + hashes;
+    while i < bytes.len() && !bytes[i..].starts_with(&close) {
+        i += 1;
+    }
+    i + close.len()
+}
+
+/// What [`numbers`] has read so far: the numbers, the open brackets and the
+/// identifier just read (a field name before `:`, or a variant before `(`).
+struct NumberScan<'a> {
+    text: &'a str,
+    out: Vec<Number>,
+    /// The outermost `Scene(` opens the root: its fields' paths start bare.
+    levels: Vec<Level>,
+    ident: Option<String>,
+}
+
+impl NumberScan<'_> {
+    /// An opening bracket: a level whose path is the current item's, with the
+    /// variant just named (`Torus(`) as one more segment.
+    fn open(&mut self) {
+        let path = match self.levels.last() {
+            None => String::new(),
+            Some(level) => {
+                let item = level.item();
+                match self.ident.take() {
+                    Some(variant) => join(&item, &variant),
+                    None => item,
+                }
+            }
+        };
+        self.ident = None;
+        self.levels.push(Level {
+            path,
+            index: 0,
+            key: None,
+        });
+    }
+
+    fn comma(&mut self) {
+        if let Some(level) = self.levels.last_mut() {
+            level.index += 1;
+            level.key = None;
+        }
+        self.ident = None;
+    }
+
+    /// Reads the number literal starting at `start` (recorded when it is a
+    /// finite number inside a bracket); where it ends.
+    fn number(&mut self, start: usize) -> usize {
+        let bytes = self.text.as_bytes();
+        let mut end = start + 1;
+        while end < bytes.len()
+            && (bytes[end].is_ascii_alphanumeric()
+                || bytes[end] == b'.'
+                || bytes[end] == b'_'
+                || (matches!(bytes[end], b'-' | b'+') && matches!(bytes[end - 1], b'e' | b'E')))
+        {
+            end += 1;
+        }
+        let literal = &self.text[start..end];
+        let plain = literal.replace('_', "");
+        if let (Some(level), Ok(value)) = (self.levels.last(), plain.parse::<f64>())
+            && value.is_finite()
+        {
+            self.out.push(Number {
+                path: level.item(),
+                value,
+                integer: !plain.contains(['.', 'e', 'E']),
+                span: start..end,
+            });
+        }
+        self.ident = None;
+        end
+    }
 }
 
 /// `text` with the numbers at `values`' paths set to them (each written as the

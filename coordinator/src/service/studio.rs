@@ -52,8 +52,8 @@ use axum::middleware::{self, Next};
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
+use hypertexture::desc::KnobDesc;
 use hypertexture::render::interleave::{WorkUnit, farm_units};
-use hypertexture::scene::desc::KnobDesc;
 use hypertexture::{Overrides, PixelFormat, Scene};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
@@ -837,12 +837,12 @@ fn static_file(content_type: &'static str, body: &'static str) -> Response {
 
 /// Refuses a data route without the token (401): it comes in
 /// `Authorization: Bearer <token>`, or for `GET /studio/events` alone in
-/// `?token=<token>` ([`crate::service::guard::admits`]).
+/// `?token=<token>` ([`crate::guard::admits`]).
 async fn check_token(State(ctx): State<Ctx>, request: Request, next: Next) -> Response {
     let Some(token) = &ctx.studio.token else {
         return next.run(request).await;
     };
-    if crate::service::guard::admits(
+    if crate::guard::admits(
         request.method(),
         request.uri(),
         request.headers(),

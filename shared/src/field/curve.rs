@@ -5,7 +5,7 @@
 //! linear or a Catmull–Rom spline through its control points, and constant
 //! beyond the first and last key.
 
-use crate::scene::desc::{CurveDesc, Interpolation};
+use crate::desc::{CurveDesc, Interpolation};
 
 /// A map from [0, 1] to `N` values through control points.
 #[derive(Clone, Debug, PartialEq)]
@@ -129,7 +129,7 @@ impl<const N: usize> Curve<N> {
 
 impl Curve<3> {
     /// A colour map from its description.
-    pub fn colours(desc: &CurveDesc<crate::scene::desc::Rgb>) -> Self {
+    pub fn colours(desc: &CurveDesc<crate::desc::Rgb>) -> Self {
         Curve::new(
             desc.interpolation,
             desc.points.iter().map(|(k, v)| (*k, v.0)),

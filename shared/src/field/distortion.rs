@@ -19,14 +19,14 @@
 
 use glam::Vec3;
 
+use crate::desc::distortion::{
+    DistortionDesc, GridDesc, Operator, TransferDesc, VectorFieldDesc, transfer_range,
+};
 use crate::field::curve::Curve;
 use crate::field::density::{Density, Field, Points};
 use crate::field::shaping::clamp01;
 use crate::field::soft::boundary_point;
 use crate::math::simd::{Isa, LANES};
-use crate::scene::distortion::{
-    DistortionDesc, GridDesc, Operator, TransferDesc, VectorFieldDesc, transfer_range,
-};
 
 /// Our gradient noise never leaves [−0.65, 0.65] and 99.8 % of it lies within
 /// ±0.5, while the paper's noise spans [−1, 1] (its Figure 3 histogram): the
@@ -492,7 +492,7 @@ pub fn max_displacement(density: &Density) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::desc::{CurveDesc, Fraction, Interpolation};
+    use crate::desc::{CurveDesc, Fraction, Interpolation};
     use crate::{Overrides, Scene};
 
     fn curve(interpolation: Interpolation, points: &[(f32, f32)]) -> Transfer {

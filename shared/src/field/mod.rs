@@ -1,7 +1,9 @@
-//! Density fields: the paper's soft objects and what shapes them.
+//! Density fields: the paper's soft objects and what shapes them, each built
+//! from its part of the description ([`crate::desc`]).
 //!
 //! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
-//! - [`soft`], [`mesh`]: soft objects and their hard cores, primitives and meshes.
+//! - [`soft`]: soft objects and their hard cores, primitives and meshes
+//!   (the triangles from [`crate::mesh`]).
 //! - [`density`]: the density chain, generalized booleans and the DMFs.
 //! - [`distortion`], [`motion`]: Gilet & Dischler's shape transfer functions
 //!   and vector fields, and motion over frames.
@@ -10,7 +12,6 @@
 pub mod curve;
 pub mod density;
 pub mod distortion;
-pub mod mesh;
 pub mod motion;
 pub mod noise;
 pub mod shaping;

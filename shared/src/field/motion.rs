@@ -14,9 +14,7 @@
 
 use glam::Vec3;
 
-use crate::field::density::{Aabb, Points, Support};
-use crate::math::simd::LANES;
-use crate::scene::desc::TransformDesc;
+use crate::desc::TransformDesc;
 
 /// The object's motion over time.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -114,16 +112,6 @@ impl Pose {
         .offset(self.pivot)
     }
 
-    /// [`Pose::to_object`] lane by lane (the same bits).
-    #[inline]
-    pub fn to_object_lanes(&self, p: &Points) -> Points {
-        let mut out = Points::default();
-        for l in 0..LANES {
-            out.set(l, self.to_object(p.get(l)));
-        }
-        out
-    }
-
     /// The world direction of the object-space direction `v` (R v).
     #[inline]
     pub fn to_world_vector(&self, v: Vec3) -> Vec3 {
@@ -137,21 +125,9 @@ impl Pose {
         self.to_world_vector(o - self.pivot) + self.shift
     }
 
-    /// The object-space support `s` where the pose puts it: a world box around
-    /// the turned box, and the ball moved (its radius a little larger for
-    /// rounding).
-    pub fn world_support(&self, s: Support) -> Support {
-        Support {
-            aabb: self.world_box(s.aabb),
-            ball: s.ball.map(|(centre, r)| {
-                let c = self.to_world(centre);
-                (c, r * (1.0 + 1e-5) + 1e-5 * c.abs().max_element())
-            }),
-        }
-    }
-
-    /// A world box holding the object-space box `b` wherever the pose puts it.
-    pub fn world_box(&self, (lo, hi): Aabb) -> Aabb {
+    /// A world box holding the object-space box `(lo, hi)` wherever the pose
+    /// puts it.
+    pub fn world_box(&self, (lo, hi): (Vec3, Vec3)) -> (Vec3, Vec3) {
         let centre = (lo + hi) * 0.5;
         let half = (hi - lo) * 0.5;
         let world_centre = self.to_world(centre);
@@ -166,6 +142,8 @@ impl Pose {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::density::Points;
+    use crate::math::simd::LANES;
 
     fn motion(ron_text: &str) -> Motion {
         Motion::build(&ron::from_str(ron_text).expect("a transform"))

@@ -37,8 +37,7 @@ use crate::math::fastmath::{floor, lattice};
 use crate::math::random::SplitMix64;
 use crate::math::simd::{Isa, LANES, Lanes, deinterleave};
 
-/// The seed of the default tables (the year of the paper).
-pub const DEFAULT_SEED: u64 = 1989;
+use crate::desc::DEFAULT_SEED;
 
 /// Offset c of vector noise `[noise(x − c), noise(x), noise(x + c)]`: large enough
 /// (and not a multiple of the table period 256) that the three components meet

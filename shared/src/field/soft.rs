@@ -323,7 +323,7 @@ pub(crate) trait ProjectBlock {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SoftMesh {
     /// The mesh and its distance queries.
-    pub mesh: std::sync::Arc<crate::field::mesh::Mesh>,
+    pub mesh: std::sync::Arc<crate::mesh::Mesh>,
     /// Where the mesh's origin goes.
     pub centre: Vec3,
     /// Uniform scale about the mesh's origin.
@@ -337,7 +337,7 @@ pub struct SoftMesh {
 impl SoftMesh {
     /// The mesh with softness `softness`, moved to `centre` and scaled by `scale`.
     pub fn new(
-        mesh: std::sync::Arc<crate::field::mesh::Mesh>,
+        mesh: std::sync::Arc<crate::mesh::Mesh>,
         centre: Vec3,
         scale: f32,
         softness: f32,
@@ -354,9 +354,9 @@ impl SoftMesh {
     /// The closest point of the surface in the mesh's own coordinates, with
     /// the signed distance in the scene's.
     #[inline]
-    fn closest(&self, x: Vec3) -> crate::field::mesh::Closest {
+    fn closest(&self, x: Vec3) -> crate::mesh::Closest {
         let c = self.mesh.closest((x - self.centre) * self.inv_scale);
-        crate::field::mesh::Closest {
+        crate::mesh::Closest {
             point: self.centre + c.point * self.scale,
             distance: c.distance * self.scale,
             outward: c.outward,

@@ -8,12 +8,12 @@ use glam::Vec3;
 
 use super::eval::Inputs;
 use super::{Context, Kind, compile_expression, parse_functions};
+use crate::desc::{ObjectDesc, SphereDesc, V3};
 use crate::field::curve::Curve;
 use crate::field::density::{Density, Field, Points};
 use crate::field::noise::Noise;
 use crate::math::simd::Isa;
 use crate::math::simd::{LANES, Lanes};
-use crate::scene::desc::{ObjectDesc, SphereDesc, V3};
 
 /// Parses `functions`, compiles `expression` as every kind of expression, and
 /// evaluates each program that compiles at a few points (finite and not).
@@ -35,7 +35,7 @@ pub fn compile_and_run(functions: &str, expression: &str) {
         ("ball".to_string(), sphere.clone()),
     ];
     let map = Curve::new(
-        crate::scene::desc::Interpolation::Spline,
+        crate::desc::Interpolation::Spline,
         [
             (0.0, [0.0, 0.0, 0.0]),
             (0.5, [1.0, 0.5, 0.0]),

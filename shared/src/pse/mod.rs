@@ -14,6 +14,7 @@
 //! load, with the line and column inside the expression and a caret under the spot.
 
 pub mod compile;
+mod density;
 pub mod eval;
 pub mod fuzz;
 pub mod lexer;

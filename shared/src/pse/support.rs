@@ -387,9 +387,9 @@ mod tests {
 
     use glam::Vec3;
 
+    use crate::desc::ObjectDesc;
     use crate::field::density::{Aabb, Density};
     use crate::pse::{Context, Kind, compile_expression, parse_functions};
-    use crate::scene::desc::ObjectDesc;
 
     fn object(ron_text: &str) -> Density {
         let desc: ObjectDesc = ron::Options::default()

@@ -8,10 +8,10 @@ use glam::Vec3;
 
 use super::ExpressionFailure;
 use super::{Context, Kind, Program, compile_expression, parse_functions};
+use crate::desc::{ObjectDesc, SceneDesc};
 use crate::field::curve::Curve;
 use crate::field::density::{Density, Field};
 use crate::field::noise::Noise;
-use crate::scene::desc::{ObjectDesc, SceneDesc};
 
 /// The compiled shading expressions of a scene: what the marcher's two hooks
 /// (`surface_colour`, `perturb_normal`) run.

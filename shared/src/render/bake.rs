@@ -10,8 +10,8 @@
 use glam::Vec3;
 
 use crate::Scene;
+use crate::desc::{MAX_PIXELS, MAX_SIDE};
 use crate::render::film::Sample;
-use crate::scene::desc::{MAX_PIXELS, MAX_SIDE};
 
 /// The width of the image a lattice is laid out as (the last row may be
 /// short: pixels past the last voxel are empty).

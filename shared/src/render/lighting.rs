@@ -7,8 +7,8 @@ use glam::Vec3;
 use crate::field::density::{Field, Points};
 use crate::field::shaping::clamp01;
 use crate::math::simd::LANES;
-use crate::render::camera::{Ray, slab};
 use crate::scene::Scene;
+use crate::scene::camera::{Ray, slab};
 
 /// The unit outward normal at x from central differences of the density along x,
 /// y and z with spacing `h` on either side (six evaluations), or `None` where the

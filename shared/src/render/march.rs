@@ -49,8 +49,8 @@ use crate::math::fastmath;
 use crate::math::simd::{Isa, lane_mask};
 use crate::math::simd::{LANES, Lanes};
 use crate::pse::surface as pse;
-use crate::render::camera::{Ray, slab};
 use crate::render::film::Sample;
+use crate::scene::camera::{Ray, slab};
 use crate::scene::{ColourIndex, Gradient, Light, Scene};
 
 /// The parameters where `ray` enters and leaves the ball of `radius` about

@@ -6,14 +6,13 @@
 //! 1 thread or 64, of one machine or a farm.
 
 //!
-//! The layer above [`crate::field`]: [`camera`] makes rays, [`march`] walks
-//! them through the density, [`lighting`] shades, [`sampling`] jitters and
+//! The top layer, above [`crate::scene`]: [`march`] walks the rays of the
+//! scene's camera ([`crate::scene::camera`]) through the density, [`lighting`] shades, [`sampling`] jitters and
 //! filters, [`film`] records, [`interleave`] cuts images into the farm's
 //! units, [`bake`] samples H(x) on a lattice and [`probe`] digests this
 //! build's arithmetic.
 
 pub mod bake;
-pub mod camera;
 pub mod film;
 pub mod interleave;
 pub mod lighting;

@@ -140,12 +140,10 @@ fn probe_assets() -> &'static crate::scene::Assets {
         // An icosahedron cut in four (80 triangles) inside Spot's box, where
         // the mesh scenes look. A test loads every probe scene, so a stand-in
         // that fails to build cannot go unnoticed.
-        let stand_in = crate::field::mesh::icosphere_obj(glam::Vec3::new(0.0, 0.1, 0.18), 0.45, 1);
-        if let Ok(mesh) = crate::field::mesh::Mesh::from_obj(
-            "meshes/spot.obj",
-            stand_in.as_bytes(),
-            Default::default(),
-        ) {
+        let stand_in = crate::mesh::icosphere_obj(glam::Vec3::new(0.0, 0.1, 0.18), 0.45, 1);
+        if let Ok(mesh) =
+            crate::mesh::Mesh::from_obj("meshes/spot.obj", stand_in.as_bytes(), Default::default())
+        {
             assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
         }
         assets

@@ -12,10 +12,10 @@
 //! centre at the frame's time, exactly as without supersampling.
 
 use crate::math::random::{SplitMix64, hash};
-use crate::render::camera::Ray;
 use crate::render::film::Sample;
 use crate::render::march;
 use crate::scene::Scene;
+use crate::scene::camera::Ray;
 
 /// Where and when one sample of a pixel looks.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -4,6 +4,10 @@
 
 use ron::error::Error;
 
+use super::ron_text::{
+    block_comment_end, char_literal_end, line_comment_end, raw_string_end, string_end,
+};
+
 /// A position in the text as a byte offset.
 type Offset = usize;
 
@@ -149,20 +153,6 @@ fn found_at(text: &str, offset: Offset) -> String {
     format!("`{first}`")
 }
 
-/// The byte offset just after the string literal starting at `at` (a `"`).
-fn string_end(text: &str, at: Offset) -> Option<Offset> {
-    let bytes = text.as_bytes();
-    let mut i = at + 1;
-    while i < bytes.len() {
-        match bytes[i] {
-            b'\\' => i += 2,
-            b'"' => return Some(i + 1),
-            _ => i += 1,
-        }
-    }
-    None
-}
-
 /// One open bracket while scanning.
 struct Open {
     /// `(`, `[` or `{`.
@@ -191,144 +181,163 @@ enum Scan {
 /// block comments, line comments), to `stop` or the end.
 fn scan(text: &str, stop: Option<Offset>) -> Scan {
     let bytes = text.as_bytes();
-    let mut stack: Vec<Open> = Vec::new();
-    let mut last_ident: Option<(Offset, Offset)> = None;
-    let mut last_string: Option<(Offset, Offset)> = None;
+    let mut scanner = Scanner {
+        text,
+        stack: Vec::new(),
+        last_ident: None,
+        last_string: None,
+    };
     let mut i = 0;
     while i < bytes.len() {
         if stop.is_some_and(|s| i >= s) {
             break;
         }
-        let b = bytes[i];
-        match b {
-            b'/' if bytes.get(i + 1) == Some(&b'/') => {
-                while i < bytes.len() && bytes[i] != b'\n' {
-                    i += 1;
-                }
-                continue;
-            }
-            b'/' if bytes.get(i + 1) == Some(&b'*') => {
-                let mut depth = 0usize;
-                while i < bytes.len() {
-                    if bytes[i..].starts_with(b"/*") {
-                        depth += 1;
-                        i += 2;
-                    } else if bytes[i..].starts_with(b"*/") {
-                        depth -= 1;
-                        i += 2;
-                        if depth == 0 {
-                            break;
-                        }
-                    } else {
-                        i += 1;
-                    }
-                }
-                continue;
-            }
-            b'"' => {
-                let end = string_end(text, i).unwrap_or(bytes.len());
-                last_string = Some((i, end));
-                last_ident = None;
-                i = end;
-                continue;
-            }
-            b'r' if matches!(bytes.get(i + 1), Some(b'"' | b'#')) => {
-                let hashes = bytes[i + 1..].iter().take_while(|&&c| c == b'#').count();
-                if bytes.get(i + 1 + hashes) == Some(&b'"') {
-                    let close: Vec<u8> = std::iter::once(b'"')
-                        .chain(std::iter::repeat_n(b'#', hashes))
-                        .collect();
-                    let start = i + 2 + hashes;
-                    i = bytes[start..]
-                        .windows(close.len())
-                        .position(|w| w == close.as_slice())
-                        .map_or(bytes.len(), |p| start + p + close.len());
-                    last_ident = None;
-                    continue;
+        if let Some(end) = scanner.skip_literal(i) {
+            i = end;
+            continue;
+        }
+        match bytes[i] {
+            b @ (b'(' | b'[' | b'{') => scanner.open(b, i),
+            b @ (b')' | b']' | b'}') => {
+                if let Err(unbalanced) = scanner.close(b, i) {
+                    return unbalanced;
                 }
             }
-            b'\'' => {
-                // A character literal: 'x' or '\n'.
-                let end = if bytes.get(i + 1) == Some(&b'\\') {
-                    i + 4
-                } else {
-                    i + 1 + text[i + 1..].chars().next().map_or(0, char::len_utf8) + 1
-                };
-                i = end.min(bytes.len());
-                continue;
-            }
-            b'(' | b'[' | b'{' => {
-                stack.push(Open {
-                    bracket: b,
-                    at: i,
-                    field: None,
-                    index: 0,
-                });
-                last_ident = None;
-            }
-            b')' | b']' | b'}' => {
-                let want = match b {
-                    b')' => b'(',
-                    b']' => b'[',
-                    _ => b'{',
-                };
-                match stack.pop() {
-                    None => return Scan::Unopened(i, b),
-                    Some(open) if open.bracket != want => {
-                        return Scan::Unclosed(open.at, open.bracket);
-                    }
-                    Some(_) => {}
-                }
-                last_ident = None;
-            }
-            b',' => {
-                if let Some(top) = stack.last_mut() {
-                    top.index += 1;
-                    top.field = None;
-                }
-                last_ident = None;
-            }
-            b':' => {
-                let name = last_ident
-                    .map(|(s, e)| text[s..e].to_string())
-                    .or_else(|| last_string.map(|(s, e)| text[s..e].to_string()));
-                if let (Some(top), Some(name)) = (stack.last_mut(), name) {
-                    top.field = Some(name);
-                }
-                last_ident = None;
-            }
+            b',' => scanner.comma(),
+            b':' => scanner.colon(),
             c if c.is_ascii_alphabetic() || c == b'_' => {
-                let start = i;
-                while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
-                    i += 1;
-                }
-                last_ident = Some((start, i));
-                last_string = None;
+                i = scanner.ident(i);
                 continue;
             }
             c if c.is_ascii_whitespace() => {}
             _ => {
-                last_ident = None;
-                last_string = None;
+                scanner.last_ident = None;
+                scanner.last_string = None;
             }
         }
         i += 1;
     }
-    if stop.is_some() {
-        // The outermost bracket is the scene itself: its fields lead the path.
-        let mut names = Vec::new();
-        for (depth, open) in stack.iter().enumerate() {
-            match &open.field {
-                Some(field) => names.push(field.clone()),
-                None if depth > 0 => names.push(format!("[{}]", open.index)),
-                None => {}
+    scanner.finish(stop)
+}
+
+/// What [`scan`] has seen so far: the open brackets, and the identifier or
+/// string just read (a field's name when a `:` follows).
+struct Scanner<'a> {
+    text: &'a str,
+    stack: Vec<Open>,
+    last_ident: Option<(Offset, Offset)>,
+    last_string: Option<(Offset, Offset)>,
+}
+
+impl Scanner<'_> {
+    /// Steps over the comment, string, raw string or character literal at
+    /// `i`: where it ends, or `None` when none starts there. (An `r#` that
+    /// opens no raw string is stepped over by its `r`.)
+    fn skip_literal(&mut self, i: Offset) -> Option<Offset> {
+        let bytes = self.text.as_bytes();
+        match bytes[i] {
+            b'/' if bytes.get(i + 1) == Some(&b'/') => Some(line_comment_end(bytes, i)),
+            b'/' if bytes.get(i + 1) == Some(&b'*') => Some(block_comment_end(bytes, i)),
+            b'"' => {
+                let end = string_end(self.text, i).unwrap_or(bytes.len());
+                self.last_string = Some((i, end));
+                self.last_ident = None;
+                Some(end)
             }
+            b'r' if matches!(bytes.get(i + 1), Some(b'"' | b'#')) => match raw_string_end(bytes, i)
+            {
+                Some(end) => {
+                    self.last_ident = None;
+                    Some(end)
+                }
+                None => Some(i + 1),
+            },
+            b'\'' => Some(char_literal_end(self.text, i)),
+            _ => None,
         }
-        return Scan::Path(names);
     }
-    match stack.pop() {
-        Some(open) => Scan::Unclosed(open.at, open.bracket),
-        None => Scan::Balanced,
+
+    fn open(&mut self, bracket: u8, at: Offset) {
+        self.stack.push(Open {
+            bracket,
+            at,
+            field: None,
+            index: 0,
+        });
+        self.last_ident = None;
+    }
+
+    /// Closes the innermost bracket; the imbalance when `bracket` closes
+    /// nothing or another kind.
+    fn close(&mut self, bracket: u8, at: Offset) -> Result<(), Scan> {
+        let want = match bracket {
+            b')' => b'(',
+            b']' => b'[',
+            _ => b'{',
+        };
+        match self.stack.pop() {
+            None => return Err(Scan::Unopened(at, bracket)),
+            Some(open) if open.bracket != want => {
+                return Err(Scan::Unclosed(open.at, open.bracket));
+            }
+            Some(_) => {}
+        }
+        self.last_ident = None;
+        Ok(())
+    }
+
+    fn comma(&mut self) {
+        if let Some(top) = self.stack.last_mut() {
+            top.index += 1;
+            top.field = None;
+        }
+        self.last_ident = None;
+    }
+
+    /// A `:` names the current element's field after the identifier (or the
+    /// map key string) before it.
+    fn colon(&mut self) {
+        let text = self.text;
+        let name = self
+            .last_ident
+            .map(|(s, e)| text[s..e].to_string())
+            .or_else(|| self.last_string.map(|(s, e)| text[s..e].to_string()));
+        if let (Some(top), Some(name)) = (self.stack.last_mut(), name) {
+            top.field = Some(name);
+        }
+        self.last_ident = None;
+    }
+
+    /// Reads the identifier starting at `start`; where it ends.
+    fn ident(&mut self, start: Offset) -> Offset {
+        let bytes = self.text.as_bytes();
+        let mut i = start;
+        while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
+            i += 1;
+        }
+        self.last_ident = Some((start, i));
+        self.last_string = None;
+        i
+    }
+
+    /// The path to the stopping point, or whether every bracket closed.
+    fn finish(mut self, stop: Option<Offset>) -> Scan {
+        if stop.is_some() {
+            // The outermost bracket is the scene itself: its fields lead the path.
+            let mut names = Vec::new();
+            for (depth, open) in self.stack.iter().enumerate() {
+                match &open.field {
+                    Some(field) => names.push(field.clone()),
+                    None if depth > 0 => names.push(format!("[{}]", open.index)),
+                    None => {}
+                }
+            }
+            return Scan::Path(names);
+        }
+        match self.stack.pop() {
+            Some(open) => Scan::Unclosed(open.at, open.bracket),
+            None => Scan::Balanced,
+        }
     }
 }
 
@@ -413,28 +422,8 @@ fn next_bracket(text: &str, from: Offset) -> Option<Offset> {
     let bytes = text.as_bytes();
     while i < bytes.len() {
         match bytes[i] {
-            b'/' if bytes.get(i + 1) == Some(&b'/') => {
-                while i < bytes.len() && bytes[i] != b'\n' {
-                    i += 1;
-                }
-            }
-            b'/' if bytes.get(i + 1) == Some(&b'*') => {
-                let mut depth = 0usize;
-                while i < bytes.len() {
-                    if bytes[i..].starts_with(b"/*") {
-                        depth += 1;
-                        i += 2;
-                    } else if bytes[i..].starts_with(b"*/") {
-                        depth -= 1;
-                        i += 2;
-                        if depth == 0 {
-                            break;
-                        }
-                    } else {
-                        i += 1;
-                    }
-                }
-            }
+            b'/' if bytes.get(i + 1) == Some(&b'/') => i = line_comment_end(bytes, i),
+            b'/' if bytes.get(i + 1) == Some(&b'*') => i = block_comment_end(bytes, i),
             b'"' => i = string_end(text, i).unwrap_or(bytes.len()),
             b'(' | b'[' | b'{' | b')' | b']' | b'}' => return Some(i),
             _ => i += 1,

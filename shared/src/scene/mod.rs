@@ -4,10 +4,14 @@
 //! description ([`desc::SceneDesc`]), every value checked where it stands so that
 //! errors carry file:line:column; then the description is built into runtime
 //! objects with every constant precomputed. After that nothing can fail.
+//!
+//! The built objects that are the scene's own live here: the [`camera`]
+//! (rays from the description's projection). Densities, curves and motion are
+//! built by their own modules in [`crate::field`].
 
-pub mod desc;
+pub mod camera;
 mod diagnostic;
-pub mod distortion;
+pub mod ron_text;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -15,15 +19,15 @@ use std::sync::Arc;
 
 use glam::Vec3;
 
+use crate::desc::{self, BackgroundDesc, ColourIndexDesc, LightDesc, SceneDesc};
 use crate::field::curve::Curve;
 use crate::field::density::{Aabb, Density, Support};
-use crate::field::mesh::{Mesh, MeshError, MeshLimits};
 use crate::field::motion::Motion;
 use crate::field::noise::{Noise, clamped_octaves};
 use crate::math::simd::Isa;
+use crate::mesh::{Mesh, MeshError, MeshLimits};
 use crate::pse::{ExpressionFailure, SceneExpressions};
-use crate::render::camera::Camera;
-use desc::{BackgroundDesc, ColourIndexDesc, LightDesc, SceneDesc};
+use crate::scene::camera::Camera;
 
 /// The largest scene file we read. The paper's whole database was under 5 KB.
 pub const MAX_SCENE_BYTES: usize = 64 * 1024;
@@ -158,21 +162,21 @@ pub fn asset_path(scene_path: &str, asset: &str) -> PathBuf {
     base.join(asset)
 }
 
-/// An asset file's bytes (at most [`crate::field::mesh::MAX_OBJ_BYTES`]); the error
+/// An asset file's bytes (at most [`crate::mesh::MAX_OBJ_BYTES`]); the error
 /// says what the OS said.
 pub fn read_asset(path: &Path) -> Result<Vec<u8>, String> {
     use std::io::Read as _;
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .and_then(|f| {
-            f.take(crate::field::mesh::MAX_OBJ_BYTES + 1)
+            f.take(crate::mesh::MAX_OBJ_BYTES + 1)
                 .read_to_end(&mut bytes)
         })
         .map_err(|e| format!("cannot read the mesh: {e}"))?;
-    if bytes.len() as u64 > crate::field::mesh::MAX_OBJ_BYTES {
+    if bytes.len() as u64 > crate::mesh::MAX_OBJ_BYTES {
         return Err(format!(
             "the file is larger than {} bytes, the most a mesh file may be",
-            crate::field::mesh::MAX_OBJ_BYTES
+            crate::mesh::MAX_OBJ_BYTES
         ));
     }
     Ok(bytes)
@@ -419,6 +423,95 @@ pub(crate) enum ColourIndex {
     },
 }
 
+impl Background {
+    fn build(desc: &BackgroundDesc) -> Background {
+        match *desc {
+            BackgroundDesc::Transparent => Background::Transparent,
+            BackgroundDesc::Colour(c) => Background::Colour(Vec3::from_array(c.0)),
+            BackgroundDesc::Checker { colours, squares } => Background::Checker {
+                colours: (Vec3::from_array(colours.0.0), Vec3::from_array(colours.1.0)),
+                squares: squares.0 as f32,
+            },
+        }
+    }
+}
+
+impl Light {
+    fn build(desc: &LightDesc) -> Light {
+        match *desc {
+            LightDesc::Directional { direction, colour } => Light::Directional {
+                direction: direction.0,
+                colour: Vec3::from_array(colour.0),
+            },
+            LightDesc::Point { position, colour } => Light::Point {
+                position: position.0,
+                colour: Vec3::from_array(colour.0),
+            },
+        }
+    }
+}
+
+impl ColourIndex {
+    /// The colour index with the strata's octaves clamped for the step.
+    fn build(desc: &ColourIndexDesc, step: f32) -> ColourIndex {
+        match *desc {
+            ColourIndexDesc::Density => ColourIndex::Density,
+            ColourIndexDesc::Strata {
+                frequency,
+                amplitude,
+                octaves,
+            } => ColourIndex::Strata {
+                frequency: frequency.0,
+                amplitude: amplitude.0,
+                octaves: clamped_octaves(frequency.0, step, octaves.0),
+            },
+        }
+    }
+}
+
+/// Which of the marcher's shortcuts a scene allows (the fields of the same
+/// names in [`Scene`] say what each skips).
+struct Shortcuts {
+    common_case: bool,
+    position_free_shading: bool,
+    light_waits: bool,
+}
+
+impl Shortcuts {
+    fn of(
+        desc: &SceneDesc,
+        motion: &Option<Motion>,
+        expressions: &SceneExpressions,
+        colour_index: &ColourIndex,
+        lights: &[Light],
+    ) -> Shortcuts {
+        let directional_only = || {
+            lights
+                .iter()
+                .all(|l| matches!(l, Light::Directional { .. }))
+        };
+        Shortcuts {
+            common_case: desc.refraction.is_none()
+                && motion.is_none()
+                && expressions.colour.is_none()
+                && expressions.normal_perturbation.is_none()
+                && !desc.shading.shadows
+                && matches!(colour_index, ColourIndex::Density),
+            position_free_shading: motion.is_none()
+                && expressions.colour.is_none()
+                && expressions.normal_perturbation.is_none()
+                && !desc.shading.shadows
+                && matches!(colour_index, ColourIndex::Density)
+                && directional_only(),
+            light_waits: desc.refraction.is_none()
+                && expressions.normal_perturbation.is_none()
+                && !desc.shading.shadows
+                && !lights.is_empty()
+                && directional_only(),
+        }
+    }
+}
+
 /// The marble strata's key (Perlin 1985) at the noise-space point q
 /// (`x − offset`) whose turbulence is `turb`: `½ + ½ sin(f·q_y + a·turb)`.
 #[inline]
@@ -585,79 +678,17 @@ impl Scene {
         let (min, max) = (desc.march.bounds.min.0, desc.march.bounds.max.0);
         let step = desc.march.step.length((max - min).length());
         let object = desc.object_with_modulation();
-        let background = match desc.background {
-            BackgroundDesc::Transparent => Background::Transparent,
-            BackgroundDesc::Colour(c) => Background::Colour(Vec3::from_array(c.0)),
-            BackgroundDesc::Checker { colours, squares } => Background::Checker {
-                colours: (Vec3::from_array(colours.0.0), Vec3::from_array(colours.1.0)),
-                squares: squares.0 as f32,
-            },
-        };
-        let lights: Vec<Light> = desc
-            .lights
-            .sources
-            .iter()
-            .map(|l| match *l {
-                LightDesc::Directional { direction, colour } => Light::Directional {
-                    direction: direction.0,
-                    colour: Vec3::from_array(colour.0),
-                },
-                LightDesc::Point { position, colour } => Light::Point {
-                    position: position.0,
-                    colour: Vec3::from_array(colour.0),
-                },
-            })
-            .collect();
-        let colour_index = match desc.colour_index {
-            ColourIndexDesc::Density => ColourIndex::Density,
-            ColourIndexDesc::Strata {
-                frequency,
-                amplitude,
-                octaves,
-            } => ColourIndex::Strata {
-                frequency: frequency.0,
-                amplitude: amplitude.0,
-                octaves: clamped_octaves(frequency.0, step, octaves.0),
-            },
-        };
+        let background = Background::build(&desc.background);
+        let lights: Vec<Light> = desc.lights.sources.iter().map(Light::build).collect();
+        let colour_index = ColourIndex::build(&desc.colour_index, step);
         let colour_map = Curve::colours(&desc.colour_map);
         let (density, expressions) =
             SceneExpressions::build(desc, &object, step, knobs, &colour_map)?;
         let motion = desc.transform.as_ref().map(Motion::build);
-        let own = match desc.density {
-            Some(_) => Density::build(&object, step),
-            None => density.clone(),
-        };
-        let (density, own) = match motion {
-            Some(_) => (
-                Density::Moving(Box::new(density)),
-                Density::Moving(Box::new(own)),
-            ),
-            None => (density, own),
-        };
+        let (density, own) = Scene::densities(desc, &object, step, density, motion.is_some());
         // In object space for a moving object: each field maps it to the world.
         let support = Scene::widened_support(&density, step, (min, max));
-        let common_case = desc.refraction.is_none()
-            && motion.is_none()
-            && expressions.colour.is_none()
-            && expressions.normal_perturbation.is_none()
-            && !desc.shading.shadows
-            && matches!(colour_index, ColourIndex::Density);
-        let position_free_shading = motion.is_none()
-            && expressions.colour.is_none()
-            && expressions.normal_perturbation.is_none()
-            && !desc.shading.shadows
-            && matches!(colour_index, ColourIndex::Density)
-            && lights
-                .iter()
-                .all(|l| matches!(l, Light::Directional { .. }));
-        let light_waits = desc.refraction.is_none()
-            && expressions.normal_perturbation.is_none()
-            && !desc.shading.shadows
-            && !lights.is_empty()
-            && lights
-                .iter()
-                .all(|l| matches!(l, Light::Directional { .. }));
+        let shortcuts = Shortcuts::of(desc, &motion, &expressions, &colour_index, &lights);
         Ok(Scene {
             width: desc.image.width,
             height: desc.image.height,
@@ -692,10 +723,35 @@ impl Scene {
             expressions,
             motion,
             assets: Vec::new(),
-            common_case,
-            position_free_shading,
-            light_waits,
+            common_case: shortcuts.common_case,
+            position_free_shading: shortcuts.position_free_shading,
+            light_waits: shortcuts.light_waits,
         })
+    }
+
+    /// The density the marcher samples (with the expressions' own, if any)
+    /// and the object's own density (the description's object, without the
+    /// scene's `density` expression), each wrapped in the motion when the
+    /// object moves.
+    fn densities(
+        desc: &SceneDesc,
+        object: &desc::ObjectDesc,
+        step: f32,
+        density: Density,
+        moving: bool,
+    ) -> (Density, Density) {
+        let own = match desc.density {
+            Some(_) => Density::build(object, step),
+            None => density.clone(),
+        };
+        if moving {
+            (
+                Density::Moving(Box::new(density)),
+                Density::Moving(Box::new(own)),
+            )
+        } else {
+            (density, own)
+        }
     }
 
     /// The instruction-set path the batch kernels run on ([`Isa::detect`] by default).

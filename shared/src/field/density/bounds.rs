@@ -6,6 +6,7 @@
 use glam::Vec3;
 
 use super::{Density, Hypertexture};
+use crate::field::motion::Pose;
 
 /// An axis-aligned box `(min, max)`.
 pub type Aabb = (Vec3, Vec3);
@@ -45,6 +46,21 @@ pub(super) fn unscale(b: Aabb, centre: Vec3, lo: f32, hi: f32, axes: Vec3) -> Op
         (p.min(q), p.max(q))
     };
     Some(hull(scaled(lo), scaled(hi)))
+}
+
+impl Pose {
+    /// The object-space support `s` where the pose puts it: a world box around
+    /// the turned box, and the ball moved (its radius a little larger for
+    /// rounding).
+    pub fn world_support(&self, s: Support) -> Support {
+        Support {
+            aabb: self.world_box(s.aabb),
+            ball: s.ball.map(|(centre, r)| {
+                let c = self.to_world(centre);
+                (c, r * (1.0 + 1e-5) + 1e-5 * c.abs().max_element())
+            }),
+        }
+    }
 }
 
 impl Density {

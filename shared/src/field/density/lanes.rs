@@ -10,6 +10,7 @@ use glam::Vec3;
 
 use super::dmf::Settling;
 use super::{Density, Field, Hypertexture};
+use crate::field::motion::Pose;
 use crate::field::soft::{Falloff, ProjectBlock, boolean};
 use crate::math::simd::{Isa, LANES, Lanes, lane_mask};
 
@@ -100,6 +101,18 @@ pub(super) fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
         out[l] = f(a[l], b[l]);
     }
     out
+}
+
+impl Pose {
+    /// [`Pose::to_object`] lane by lane (the same bits).
+    #[inline]
+    pub fn to_object_lanes(&self, p: &Points) -> Points {
+        let mut out = Points::default();
+        for l in 0..LANES {
+            out.set(l, self.to_object(p.get(l)));
+        }
+        out
+    }
 }
 
 impl Field<'_> {

@@ -17,11 +17,12 @@
 
 use glam::Vec3;
 
+use crate::desc::{DmfDesc, HardCore, ObjectDesc};
 use crate::field::distortion::Distortion;
 use crate::field::motion::Pose;
 use crate::field::noise::Noise;
 use crate::field::soft::{Falloff, SoftBox, SoftMesh, SoftSphere, SoftTorus, boolean};
-use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
+use crate::math::simd::{Isa, Lanes};
 
 pub mod bounds;
 pub mod dmf;
@@ -107,10 +108,42 @@ pub enum Density {
     /// An object with its own DMFs.
     Hypertexture(Box<Hypertexture>),
     /// A density written as an expression (the Pixel Stream Editor), clamped to [0, 1].
-    Expression(Box<crate::pse::Program>),
+    Expression(Box<dyn Expression>),
     /// The scene's hypertexture on a moving object: evaluated at the
     /// object-space point of the field's pose (the root of a moving scene only).
     Moving(Box<Density>),
+}
+
+/// What the density tree asks of a density written as an expression: the
+/// Pixel Stream Editor's compiled programs implement it (`pse::density`), so
+/// the tree holds them without depending on the language above it.
+pub trait Expression: std::fmt::Debug + Send + Sync {
+    /// The value at x, with `d` the density the expression reads as `D`.
+    fn eval_scalar(&self, x: Vec3, d: f32, field: &Field) -> f32;
+    /// The value (its three components) at each lane's point.
+    fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3];
+    /// A box outside which the value is 0, if the expression shows one.
+    fn support(&self) -> Option<Aabb>;
+    /// A ball outside which the value is 0, if the expression shows one.
+    fn support_ball(&self) -> Option<(Vec3, f32)>;
+    /// A copy in a box.
+    fn clone_box(&self) -> Box<dyn Expression>;
+    /// Whether `other` is the same expression.
+    fn same_as(&self, other: &dyn Expression) -> bool;
+    /// The expression as `Any`, to compare with another of its type.
+    fn as_any(&self) -> &dyn std::any::Any;
+}
+
+impl Clone for Box<dyn Expression> {
+    fn clone(&self) -> Self {
+        self.clone_box()
+    }
+}
+
+impl PartialEq for dyn Expression {
+    fn eq(&self, other: &dyn Expression) -> bool {
+        self.same_as(other)
+    }
 }
 
 impl Density {

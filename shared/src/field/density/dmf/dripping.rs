@@ -4,12 +4,12 @@
 use glam::Vec3;
 
 use super::{Settling, WarpDmf};
+use crate::desc::DmfDesc;
 use crate::field::density::Field;
 use crate::field::density::bounds::{Aabb, NOISE_BOUND, hull, unscale};
 use crate::field::density::lanes::Points;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, LANES};
-use crate::scene::desc::DmfDesc;
 
 /// y only, below the centre:
 /// `c.y + (y − c.y)(1 − a · max(0, noise(f · (x, stretch · y, z))))`.

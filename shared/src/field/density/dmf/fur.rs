@@ -4,13 +4,13 @@
 use glam::Vec3;
 
 use super::ValueDmf;
+use crate::desc::DmfDesc;
 use crate::field::density::lanes::{Points, zip};
 use crate::field::density::{Density, Field};
 use crate::field::noise::VNOISE_OFFSET;
 use crate::field::shaping::{Bias, Gain};
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, LANES, Lanes};
-use crate::scene::desc::DmfDesc;
 
 /// The paper's fur, straight (curliness 0) or curly (the tribble).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -4,12 +4,12 @@
 use glam::Vec3;
 
 use super::ValueDmf;
+use crate::desc::DmfDesc;
 use crate::field::density::lanes::Points;
 use crate::field::density::{Density, Field};
 use crate::field::shaping::Gain;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, Lanes};
-use crate::scene::desc::DmfDesc;
 
 impl ValueDmf for Gain {
     fn from_desc(desc: &DmfDesc, _step: f32) -> Option<Self> {

@@ -14,9 +14,9 @@ use glam::Vec3;
 use super::bounds::{Aabb, NOISE_BOUND, unscale};
 use super::lanes::Points;
 use super::{Density, Field};
+use crate::desc::{DmfDesc, Octaves};
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, Lanes};
-use crate::scene::desc::{DmfDesc, Octaves};
 
 mod bias;
 mod dripping;

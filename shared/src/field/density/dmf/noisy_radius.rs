@@ -3,12 +3,12 @@
 use glam::Vec3;
 
 use super::{Settling, WarpDmf};
+use crate::desc::DmfDesc;
 use crate::field::density::Field;
 use crate::field::density::bounds::NOISE_BOUND;
 use crate::field::density::lanes::{Points, map};
 use crate::math::dual::DualPoint;
 use crate::math::simd::Isa;
-use crate::scene::desc::DmfDesc;
 
 /// `c + (x − c)(1 + a · noise(f x))`.
 #[derive(Clone, Copy, Debug, PartialEq)]

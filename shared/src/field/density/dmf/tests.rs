@@ -7,12 +7,12 @@ use std::collections::BTreeSet;
 use glam::Vec3;
 
 use super::{Dmf, Modulation, Warp};
+use crate::desc::{DmfDesc, HardCore, ObjectDesc};
 use crate::field::density::{Density, Field, Hypertexture, Points};
 use crate::field::noise::Noise;
 use crate::math::dual::DualPoint;
 use crate::math::random::SplitMix64;
 use crate::math::simd::{Isa, LANES};
-use crate::scene::desc::{DmfDesc, HardCore, ObjectDesc};
 
 /// The registered DMF a description builds, by name. The match has no
 /// wildcard: a DMF registered without a case below does not compile.
@@ -87,8 +87,8 @@ fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>
         .with_default_extension(ron::extensions::Extensions::UNWRAP_VARIANT_NEWTYPES);
     let mut object: ObjectDesc = ron.from_str(object).expect("a valid object");
     object.for_each_mesh_mut(&mut |m| {
-        let obj = crate::field::mesh::icosphere_obj(glam::Vec3::ZERO, 0.6, 2);
-        let mesh = crate::field::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
+        let obj = crate::mesh::icosphere_obj(glam::Vec3::ZERO, 0.6, 2);
+        let mesh = crate::mesh::Mesh::from_obj(&m.path, obj.as_bytes(), Default::default());
         m.mesh = Some(std::sync::Arc::new(
             mesh.expect("the icosphere is a closed mesh"),
         ));

@@ -3,12 +3,12 @@
 use glam::Vec3;
 
 use super::{Settling, WarpDmf, bounds_left};
+use crate::desc::{DmfDesc, Octaves};
 use crate::field::density::Field;
 use crate::field::density::bounds::NOISE_BOUND;
 use crate::field::density::lanes::{Points, map, zip};
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, LANES};
-use crate::scene::desc::{DmfDesc, Octaves};
 
 /// `c + (x − c)(1 + a · turbulence(f x))`.
 #[derive(Clone, Copy, Debug, PartialEq)]

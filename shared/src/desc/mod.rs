@@ -1,7 +1,9 @@
 //! The scene as written in RON: plain data, validated while it is read.
 //!
 //! This is phase one of loading (as in pbrt-v4: text → description → runtime
-//! objects). Every range check happens inside deserialisation (`try_from`), so a
+//! objects): the layer above [`crate::mesh`] and below [`crate::field`], whose
+//! builders read it. [`values`] holds the checked numbers, vectors, colours
+//! and curves; [`distortion`] the distortion model's part of a scene. Every range check happens inside deserialisation (`try_from`), so a
 //! bad value is reported by `ron` with the line and column where it was read.
 //! Checks that relate several fields run when their struct is complete and point
 //! at its end.
@@ -10,7 +12,17 @@ use std::collections::BTreeMap;
 
 use serde::Deserialize;
 
-pub use super::distortion::{DistortionDesc, check_distortion};
+pub mod distortion;
+pub mod values;
+
+pub use distortion::{DistortionDesc, check_distortion};
+pub use values::{
+    CurveDesc, Direction, FieldOfView, Finite, Fraction, Interpolation, NonNegative, Octaves,
+    Positive, Rgb, Squares, UnitOpen, V3,
+};
+
+/// The seed of the noise tables when a scene names none (the paper's year).
+pub const DEFAULT_SEED: u64 = 1989;
 
 /// The largest image we accept: 16384 pixels a side and 64 Mi pixels in all.
 pub const MAX_SIDE: u32 = 16_384;
@@ -194,7 +206,7 @@ impl TryFrom<SceneFields> for SceneDesc {
     fn try_from(f: SceneFields) -> Result<Self, String> {
         check_chain(&f.object, &f.modulation)?;
         if let Some(d) = &f.distortion {
-            check_distortion(&f.object, d)?;
+            check_distortion(d, f.object.is_primitive())?;
         }
         if f.objects.len() > MAX_NAMED_OBJECTS {
             return Err(format!(
@@ -344,7 +356,7 @@ impl TryFrom<KnobFields> for KnobDesc {
 }
 
 fn default_seed() -> u64 {
-    crate::field::noise::DEFAULT_SEED
+    DEFAULT_SEED
 }
 
 /// Supersampling and motion blur.
@@ -743,7 +755,7 @@ impl TryFrom<HypertextureFields> for HypertextureDesc {
     fn try_from(f: HypertextureFields) -> Result<Self, String> {
         check_chain(&f.object, &f.modulation)?;
         if let Some(d) = &f.distortion {
-            check_distortion(&f.object, d)?;
+            check_distortion(d, f.object.is_primitive())?;
         }
         Ok(HypertextureDesc {
             object: f.object,
@@ -823,7 +835,7 @@ pub struct MeshDesc {
     /// The loaded mesh, attached before the scene is built
     /// ([`SceneDesc::attach_meshes`]).
     #[serde(skip)]
-    pub mesh: Option<std::sync::Arc<crate::field::mesh::Mesh>>,
+    pub mesh: Option<std::sync::Arc<crate::mesh::Mesh>>,
 }
 
 #[derive(Deserialize)]
@@ -918,11 +930,11 @@ impl SceneDesc {
         paths.into_iter().collect()
     }
 
-    /// Gives every mesh of the scene its loaded [`crate::field::mesh::Mesh`]; the
+    /// Gives every mesh of the scene its loaded [`crate::mesh::Mesh`]; the
     /// first path `find` has none for is the error.
     pub fn attach_meshes(
         &mut self,
-        mut find: impl FnMut(&str) -> Option<std::sync::Arc<crate::field::mesh::Mesh>>,
+        mut find: impl FnMut(&str) -> Option<std::sync::Arc<crate::mesh::Mesh>>,
     ) -> Result<(), String> {
         let mut missing = None;
         let mut attach = |m: &mut MeshDesc| match find(&m.path) {
@@ -1245,282 +1257,166 @@ pub enum GradientDesc {
     Dual,
 }
 
-/// A curve through control points over [0, 1], e.g. colour over density.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
-#[serde(
-    deny_unknown_fields,
-    try_from = "CurveFields<T>",
-    bound = "T: Deserialize<'de>"
-)]
-pub struct CurveDesc<T> {
-    /// How to interpolate between control points.
-    pub interpolation: Interpolation,
-    /// Control points (key in [0, 1], value), keys strictly increasing.
-    pub points: Vec<(f32, T)>,
-}
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{SceneError, parse};
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields, rename = "Map", bound = "T: Deserialize<'de>")]
-struct CurveFields<T> {
-    #[serde(default)]
-    interpolation: Interpolation,
-    points: Vec<(Fraction, T)>,
-}
+    /// The fewest fields a scene must give.
+    const MINIMAL: &str = "Scene(
+    image: (width: 64, height: 48),
+    camera: (eye: (0.0, 0.0, 4.0), look_at: (0.0, 0.0, 0.0), projection: Perspective(fov_y: 45.0)),
+    march: (bounds: (min: (-1.0, -1.0, -1.0), max: (1.0, 1.0, 1.0)), step: Diagonal(200), opacity: 40.0),
+    object: Sphere(radius: 0.8, softness: 0.2),
+)";
 
-impl<T> TryFrom<CurveFields<T>> for CurveDesc<T> {
-    type Error = String;
-    fn try_from(f: CurveFields<T>) -> Result<Self, String> {
-        if f.points.is_empty() {
-            return Err("a map needs at least one control point".into());
-        }
-        if f.points.len() > 256 {
-            return Err(format!(
-                "a map may have at most 256 control points, not {}",
-                f.points.len()
-            ));
-        }
-        for w in f.points.windows(2) {
-            if w[1].0.0 <= w[0].0.0 {
-                return Err(format!(
-                    "map keys must increase: {} comes after {}",
-                    w[1].0.0, w[0].0.0
-                ));
+    /// `MINIMAL` with `line` added after its `object` field.
+    fn with(line: &str) -> String {
+        MINIMAL.replace(
+            "softness: 0.2),\n",
+            &format!("softness: 0.2),\n    {line}\n"),
+        )
+    }
+
+    /// The error of a text that must not parse, as (line, column, message).
+    fn refused(text: &str) -> (usize, usize, String) {
+        match parse(text, "t.ron") {
+            Err(SceneError::Parse {
+                path,
+                line,
+                column,
+                message,
+            }) => {
+                assert_eq!(path, "t.ron");
+                (line, column, message)
             }
-        }
-        Ok(CurveDesc {
-            interpolation: f.interpolation,
-            points: f.points.into_iter().map(|(k, v)| (k.0, v)).collect(),
-        })
-    }
-}
-
-impl CurveDesc<Rgb> {
-    fn white() -> Self {
-        CurveDesc {
-            interpolation: Interpolation::Linear,
-            points: vec![(0.0, Rgb([1.0, 1.0, 1.0]))],
+            other => panic!("expected a parse error, got {other:?}"),
         }
     }
-}
 
-/// Interpolation between control points.
-#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
-pub enum Interpolation {
-    /// Piecewise linear.
-    #[default]
-    Linear,
-    /// Catmull–Rom spline through the points.
-    Spline,
-    /// Constant from each key to the next: a step function (an opacity that
-    /// extracts an iso-surface).
-    Step,
-}
-
-macro_rules! checked_float {
-    ($(#[$doc:meta])* $name:ident, $what:literal, |$v:ident| $ok:expr) => {
-        $(#[$doc])*
-        #[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, PartialOrd)]
-        #[serde(try_from = "f64")]
-        pub struct $name(pub f32);
-
-        impl TryFrom<f64> for $name {
-            type Error = String;
-            fn try_from(raw: f64) -> Result<Self, String> {
-                let $v = raw as f32;
-                if raw.is_finite() && $v.is_finite() && $ok {
-                    Ok($name($v))
-                } else {
-                    Err(format!("expected {}, found {}", $what, raw))
-                }
-            }
-        }
-
-        impl From<$name> for f32 {
-            fn from(v: $name) -> f32 {
-                v.0
-            }
-        }
-    };
-}
-
-checked_float!(
-    /// A finite number.
-    Finite, "a finite number", |v| true
-);
-checked_float!(
-    /// A finite number > 0.
-    Positive, "a positive number", |v| v > 0.0
-);
-checked_float!(
-    /// A finite number ≥ 0.
-    NonNegative, "a number ≥ 0", |v| v >= 0.0
-);
-checked_float!(
-    /// A number in [0, 1].
-    Fraction, "a number in [0, 1]", |v| (0.0..=1.0).contains(&v)
-);
-checked_float!(
-    /// A number strictly between 0 and 1 (a bias or gain parameter).
-    UnitOpen, "a number strictly between 0 and 1", |v| v > 0.0 && v < 1.0
-);
-checked_float!(
-    /// A vertical field of view in degrees, strictly between 0 and 180.
-    FieldOfView, "a field of view strictly between 0 and 180 degrees", |v| v > 0.0 && v < 180.0
-);
-
-impl Positive {
-    fn one() -> Self {
-        Positive(1.0)
+    #[test]
+    fn a_minimal_scene_parses_with_its_values() {
+        let desc = parse(MINIMAL, "t.ron").expect("the minimal scene parses");
+        assert_eq!((desc.image.width, desc.image.height), (64, 48));
+        assert_eq!(desc.camera.eye.0, glam::Vec3::new(0.0, 0.0, 4.0));
+        assert_eq!(desc.march.bounds.min.0, glam::Vec3::splat(-1.0));
+        assert_eq!(desc.march.step, StepDesc::Diagonal(Positive(200.0)));
+        assert_eq!(desc.march.step.length(2.0), 2.0 / 200.0);
+        let ObjectDesc::Sphere(sphere) = &desc.object else {
+            panic!("expected a sphere, got {:?}", desc.object);
+        };
+        assert_eq!((sphere.radius, sphere.softness), (0.8, 0.2));
     }
-    fn frame_rate() -> Self {
-        Positive(24.0)
+
+    #[test]
+    fn fields_left_out_take_their_defaults() {
+        let desc = parse(MINIMAL, "t.ron").expect("the minimal scene parses");
+        assert_eq!(desc.background, BackgroundDesc::Transparent);
+        assert_eq!(desc.lights, LightsDesc::default());
+        assert_eq!(desc.shading, ShadingDesc::default());
+        assert_eq!(desc.sampling, SamplingDesc::default());
+        assert_eq!(desc.sampling.spp, Spp(1));
+        assert_eq!(desc.seed, DEFAULT_SEED);
+        assert_eq!(desc.frame_rate.0, 24.0);
+        assert_eq!(desc.colour_map, CurveDesc::white());
+        assert_eq!(desc.colour_index, ColourIndexDesc::default());
+        assert!(desc.modulation.is_empty() && desc.objects.is_empty() && desc.knobs.is_empty());
+        assert!(desc.distortion.is_none() && desc.transform.is_none() && desc.density.is_none());
+        assert_eq!(desc.march.threshold, Fraction::threshold());
+        // No modulation: the object is its own hypertexture.
+        assert_eq!(desc.object_with_modulation(), desc.object);
     }
-    fn shininess() -> Self {
-        Positive(20.0)
+
+    #[test]
+    fn a_modulated_object_is_wrapped_in_its_hypertexture() {
+        let desc = parse(&with("modulation: [Bias(0.3)],"), "t.ron").expect("parses");
+        assert_eq!(desc.modulation, vec![DmfDesc::Bias(UnitOpen(0.3))]);
+        let ObjectDesc::Hypertexture(h) = desc.object_with_modulation() else {
+            panic!("expected the object wrapped in a hypertexture");
+        };
+        assert_eq!(*h.object, desc.object);
+        assert_eq!(h.modulation, desc.modulation);
     }
-}
 
-impl NonNegative {
-    fn one() -> Self {
-        NonNegative(1.0)
+    #[test]
+    fn a_value_out_of_range_is_named_at_its_line_and_column() {
+        let text = with("sampling: (spp: 0),");
+        let (line, column, message) = refused(&text);
+        let (want_line, row) = text
+            .lines()
+            .enumerate()
+            .find(|(_, l)| l.contains("spp: 0"))
+            .expect("the line is in the text");
+        assert_eq!(line, want_line + 1, "{message}");
+        let value = row.find("0)").expect("the value is on its line") + 1;
+        assert!(
+            (row.find("spp").expect("field") + 1..=value + 1).contains(&column),
+            "column {column} of {row:?}: {message}"
+        );
+        assert!(
+            message.contains(&format!(
+                "expected samples per pixel from 1 to {MAX_SPP}, found 0"
+            )),
+            "{message}"
+        );
     }
-    fn fifth() -> Self {
-        NonNegative(0.2)
+
+    #[test]
+    fn a_field_given_twice_is_named_where_it_stands_again() {
+        let text = with("sampling: (spp: 4),\n    sampling: (spp: 8),");
+        let (line, _, message) = refused(&text);
+        assert_eq!(line, 7, "{message}");
+        assert!(message.contains("sampling"), "{message}");
     }
-}
 
-impl Fraction {
-    fn threshold() -> Self {
-        Fraction(0.99)
+    #[test]
+    fn a_missing_field_is_named() {
+        let text = MINIMAL.replace(
+            "    march: (bounds: (min: (-1.0, -1.0, -1.0), max: (1.0, 1.0, 1.0)), step: Diagonal(200), opacity: 40.0),\n",
+            "",
+        );
+        let (_, _, message) = refused(&text);
+        assert!(message.contains("march"), "{message}");
     }
-}
 
-impl UnitOpen {
-    fn fur_bias() -> Self {
-        UnitOpen(0.3)
+    #[test]
+    fn map_keys_must_increase() {
+        let text = with("colour_map: (points: [(0.5, (1.0, 1.0, 1.0)), (0.2, (0.0, 0.0, 0.0))]),");
+        let (line, _, message) = refused(&text);
+        assert_eq!(line, 6, "{message}");
+        assert!(
+            message.contains("map keys must increase: 0.2 comes after 0.5"),
+            "{message}"
+        );
     }
-    fn fur_gain() -> Self {
-        UnitOpen(0.9)
+
+    #[test]
+    fn samples_per_pixel_and_image_sizes_are_bounded() {
+        assert_eq!(Spp::try_from(1), Ok(Spp(1)));
+        assert_eq!(Spp::try_from(u64::from(MAX_SPP)), Ok(Spp(MAX_SPP)));
+        assert!(Spp::try_from(u64::from(MAX_SPP) + 1).is_err());
+        assert!(Spp::try_from(0).is_err());
+        assert_eq!(check_resolution(1, 1), Ok(()));
+        assert_eq!(check_resolution(MAX_SIDE, 1), Ok(()));
+        let zero = check_resolution(0, 5).expect_err("a zero side is refused");
+        assert!(zero.contains("at least 1"), "{zero}");
+        let wide = check_resolution(MAX_SIDE + 1, 1).expect_err("too wide");
+        assert!(wide.contains(&MAX_SIDE.to_string()), "{wide}");
+        let many = check_resolution(MAX_SIDE, MAX_SIDE).expect_err("too many pixels");
+        assert!(many.contains(&MAX_PIXELS.to_string()), "{many}");
     }
-    fn curl_gain() -> Self {
-        UnitOpen(0.8)
-    }
-}
 
-/// An octave count, 1 to 16.
-#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
-#[serde(try_from = "u64")]
-pub struct Octaves(pub u32);
-
-impl Octaves {
-    /// The most octaves a scene may ask for.
-    pub const MOST: usize = 16;
-}
-
-impl TryFrom<u64> for Octaves {
-    type Error = String;
-    fn try_from(n: u64) -> Result<Self, String> {
-        if (1..=Octaves::MOST as u64).contains(&n) {
-            Ok(Octaves(n as u32))
-        } else {
-            Err(format!("expected an octave count from 1 to 16, found {n}"))
-        }
-    }
-}
-
-impl Octaves {
-    fn six() -> Self {
-        Octaves(6)
-    }
-}
-
-/// Checker squares around the horizon, 2 to 1024.
-#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
-#[serde(try_from = "u64")]
-pub struct Squares(pub u32);
-
-impl TryFrom<u64> for Squares {
-    type Error = String;
-    fn try_from(n: u64) -> Result<Self, String> {
-        if (2..=1024).contains(&n) {
-            Ok(Squares(n as u32))
-        } else {
-            Err(format!("expected a square count from 2 to 1024, found {n}"))
-        }
-    }
-}
-
-/// A point or vector with finite coordinates, written `(x, y, z)`.
-#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
-#[serde(try_from = "(f64, f64, f64)")]
-pub struct V3(pub glam::Vec3);
-
-impl TryFrom<(f64, f64, f64)> for V3 {
-    type Error = String;
-    fn try_from((x, y, z): (f64, f64, f64)) -> Result<Self, String> {
-        let v = glam::Vec3::new(x as f32, y as f32, z as f32);
-        if v.is_finite() {
-            Ok(V3(v))
-        } else {
-            Err(format!(
-                "expected a vector of finite numbers, found ({x}, {y}, {z})"
-            ))
-        }
-    }
-}
-
-impl V3 {
-    fn y() -> Self {
-        V3(glam::Vec3::Y)
-    }
-}
-
-/// A non-zero vector with finite coordinates, normalised when read.
-#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
-#[serde(try_from = "(f64, f64, f64)")]
-pub struct Direction(pub glam::Vec3);
-
-impl TryFrom<(f64, f64, f64)> for Direction {
-    type Error = String;
-    fn try_from(t: (f64, f64, f64)) -> Result<Self, String> {
-        let v = V3::try_from(t)?.0;
-        if v.length() < 1e-6 {
-            return Err(format!(
-                "expected a non-zero direction, found {:?}",
-                v.to_array()
-            ));
-        }
-        Ok(Direction(v.normalize()))
-    }
-}
-
-impl Direction {
-    fn y() -> Self {
-        Direction(glam::Vec3::Y)
-    }
-}
-
-/// A linear RGB colour with finite components ≥ 0, written `(r, g, b)`.
-#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
-#[serde(try_from = "(f64, f64, f64)")]
-pub struct Rgb(pub [f32; 3]);
-
-impl TryFrom<(f64, f64, f64)> for Rgb {
-    type Error = String;
-    fn try_from(t: (f64, f64, f64)) -> Result<Self, String> {
-        let v = V3::try_from(t)?.0;
-        if v.min_element() < 0.0 {
-            return Err(format!(
-                "expected a colour with components ≥ 0, found {:?}",
-                v.to_array()
-            ));
-        }
-        Ok(Rgb(v.to_array()))
-    }
-}
-
-impl Rgb {
-    fn ambient() -> Self {
-        Rgb([0.1, 0.1, 0.1])
+    #[test]
+    fn mesh_paths_are_listed_once_in_order() {
+        let text = MINIMAL.replace(
+            "object: Sphere(radius: 0.8, softness: 0.2),",
+            "object: Union([Mesh(path: \"b.obj\", softness: 0.1), Mesh(path: \"a.obj\", softness: 0.1), Mesh(path: \"b.obj\", softness: 0.2)]),",
+        );
+        let mut desc = parse(&text, "t.ron").expect("parses");
+        assert_eq!(
+            desc.mesh_paths(),
+            vec!["a.obj".to_string(), "b.obj".to_string()]
+        );
+        assert_eq!(desc.attach_meshes(|_| None), Err("b.obj".to_string()));
     }
 }

@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use crate::scene::desc::{CameraDesc, ProjectionDesc};
+use crate::desc::{CameraDesc, ProjectionDesc};
 
 /// A ray `origin + t · direction` with a unit direction.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -218,7 +218,7 @@ fn multiply(a: &[f32; 16], b: &[f32; 16]) -> [f32; 16] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::desc::{FieldOfView, Positive, V3};
+    use crate::desc::{FieldOfView, Positive, V3};
 
     fn desc(projection: ProjectionDesc) -> CameraDesc {
         CameraDesc {

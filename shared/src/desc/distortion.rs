@@ -16,8 +16,7 @@
 
 use serde::Deserialize;
 
-use super::desc::ObjectDesc;
-use super::desc::{
+use super::values::{
     CurveDesc, Direction, Finite, Fraction, Interpolation, NonNegative, Positive, V3,
 };
 
@@ -220,14 +219,15 @@ impl VectorFieldDesc {
 /// The deepest nesting of `Perturbed` fields.
 pub const MAX_FIELD_DEPTH: usize = 4;
 
-/// Checks a distortion against the object it distorts.
-pub fn check_distortion(object: &ObjectDesc, d: &DistortionDesc) -> Result<(), String> {
+/// Checks a distortion against the object it distorts (whether that is a
+/// primitive: a sphere, box, torus or mesh).
+pub fn check_distortion(d: &DistortionDesc, object_is_primitive: bool) -> Result<(), String> {
     if d.field.depth() > MAX_FIELD_DEPTH {
         return Err(format!(
             "distortion: fields may be nested at most {MAX_FIELD_DEPTH} deep"
         ));
     }
-    if d.field.needs_boundary() && !object.is_primitive() {
+    if d.field.needs_boundary() && !object_is_primitive {
         return Err(
             "distortion: this vector field points towards the object's boundary, so the object must be a Sphere, Box, Torus or Mesh (use Constant(..), or wrap a primitive in Hypertexture(object: ..., distortion: ...))"
                 .into(),

@@ -1,4 +1,4 @@
-//! Triangle meshes as soft objects: a closed triangle mesh read from an OBJ
+//! Triangle meshes for soft objects: a closed triangle mesh read from an OBJ
 //! file, with its exact signed distance.
 //!
 //! The distance to the surface is the distance to the closest triangle, found
