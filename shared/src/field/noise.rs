@@ -25,8 +25,6 @@ use crate::math::random::SplitMix64;
 use crate::math::simd::{Isa, Lanes};
 #[cfg(target_arch = "x86_64")]
 use crate::math::simd::{LANES, deinterleave};
-#[cfg(target_arch = "x86_64")]
-use std::arch::x86_64::{__m128, __m256, __m256i, __m512};
 
 /// The seed of the default tables (the year of the paper).
 pub const DEFAULT_SEED: u64 = 1989;
@@ -128,6 +126,92 @@ impl Default for Noise {
     fn default() -> Self {
         Noise::new(DEFAULT_SEED)
     }
+}
+
+/// 8 points' cells (i, j, k mod n) and their offsets from the cell's
+/// corners with the knots' weights, in AVX registers: what the sums of
+/// [`Noise::noise8_on`] run over.
+#[cfg(target_arch = "x86_64")]
+struct Cells8 {
+    i: std::arch::x86_64::__m256i,
+    j: std::arch::x86_64::__m256i,
+    k: std::arch::x86_64::__m256i,
+    /// u and u − 1; v and v − 1; w and w − 1.
+    xs: [std::arch::x86_64::__m256; 2],
+    ys: [std::arch::x86_64::__m256; 2],
+    zs: [std::arch::x86_64::__m256; 2],
+    /// ω(u), ω(u − 1); ω(v), ω(v − 1); ω(w), ω(w − 1).
+    wx: [std::arch::x86_64::__m256; 2],
+    wy: [std::arch::x86_64::__m256; 2],
+    wz: [std::arch::x86_64::__m256; 2],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Cells8 {
+    /// The cells of the points (x, y, z), with `noise`'s operations.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[inline(always)]
+    unsafe fn of(
+        x: std::arch::x86_64::__m256,
+        y: std::arch::x86_64::__m256,
+        z: std::arch::x86_64::__m256,
+    ) -> Cells8 {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX2 by the caller's contract.
+        unsafe {
+            let (fx, fy, fz) = (floor8(x), floor8(y), floor8(z));
+            let n = _mm256_set1_epi32(255);
+            let one = _mm256_set1_ps(1.0);
+            let (u, v, w) = (
+                _mm256_sub_ps(x, fx),
+                _mm256_sub_ps(y, fy),
+                _mm256_sub_ps(z, fz),
+            );
+            let xs = [u, _mm256_sub_ps(u, one)];
+            let ys = [v, _mm256_sub_ps(v, one)];
+            let zs = [w, _mm256_sub_ps(w, one)];
+            Cells8 {
+                i: _mm256_and_si256(lattice8(fx), n),
+                j: _mm256_and_si256(lattice8(fy), n),
+                k: _mm256_and_si256(lattice8(fz), n),
+                wx: knots8(xs[0], one),
+                wy: knots8(ys[0], one),
+                wz: knots8(zs[0], one),
+                xs,
+                ys,
+                zs,
+            }
+        }
+    }
+}
+
+/// Σ over the corners of ω ω ω (Γ · offset) for the [`Cells8`] `$c`, Γ's
+/// components in lanes from `$gradient` of the corner (0, dj, dk) and di,
+/// in `noise`'s order. (A macro: a closure's intrinsics are left as calls,
+/// without the target features.)
+#[cfg(target_arch = "x86_64")]
+macro_rules! sum8 {
+    ($c:expr, |$corner:ident, $di:ident| $gradient:expr) => {{
+        let c: &Cells8 = $c;
+        let mut sum = _mm256_setzero_ps();
+        for dk in 0..2 {
+            for dj in 0..2 {
+                let wyz = _mm256_mul_ps(c.wy[dj], c.wz[dk]);
+                for $di in 0..2 {
+                    let $corner = dj + 2 * dk;
+                    let (gx, gy, gz) = $gradient;
+                    let dot = _mm256_add_ps(
+                        _mm256_add_ps(_mm256_mul_ps(gx, c.xs[$di]), _mm256_mul_ps(gy, c.ys[dj])),
+                        _mm256_mul_ps(gz, c.zs[dk]),
+                    );
+                    sum = _mm256_add_ps(sum, _mm256_mul_ps(_mm256_mul_ps(c.wx[$di], wyz), dot));
+                }
+            }
+        }
+        sum
+    }};
 }
 
 impl Noise {
@@ -409,18 +493,13 @@ impl Noise {
         z: std::arch::x86_64::__m256,
         runs: bool,
     ) -> std::arch::x86_64::__m256 {
-        use std::arch::x86_64::*;
         // SAFETY: AVX2 by the caller's contract.
         unsafe {
-            let c = Knots::of(x, y, z);
-            let n = _mm256_set1_epi32(255);
-            let i = _mm256_and_si256(lattice8(c.floors[0]), n);
-            let j = _mm256_and_si256(lattice8(c.floors[1]), n);
-            let k = _mm256_and_si256(lattice8(c.floors[2]), n);
-            if runs && let Some(sum) = self.noise8_in_two_cells(&c, [i, j, k]) {
+            let c = Cells8::of(x, y, z);
+            if runs && let Some(sum) = self.noise8_in_two_cells(&c) {
                 return sum;
             }
-            self.noise8_gathered(&c, [i, j, k])
+            self.noise8_gathered(&c)
         }
     }
 
@@ -434,17 +513,13 @@ impl Noise {
     /// The CPU must have AVX2.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    unsafe fn noise8_in_two_cells(
-        &self,
-        c: &Knots<__m256>,
-        [i, j, k]: [__m256i; 3],
-    ) -> Option<__m256> {
+    unsafe fn noise8_in_two_cells(&self, c: &Cells8) -> Option<std::arch::x86_64::__m256> {
         use std::arch::x86_64::*;
         // SAFETY: AVX2 by the caller's contract; the rows are 16-byte
         // aligned and in the table (below).
         unsafe {
-            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
-            let cell = _mm256_or_si256(_mm256_slli_epi32::<16>(i), jk);
+            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(c.k), c.j);
+            let cell = _mm256_or_si256(_mm256_slli_epi32::<16>(c.i), jk);
             let first = _mm256_permutevar8x32_epi32(cell, _mm256_setzero_si256());
             let last = _mm256_permutevar8x32_epi32(cell, _mm256_set1_epi32(7));
             let in_first = _mm256_cmpeq_epi32(cell, first);
@@ -469,7 +544,18 @@ impl Noise {
                 _mm256_add_epi32(pick, _mm256_set1_epi32(2)),
             ];
             let rows = self.gradient_of.as_ptr();
-            Some(c.sum(&TwoCells8 { rows, a, b, picks }))
+            Some(sum8!(c, |corner, di| {
+                // SAFETY: `corners` are < 511, so the rows are in the table.
+                let both = _mm256_set_m128(
+                    _mm_load_ps((*rows.add(b[corner] + di)).0.as_ptr()),
+                    _mm_load_ps((*rows.add(a[corner] + di)).0.as_ptr()),
+                );
+                (
+                    _mm256_permutevar8x32_ps(both, picks[0]),
+                    _mm256_permutevar8x32_ps(both, picks[1]),
+                    _mm256_permutevar8x32_ps(both, picks[2]),
+                )
+            }))
         }
     }
 
@@ -481,14 +567,14 @@ impl Noise {
     /// The CPU must have AVX2.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    unsafe fn noise8_gathered(&self, c: &Knots<__m256>, [i, j, k]: [__m256i; 3]) -> __m256 {
+    unsafe fn noise8_gathered(&self, c: &Cells8) -> std::arch::x86_64::__m256 {
         use std::arch::x86_64::*;
         // SAFETY: AVX2 by the caller's contract; the gather reads entries
         // k·n + j < n² of `cells`; the stores are of 8 i32 into arrays of 8;
         // the rows are 16-byte aligned and in the table (below).
         unsafe {
             let n = _mm256_set1_epi32(255);
-            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
+            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(c.k), c.j);
             // `corners`: the cells' entries gathered, their bytes added to i.
             let packed = _mm256_i32gather_epi32::<4>(self.cells.as_ptr().cast(), jk);
             let bytes = [
@@ -499,10 +585,31 @@ impl Noise {
             ];
             let mut corners = [[0u32; 8]; 4];
             for (corner, b) in corners.iter_mut().zip(bytes) {
-                _mm256_storeu_si256(corner.as_mut_ptr().cast(), _mm256_add_epi32(i, b));
+                _mm256_storeu_si256(corner.as_mut_ptr().cast(), _mm256_add_epi32(c.i, b));
             }
             let rows = self.gradient_of.as_ptr();
-            c.sum(&Rows8 { rows, corners })
+            sum8!(c, |corner, di| {
+                // SAFETY: `corners` are < 511, so the row is in the table.
+                let row = |l: usize| {
+                    let m = corners[corner][l] as usize;
+                    _mm_load_ps((*rows.add(m + di)).0.as_ptr())
+                };
+                let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
+                let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
+                let (lo01, lo23) = (
+                    _mm256_castps_pd(_mm256_unpacklo_ps(r0, r1)),
+                    _mm256_castps_pd(_mm256_unpacklo_ps(r2, r3)),
+                );
+                let (hi01, hi23) = (
+                    _mm256_castps_pd(_mm256_unpackhi_ps(r0, r1)),
+                    _mm256_castps_pd(_mm256_unpackhi_ps(r2, r3)),
+                );
+                (
+                    _mm256_castpd_ps(_mm256_unpacklo_pd(lo01, lo23)),
+                    _mm256_castpd_ps(_mm256_unpackhi_pd(lo01, lo23)),
+                    _mm256_castpd_ps(_mm256_unpacklo_pd(hi01, hi23)),
+                )
+            })
         }
     }
 
@@ -592,16 +699,67 @@ impl Noise {
         z: std::arch::x86_64::__m512,
     ) -> std::arch::x86_64::__m512 {
         use std::arch::x86_64::*;
-        // SAFETY: AVX-512F, BW and VBMI by the caller's contract.
+        // SAFETY: AVX-512F, BW and VBMI by the caller's contract; the rows
+        // are 16-byte aligned and in the table (below).
         unsafe {
-            let c = Knots::of(x, y, z);
+            let (fx, fy, fz) = (floor16(x), floor16(y), floor16(z));
             let n = _mm512_set1_epi32(255);
-            let i = _mm512_and_si512(lattice16(c.floors[0]), n);
-            let j = _mm512_and_si512(lattice16(c.floors[1]), n);
-            let k = _mm512_and_si512(lattice16(c.floors[2]), n);
+            let i = _mm512_and_si512(lattice16(fx), n);
+            let j = _mm512_and_si512(lattice16(fy), n);
+            let k = _mm512_and_si512(lattice16(fz), n);
             let corners = self.corners16(i, j, k);
             let rows = self.gradient_of.as_ptr();
-            c.sum(&Rows16 { rows, corners })
+            let one = _mm512_set1_ps(1.0);
+            let (u, v, w) = (
+                _mm512_sub_ps(x, fx),
+                _mm512_sub_ps(y, fy),
+                _mm512_sub_ps(z, fz),
+            );
+            let xs = [u, _mm512_sub_ps(u, one)];
+            let ys = [v, _mm512_sub_ps(v, one)];
+            let zs = [w, _mm512_sub_ps(w, one)];
+            let wx = knots16(xs[0], one);
+            let wy = knots16(ys[0], one);
+            let wz = knots16(zs[0], one);
+            let mut sum = _mm512_setzero_ps();
+            for dk in 0..2 {
+                for dj in 0..2 {
+                    let wyz = _mm512_mul_ps(wy[dj], wz[dk]);
+                    for di in 0..2 {
+                        // SAFETY: `corners` are < 511, so the row is in the table.
+                        let row = |l: usize| {
+                            let m = corners[dj + 2 * dk][l] as usize;
+                            _mm_load_ps((*rows.add(m + di)).0.as_ptr())
+                        };
+                        let quad = |l: usize| {
+                            let low = _mm256_set_m128(row(l + 4), row(l));
+                            let high = _mm256_set_m128(row(l + 12), row(l + 8));
+                            _mm512_castpd_ps(_mm512_insertf64x4::<1>(
+                                _mm512_castps_pd(_mm512_castps256_ps512(low)),
+                                _mm256_castps_pd(high),
+                            ))
+                        };
+                        let (r0, r1, r2, r3) = (quad(0), quad(1), quad(2), quad(3));
+                        let (lo01, lo23) = (
+                            _mm512_castps_pd(_mm512_unpacklo_ps(r0, r1)),
+                            _mm512_castps_pd(_mm512_unpacklo_ps(r2, r3)),
+                        );
+                        let (hi01, hi23) = (
+                            _mm512_castps_pd(_mm512_unpackhi_ps(r0, r1)),
+                            _mm512_castps_pd(_mm512_unpackhi_ps(r2, r3)),
+                        );
+                        let gx = _mm512_castpd_ps(_mm512_unpacklo_pd(lo01, lo23));
+                        let gy = _mm512_castpd_ps(_mm512_unpackhi_pd(lo01, lo23));
+                        let gz = _mm512_castpd_ps(_mm512_unpacklo_pd(hi01, hi23));
+                        let dot = _mm512_add_ps(
+                            _mm512_add_ps(_mm512_mul_ps(gx, xs[di]), _mm512_mul_ps(gy, ys[dj])),
+                            _mm512_mul_ps(gz, zs[dk]),
+                        );
+                        sum = _mm512_add_ps(sum, _mm512_mul_ps(_mm512_mul_ps(wx[di], wyz), dot));
+                    }
+                }
+            }
+            sum
         }
     }
 
@@ -622,26 +780,60 @@ impl Noise {
         z: std::arch::x86_64::__m128,
     ) -> std::arch::x86_64::__m128 {
         use std::arch::x86_64::*;
-        // SAFETY: SSE4.1: `noise4` is inlined only into the SIMD copies of
-        // the lane code; the stores are of 4 i32 into arrays of 4.
-        unsafe {
-            let c = Knots::of(x, y, z);
-            // The cells mod n.
-            let mut cell = [[0u32; 4]; 3];
-            let n = _mm_set1_epi32(255);
-            for (cell, f) in cell.iter_mut().zip(c.floors) {
-                _mm_storeu_si128(cell.as_mut_ptr().cast(), _mm_and_si128(lattice4(f), n));
+        {
+            // SAFETY: the stores are of 4 i32 into arrays of 4; the rows are
+            // 16-byte aligned (`Row`) and in the table (below).
+            unsafe {
+                let (fx, fy, fz) = (floor4(x), floor4(y), floor4(z));
+                // The cells mod n.
+                let mut cell = [[0u32; 4]; 3];
+                let n = _mm_set1_epi32(255);
+                _mm_storeu_si128(cell[0].as_mut_ptr().cast(), _mm_and_si128(lattice4(fx), n));
+                _mm_storeu_si128(cell[1].as_mut_ptr().cast(), _mm_and_si128(lattice4(fy), n));
+                _mm_storeu_si128(cell[2].as_mut_ptr().cast(), _mm_and_si128(lattice4(fz), n));
+                let mut corners = [[0usize; 4]; 4];
+                for (l, c) in corners.iter_mut().enumerate() {
+                    *c = self.corners(
+                        cell[0][l] as usize,
+                        cell[1][l] as usize,
+                        cell[2][l] as usize,
+                    );
+                }
+                let rows = self.gradient_of.as_ptr();
+                let one = _mm_set1_ps(1.0);
+                let (u, v, w) = (_mm_sub_ps(x, fx), _mm_sub_ps(y, fy), _mm_sub_ps(z, fz));
+                let xs = [u, _mm_sub_ps(u, one)];
+                let ys = [v, _mm_sub_ps(v, one)];
+                let zs = [w, _mm_sub_ps(w, one)];
+                let wx = knots4(xs[0], one);
+                let wy = knots4(ys[0], one);
+                let wz = knots4(zs[0], one);
+                let mut sum = _mm_setzero_ps();
+                for dk in 0..2 {
+                    for dj in 0..2 {
+                        let wyz = _mm_mul_ps(wy[dj], wz[dk]);
+                        for di in 0..2 {
+                            // SAFETY: `corners` are < 511, so the row is in the table.
+                            let row = |l: usize| {
+                                _mm_load_ps((*rows.add(corners[l][dj + 2 * dk] + di)).0.as_ptr())
+                            };
+                            // Rows (gx, gy, gz, 0) of lanes 0..4 → gx, gy, gz.
+                            let (r0, r1, r2, r3) = (row(0), row(1), row(2), row(3));
+                            let (lo01, lo23) = (_mm_unpacklo_ps(r0, r1), _mm_unpacklo_ps(r2, r3));
+                            let (hi01, hi23) = (_mm_unpackhi_ps(r0, r1), _mm_unpackhi_ps(r2, r3));
+                            let gx = _mm_movelh_ps(lo01, lo23);
+                            let gy = _mm_movehl_ps(lo23, lo01);
+                            let gz = _mm_movelh_ps(hi01, hi23);
+                            let dot = _mm_add_ps(
+                                _mm_add_ps(_mm_mul_ps(gx, xs[di]), _mm_mul_ps(gy, ys[dj])),
+                                _mm_mul_ps(gz, zs[dk]),
+                            );
+                            sum = _mm_add_ps(sum, _mm_mul_ps(_mm_mul_ps(wx[di], wyz), dot));
+                        }
+                    }
+                }
+                sum
             }
-            let mut corners = [[0usize; 4]; 4];
-            for (l, corner) in corners.iter_mut().enumerate() {
-                *corner = self.corners(
-                    cell[0][l] as usize,
-                    cell[1][l] as usize,
-                    cell[2][l] as usize,
-                );
-            }
-            let rows = self.gradient_of.as_ptr();
-            c.sum(&Rows4 { rows, corners })
         }
     }
 
@@ -869,327 +1061,41 @@ fn knot(t: f32) -> f32 {
     (2.0 * t - 3.0) * t * t + 1.0
 }
 
-/// A register of f32 lanes the noise kernel runs on, by its width's
-/// intrinsics: 4 (SSE), 8 (AVX) or 16 (AVX-512F). The kernel
-/// ([`Knots::of`], [`Knots::sum`]) is written once over it; the widths
-/// differ only in how a lane's cell finds its gradients ([`Gradients`]).
-///
-/// # Safety
-/// The methods need the width's features (SSE4.1, AVX, AVX-512F); they are
-/// inlined only into the copies of the lane code that have them.
-#[cfg(target_arch = "x86_64")]
-trait Register: Copy {
-    unsafe fn splat(v: f32) -> Self;
-    unsafe fn add(self, other: Self) -> Self;
-    unsafe fn sub(self, other: Self) -> Self;
-    unsafe fn mul(self, other: Self) -> Self;
-    /// [`floor`] lane by lane, with its operations.
-    unsafe fn floor(self) -> Self;
-}
-
-/// One [`Register`] per width, from the width's intrinsics.
-#[cfg(target_arch = "x86_64")]
-macro_rules! register {
-    ($($ty:ident: $set1:ident, $add:ident, $sub:ident, $mul:ident, $floor:ident;)*) => {$(
-        impl Register for std::arch::x86_64::$ty {
-            #[inline(always)]
-            unsafe fn splat(v: f32) -> Self {
-                // SAFETY: the width's features by the trait's contract.
-                unsafe { std::arch::x86_64::$set1(v) }
-            }
-            #[inline(always)]
-            unsafe fn add(self, other: Self) -> Self {
-                // SAFETY: as in `splat`.
-                unsafe { std::arch::x86_64::$add(self, other) }
-            }
-            #[inline(always)]
-            unsafe fn sub(self, other: Self) -> Self {
-                // SAFETY: as in `splat`.
-                unsafe { std::arch::x86_64::$sub(self, other) }
-            }
-            #[inline(always)]
-            unsafe fn mul(self, other: Self) -> Self {
-                // SAFETY: as in `splat`.
-                unsafe { std::arch::x86_64::$mul(self, other) }
-            }
-            #[inline(always)]
-            unsafe fn floor(self) -> Self {
-                // SAFETY: as in `splat`.
-                unsafe { $floor(self) }
+/// [`knot`] at a fraction u and at 1 − u on a register of lanes, with its
+/// operations: the weights ω(u), ω(u − 1) of a cell's near and far knots.
+/// One copy per register width, from that width's intrinsics.
+macro_rules! knots {
+    ($($(#[$attr:meta])* $name:ident: $ty:ident, $add:ident, $sub:ident, $mul:ident, $set1:ident;)*) => {$(
+        $(#[$attr])*
+        #[cfg(target_arch = "x86_64")]
+        #[inline(always)]
+        unsafe fn $name(
+            u: std::arch::x86_64::$ty,
+            one: std::arch::x86_64::$ty,
+        ) -> [std::arch::x86_64::$ty; 2] {
+            use std::arch::x86_64::*;
+            // SAFETY: the width's features by the caller's contract. (A
+            // macro, not a closure: a closure's intrinsics are left as calls.)
+            unsafe {
+                macro_rules! cubic {
+                    ($t:expr) => {{
+                        let t = $t;
+                        $add($mul($mul($sub($mul($set1(2.0), t), $set1(3.0)), t), t), one)
+                    }};
+                }
+                [cubic!(u), cubic!($sub(one, u))]
             }
         }
     )*};
 }
 
-#[cfg(target_arch = "x86_64")]
-register! {
-    __m128: _mm_set1_ps, _mm_add_ps, _mm_sub_ps, _mm_mul_ps, floor4;
-    __m256: _mm256_set1_ps, _mm256_add_ps, _mm256_sub_ps, _mm256_mul_ps, floor8;
-    __m512: _mm512_set1_ps, _mm512_add_ps, _mm512_sub_ps, _mm512_mul_ps, floor16;
-}
-
-/// Where a register's lanes find Γ of a corner of their cells.
-#[cfg(target_arch = "x86_64")]
-trait Gradients<R> {
-    /// Γ's x, y and z in lanes, of corner (di, dj, dk) of each lane's cell,
-    /// `corner` = dj + 2·dk.
-    ///
-    /// # Safety
-    /// The width's features, as [`Register`]'s.
-    unsafe fn of(&self, corner: usize, di: usize) -> (R, R, R);
-}
-
-/// A register of points' cells: the floors, the offsets from the cell's
-/// corners and the knots' weights, with `noise`'s operations.
-#[cfg(target_arch = "x86_64")]
-struct Knots<R> {
-    /// ⌊x⌋, ⌊y⌋, ⌊z⌋.
-    floors: [R; 3],
-    /// u and u − 1; v and v − 1; w and w − 1.
-    xs: [R; 2],
-    ys: [R; 2],
-    zs: [R; 2],
-    /// ω(u), ω(u − 1); ω(v), ω(v − 1); ω(w), ω(w − 1).
-    wx: [R; 2],
-    wy: [R; 2],
-    wz: [R; 2],
-}
-
-#[cfg(target_arch = "x86_64")]
-impl<R: Register> Knots<R> {
-    /// The cells of the points (x, y, z).
-    ///
-    /// # Safety
-    /// The width's features, as [`Register`]'s.
-    #[inline(always)]
-    unsafe fn of(x: R, y: R, z: R) -> Knots<R> {
-        // SAFETY: the width's features by the caller's contract.
-        unsafe {
-            let (fx, fy, fz) = (x.floor(), y.floor(), z.floor());
-            let one = R::splat(1.0);
-            let (u, v, w) = (x.sub(fx), y.sub(fy), z.sub(fz));
-            let xs = [u, u.sub(one)];
-            let ys = [v, v.sub(one)];
-            let zs = [w, w.sub(one)];
-            Knots {
-                floors: [fx, fy, fz],
-                wx: knots(xs[0], one),
-                wy: knots(ys[0], one),
-                wz: knots(zs[0], one),
-                xs,
-                ys,
-                zs,
-            }
-        }
-    }
-
-    /// Σ over the corners of ω ω ω (Γ · offset), Γ from `gradients`, in
-    /// `noise`'s order.
-    ///
-    /// # Safety
-    /// The width's features, as [`Register`]'s.
-    #[inline(always)]
-    unsafe fn sum(&self, gradients: &impl Gradients<R>) -> R {
-        // SAFETY: the width's features by the caller's contract.
-        unsafe {
-            let mut sum = R::splat(0.0);
-            for dk in 0..2 {
-                for dj in 0..2 {
-                    let wyz = self.wy[dj].mul(self.wz[dk]);
-                    for di in 0..2 {
-                        let (gx, gy, gz) = gradients.of(dj + 2 * dk, di);
-                        let dot = gx
-                            .mul(self.xs[di])
-                            .add(gy.mul(self.ys[dj]))
-                            .add(gz.mul(self.zs[dk]));
-                        sum = sum.add(self.wx[di].mul(wyz).mul(dot));
-                    }
-                }
-            }
-            sum
-        }
-    }
-}
-
-/// [`knot`] at a fraction u and at 1 − u on a register of lanes, with its
-/// operations: the weights ω(u), ω(u − 1) of a cell's near and far knots.
-///
-/// # Safety
-/// The width's features, as [`Register`]'s.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn knots<R: Register>(u: R, one: R) -> [R; 2] {
-    // SAFETY: the width's features by the caller's contract.
-    unsafe { [cubic(u, one), cubic(one.sub(u), one)] }
-}
-
-/// (2t − 3)t² + 1 lane by lane ([`knot`]). (A function inlined into the
-/// copy, not a closure: a closure's intrinsics were left as calls.)
-///
-/// # Safety
-/// The width's features, as [`Register`]'s.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn cubic<R: Register>(t: R, one: R) -> R {
-    // SAFETY: the width's features by the caller's contract.
-    unsafe {
-        R::splat(2.0)
-            .mul(t)
-            .sub(R::splat(3.0))
-            .mul(t)
-            .mul(t)
-            .add(one)
-    }
-}
-
-/// The rows of `gradient_of` of 4 lanes' corners, `corners[l][corner]`:
-/// each corner's 4 rows are 4 aligned loads and a 4×4 transpose.
-#[cfg(target_arch = "x86_64")]
-struct Rows4 {
-    rows: *const Row,
-    corners: [[usize; 4]; 4],
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Gradients<std::arch::x86_64::__m128> for Rows4 {
-    #[inline(always)]
-    unsafe fn of(&self, corner: usize, di: usize) -> (__m128, __m128, __m128) {
-        use std::arch::x86_64::*;
-        // SAFETY: `corners` are < 511, so the rows are in the table, 16-byte
-        // aligned (`Row`); SSE is part of the x86-64 baseline.
-        unsafe {
-            let row =
-                |l: usize| _mm_load_ps((*self.rows.add(self.corners[l][corner] + di)).0.as_ptr());
-            // Rows (gx, gy, gz, 0) of lanes 0..4 → gx, gy, gz.
-            let (r0, r1, r2, r3) = (row(0), row(1), row(2), row(3));
-            let (lo01, lo23) = (_mm_unpacklo_ps(r0, r1), _mm_unpacklo_ps(r2, r3));
-            let (hi01, hi23) = (_mm_unpackhi_ps(r0, r1), _mm_unpackhi_ps(r2, r3));
-            (
-                _mm_movelh_ps(lo01, lo23),
-                _mm_movehl_ps(lo23, lo01),
-                _mm_movelh_ps(hi01, hi23),
-            )
-        }
-    }
-}
-
-/// The rows of `gradient_of` of 8 lanes' corners, `corners[corner][l]`:
-/// rows of lanes l and l + 4 in the two halves, so the in-half shuffles
-/// transpose both at once.
-#[cfg(target_arch = "x86_64")]
-struct Rows8 {
-    rows: *const Row,
-    corners: [[u32; 8]; 4],
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Gradients<std::arch::x86_64::__m256> for Rows8 {
-    #[inline(always)]
-    unsafe fn of(&self, corner: usize, di: usize) -> (__m256, __m256, __m256) {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX by the caller's contract; `corners` are < 511, so the
-        // rows are in the table, 16-byte aligned (`Row`).
-        unsafe {
-            let row = |l: usize| {
-                let m = self.corners[corner][l] as usize;
-                _mm_load_ps((*self.rows.add(m + di)).0.as_ptr())
-            };
-            let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
-            let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
-            let (lo01, lo23) = (
-                _mm256_castps_pd(_mm256_unpacklo_ps(r0, r1)),
-                _mm256_castps_pd(_mm256_unpacklo_ps(r2, r3)),
-            );
-            let (hi01, hi23) = (
-                _mm256_castps_pd(_mm256_unpackhi_ps(r0, r1)),
-                _mm256_castps_pd(_mm256_unpackhi_ps(r2, r3)),
-            );
-            (
-                _mm256_castpd_ps(_mm256_unpacklo_pd(lo01, lo23)),
-                _mm256_castpd_ps(_mm256_unpackhi_pd(lo01, lo23)),
-                _mm256_castpd_ps(_mm256_unpacklo_pd(hi01, hi23)),
-            )
-        }
-    }
-}
-
-/// The rows of 8 lanes in at most two cells, `a`'s and `b`'s corners: the
-/// two cells' rows side by side in one register, each lane's component
-/// picked by a permute (`picks`), with no transpose.
-#[cfg(target_arch = "x86_64")]
-struct TwoCells8 {
-    rows: *const Row,
-    a: [usize; 4],
-    b: [usize; 4],
-    picks: [std::arch::x86_64::__m256i; 3],
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Gradients<std::arch::x86_64::__m256> for TwoCells8 {
-    #[inline(always)]
-    unsafe fn of(&self, corner: usize, di: usize) -> (__m256, __m256, __m256) {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX2 by the caller's contract; `a` and `b` are < 511, so
-        // the rows are in the table, 16-byte aligned (`Row`).
-        unsafe {
-            let both = _mm256_set_m128(
-                _mm_load_ps((*self.rows.add(self.b[corner] + di)).0.as_ptr()),
-                _mm_load_ps((*self.rows.add(self.a[corner] + di)).0.as_ptr()),
-            );
-            (
-                _mm256_permutevar8x32_ps(both, self.picks[0]),
-                _mm256_permutevar8x32_ps(both, self.picks[1]),
-                _mm256_permutevar8x32_ps(both, self.picks[2]),
-            )
-        }
-    }
-}
-
-/// The rows of `gradient_of` of 16 lanes' corners, `corners[corner][l]`:
-/// rows of lanes l, l + 4, l + 8 and l + 12 in the four 128-bit blocks, so
-/// the in-block shuffles transpose all four at once.
-#[cfg(target_arch = "x86_64")]
-struct Rows16 {
-    rows: *const Row,
-    corners: [[u32; 16]; 4],
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Gradients<std::arch::x86_64::__m512> for Rows16 {
-    #[inline(always)]
-    unsafe fn of(&self, corner: usize, di: usize) -> (__m512, __m512, __m512) {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX-512F by the caller's contract; `corners` are < 511, so
-        // the rows are in the table, 16-byte aligned (`Row`).
-        unsafe {
-            let row = |l: usize| {
-                let m = self.corners[corner][l] as usize;
-                _mm_load_ps((*self.rows.add(m + di)).0.as_ptr())
-            };
-            let quad = |l: usize| {
-                let low = _mm256_set_m128(row(l + 4), row(l));
-                let high = _mm256_set_m128(row(l + 12), row(l + 8));
-                _mm512_castpd_ps(_mm512_insertf64x4::<1>(
-                    _mm512_castps_pd(_mm512_castps256_ps512(low)),
-                    _mm256_castps_pd(high),
-                ))
-            };
-            let (r0, r1, r2, r3) = (quad(0), quad(1), quad(2), quad(3));
-            let (lo01, lo23) = (
-                _mm512_castps_pd(_mm512_unpacklo_ps(r0, r1)),
-                _mm512_castps_pd(_mm512_unpacklo_ps(r2, r3)),
-            );
-            let (hi01, hi23) = (
-                _mm512_castps_pd(_mm512_unpackhi_ps(r0, r1)),
-                _mm512_castps_pd(_mm512_unpackhi_ps(r2, r3)),
-            );
-            (
-                _mm512_castpd_ps(_mm512_unpacklo_pd(lo01, lo23)),
-                _mm512_castpd_ps(_mm512_unpackhi_pd(lo01, lo23)),
-                _mm512_castpd_ps(_mm512_unpacklo_pd(hi01, hi23)),
-            )
-        }
-    }
+knots! {
+    /// 4 lanes (SSE).
+    knots4: __m128, _mm_add_ps, _mm_sub_ps, _mm_mul_ps, _mm_set1_ps;
+    /// 8 lanes (AVX).
+    knots8: __m256, _mm256_add_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_set1_ps;
+    /// 16 lanes (AVX-512F).
+    knots16: __m512, _mm512_add_ps, _mm512_sub_ps, _mm512_mul_ps, _mm512_set1_ps;
 }
 
 /// ω'(t) = 6t(|t| − 1) for |t| < 1, else 0: the slope of [`knot`]'s ω.
