@@ -163,10 +163,15 @@ impl Isa {
     }
 
     /// Whether this CPU has the path's features: the check [`per_isa!`]'s
-    /// dispatch makes before it calls a `#[target_feature]` copy (std caches
-    /// the CPU's features, so it is a few loads and tests).
+    /// dispatch makes before it calls a `#[target_feature]` copy (one load
+    /// and a test of the paths found once, [`available_paths`]).
     #[inline(always)]
     pub fn runs_here(self) -> bool {
+        self == Isa::Scalar || available_paths() & (1 << self as u32) != 0
+    }
+
+    /// Whether this CPU has the path's features, asked of the CPU.
+    fn detected(self) -> bool {
         match self {
             Isa::Scalar => true,
             #[cfg(target_arch = "x86_64")]
@@ -196,6 +201,31 @@ impl Isa {
             Isa::Neon => "neon",
         }
     }
+}
+
+/// The paths this CPU runs, bit `isa as u32` for each (and bit 31 once
+/// they are found): asked of the CPU at the first call, then one load.
+#[inline(always)]
+fn available_paths() -> u32 {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static PATHS: AtomicU32 = AtomicU32::new(0);
+    let paths = PATHS.load(Ordering::Relaxed);
+    if paths != 0 {
+        return paths;
+    }
+    let paths = find_paths();
+    PATHS.store(paths, Ordering::Relaxed);
+    paths
+}
+
+/// The bits of [`available_paths`], asked of the CPU.
+#[cold]
+#[inline(never)]
+fn find_paths() -> u32 {
+    [Isa::Scalar, Isa::Neon, Isa::Sse41, Isa::Avx2, Isa::Avx512]
+        .into_iter()
+        .filter(|isa| isa.detected())
+        .fold(1 << 31, |bits, isa| bits | 1 << isa as u32)
 }
 
 /// A kernel's copies per instruction set and its dispatch on an [`Isa`], as
@@ -317,6 +347,24 @@ pub(crate) fn deinterleave(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `per_isa!` runs the copy of a path this CPU has, and the scalar form
+    /// for every other path, so that no caller reaches a copy whose features
+    /// the CPU lacks.
+    #[test]
+    fn per_isa_runs_the_copy_of_an_available_path_only() {
+        fn which(isa: Isa) -> Option<Isa> {
+            per_isa!(isa, () -> Option<Isa> {
+                scalar => None,
+                lanes => Some(lanes),
+            })
+        }
+        for isa in [Isa::Scalar, Isa::Sse41, Isa::Avx2, Isa::Avx512, Isa::Neon] {
+            let expected = (isa != Isa::Scalar && Isa::available().contains(&isa)).then_some(isa);
+            assert_eq!(which(isa), expected, "{isa:?}");
+            assert_eq!(isa.runs_here(), isa.detected(), "{isa:?}");
+        }
+    }
 
     /// The masks by compare and `movemask` are [`lane_mask`]'s on every
     /// path, at ±0, NaN, subnormals, the bound itself and its neighbours.

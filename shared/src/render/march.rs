@@ -719,14 +719,19 @@ impl Policy {
     }
 }
 
-/// Where a ray's march is: its current segment (a refracted ray starts
-/// another), the chunk of samples held along it, the sample k, f at the
-/// previous sample when it lay on the segment, the distance travelled
-/// before the segment, the index of the medium, and the samples left in
-/// the budget.
-struct Walk {
+/// A ray's current segment (a refracted ray starts another) and the chunk
+/// of samples held along it: what the kernels read by reference.
+struct Segment {
     basis: Basis,
     chunk: Chunk,
+}
+
+/// Where a ray's march is along its [`Segment`]: the sample k, f at the
+/// previous sample when it lay on the segment, the distance travelled
+/// before the segment, the index of the medium, and the samples left in
+/// the budget. (Apart from the segment, whose address the kernels take, so
+/// that these stay in registers.)
+struct Walk {
     k: u32,
     /// f(x − Δx_μ): the previous sample, when it lay on the current segment.
     previous: Option<f32>,
@@ -742,14 +747,14 @@ impl Walk {
     /// and leave f(x − Δx_μ) = 0, and nothing else. False when the ray ends
     /// or the budget runs out among them.
     #[inline(always)]
-    fn skip_empty(&mut self, step: f32) -> bool {
-        if self.k < self.basis.first {
-            let skipped = u64::from(self.basis.first.min(u32::MAX - 1) - self.k);
-            if skipped >= self.budget || self.basis.t(self.basis.first, step) > self.basis.t1 {
+    fn skip_empty(&mut self, basis: &Basis, step: f32) -> bool {
+        if self.k < basis.first {
+            let skipped = u64::from(basis.first.min(u32::MAX - 1) - self.k);
+            if skipped >= self.budget || basis.t(basis.first, step) > basis.t1 {
                 return false;
             }
             self.budget -= skipped;
-            self.k = self.basis.first;
+            self.k = basis.first;
             self.previous = Some(0.0);
         }
         true
@@ -763,25 +768,25 @@ impl Walk {
     /// the budget run out among them, the loop ends at that sample (t grows
     /// with k).
     #[inline(always)]
-    fn skip_zeros(&mut self, f: f32) {
-        if f.to_bits() == 0 && self.chunk.full {
-            let j = self.k - self.chunk.start;
-            let ahead = self.chunk.nonzero.checked_shr(j).unwrap_or(0);
+    fn skip_zeros(&mut self, chunk: &Chunk, f: f32) {
+        if f.to_bits() == 0 && chunk.full {
+            let j = self.k - chunk.start;
+            let ahead = chunk.nonzero.checked_shr(j).unwrap_or(0);
             let next = if ahead == 0 {
                 LANES as u32
             } else {
                 j + ahead.trailing_zeros()
             };
             self.budget = self.budget.saturating_sub(u64::from(next - j));
-            self.k = self.chunk.start + next;
+            self.k = chunk.start + next;
         }
     }
 }
 
-/// What a ray has gathered so far, front to back.
+/// What a ray has gathered so far, front to back, besides its colour
+/// (whose address the batch of waiting samples takes).
 #[derive(Default)]
 struct Gathered {
-    colour: Vec3,
     alpha: f32,
     weighted_density: f32,
     depth: f32,
@@ -848,9 +853,11 @@ fn march<const COMMON: bool, const WAIT: bool>(
     if basis.first == u32::MAX {
         return Some(missing_support(scene, &basis));
     }
-    let mut w = Walk {
+    let mut seg = Segment {
         basis,
         chunk: Chunk::empty(),
+    };
+    let mut w = Walk {
         k: 0,
         previous: None,
         path: 0.0,
@@ -861,39 +868,42 @@ fn march<const COMMON: bool, const WAIT: bool>(
         },
         budget: scene.budget,
     };
+    let mut colour = Vec3::ZERO;
     let mut g = Gathered::default();
     let policy = Policy::new::<COMMON, WAIT>(scene, shortcuts);
 
     loop {
-        if !w.skip_empty(step) {
+        if !w.skip_empty(&seg.basis, step) {
             break;
         }
-        let t = w.basis.t(w.k, step);
-        if t > w.basis.t1 || w.budget == 0 || t > w.basis.last {
+        let t = seg.basis.t(w.k, step);
+        if t > seg.basis.t1 || w.budget == 0 || t > seg.basis.last {
             break;
         }
         w.budget -= 1;
-        let x = w.basis.ray.at(t);
-        let (f, alpha_k) = w.chunk.density(w.k, &w.basis, scene, field);
-        let found = sample_normal(scene, field, policy, &mut w, &mut g, x, f, alpha_k);
+        let x = seg.basis.ray.at(t);
+        let (f, alpha_k) = seg.chunk.density(w.k, &seg.basis, scene, field);
+        let found = sample_normal(scene, field, policy, &mut seg, &w, &mut g, (x, f, alpha_k));
         if f > 0.0 && g.depth == 0.0 {
             g.depth = w.path + t;
         }
-        let sample = (x, f, alpha_k);
+        let (sample, gathered) = ((x, f, alpha_k), (&mut g, &mut colour));
         if accumulate::<COMMON>(
-            scene, field, policy, shortcuts, &w, &mut g, sample, &found, deferred,
+            scene, field, policy, shortcuts, &seg, &w, gathered, sample, &found, deferred,
         ) {
             break;
         }
+        let at = (t, x, f);
         if !COMMON
             && bend(
                 scene,
                 field,
                 phase,
                 shortcuts,
+                &mut seg,
                 &mut w,
                 &mut g,
-                (t, x, f),
+                at,
                 found.normal,
             )
         {
@@ -901,12 +911,12 @@ fn march<const COMMON: bool, const WAIT: bool>(
         }
         w.previous = Some(f);
         w.k += 1;
-        w.skip_zeros(f);
+        w.skip_zeros(&seg.chunk, f);
     }
 
     *waiting = Some(Waiting {
-        basis: w.basis,
-        colour: g.colour,
+        basis: seg.basis,
+        colour,
         alpha: g.alpha,
         weighted_density: g.weighted_density,
         depth: g.depth,
@@ -939,15 +949,14 @@ fn sample_normal(
     scene: &Scene,
     field: &Field,
     policy: Policy,
-    w: &mut Walk,
+    seg: &mut Segment,
+    w: &Walk,
     g: &mut Gathered,
-    x: Vec3,
-    f: f32,
-    alpha_k: f32,
+    (x, f, alpha_k): (Vec3, f32, f32),
 ) -> SampleNormal {
     let step = scene.step;
     let f_at = |x: Vec3| scene.density.eval(x, field);
-    let (basis, k, previous, lit) = (&w.basis, w.k, w.previous, policy.lit);
+    let (basis, k, previous, lit) = (&seg.basis, w.k, w.previous, policy.lit);
     let mut found = SampleNormal {
         normal: None,
         waits: None,
@@ -968,7 +977,7 @@ fn sample_normal(
                 // Unlit, a ray reads only its first normal: that
                 // sample's two neighbours, without the chunk's others.
                 let (fv, fw) = if lit {
-                    w.chunk.neighbours(k, basis, scene, field, g.alpha)
+                    seg.chunk.neighbours(k, basis, scene, field, g.alpha)
                 } else {
                     let mut p = Points::default();
                     let spare = outside(field).unwrap_or(x);
@@ -1013,13 +1022,14 @@ fn accumulate<const COMMON: bool>(
     field: &Field,
     policy: Policy,
     shortcuts: bool,
+    seg: &Segment,
     w: &Walk,
-    g: &mut Gathered,
+    (g, colour): (&mut Gathered, &mut Vec3),
     (x, f, alpha_k): (Vec3, f32, f32),
     found: &SampleNormal,
     deferred: &mut Option<Deferred>,
 ) -> bool {
-    let (basis, chunk, k) = (&w.basis, &w.chunk, w.k);
+    let (basis, chunk, k) = (&seg.basis, &seg.chunk, w.k);
     let keys_wait = policy.keys_wait;
     if f > 0.0 && policy.gradients_wait {
         let deferred = deferred.get_or_insert_with(|| policy.batch());
@@ -1033,7 +1043,7 @@ fn accumulate<const COMMON: bool>(
             (None, false) => Own::Found(found.normal),
         };
         let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
-        deferred.push(own, f, base, weight, scene, basis, field, &mut g.colour);
+        deferred.push(own, f, base, weight, scene, basis, field, colour);
         g.alpha += weight;
         g.weighted_density += f * weight;
         if g.alpha >= scene.threshold {
@@ -1060,7 +1070,7 @@ fn accumulate<const COMMON: bool>(
             let deferred = deferred.get_or_insert_with(|| policy.batch());
             let own = Own::Found(Some(shading_normal));
             let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
-            deferred.push(own, f, base, weight, scene, basis, field, &mut g.colour);
+            deferred.push(own, f, base, weight, scene, basis, field, colour);
         } else {
             let reuse = !COMMON && shortcuts && normal.is_none() && scene.position_free_shading;
             let sample_colour = shade_now::<COMMON>(
@@ -1073,7 +1083,7 @@ fn accumulate<const COMMON: bool>(
                 reuse,
                 policy.lit,
             );
-            g.colour += sample_colour * weight;
+            *colour += sample_colour * weight;
         }
         g.alpha += weight;
         g.weighted_density += f * weight;
@@ -1130,6 +1140,7 @@ fn bend(
     field: &Field,
     phase: f32,
     shortcuts: bool,
+    seg: &mut Segment,
     w: &mut Walk,
     g: &mut Gathered,
     (t, x, f): (f32, Vec3, f32),
@@ -1146,12 +1157,12 @@ fn bend(
         let n = normal.or_else(|| match scene.gradient {
             Gradient::Dual => dual_normal(scene, x, field),
             _ => {
-                let (fv, fw) = w.chunk.neighbours(w.k, &w.basis, scene, field, 0.0);
-                gradient_normal(&f_at, x, f, w.previous, fv, fw, &w.basis)
+                let (fv, fw) = seg.chunk.neighbours(w.k, &seg.basis, scene, field, 0.0);
+                gradient_normal(&f_at, x, f, w.previous, fv, fw, &seg.basis)
             }
         });
         if let Some(n) = n {
-            let bent = refract(w.basis.ray.direction, n.unit(), n1 / n2);
+            let bent = refract(seg.basis.ray.direction, n.unit(), n1 / n2);
             let ray = Ray {
                 origin: x,
                 direction: bent,
@@ -1159,8 +1170,8 @@ fn bend(
             let (min, max) = scene.bounds;
             if let Some((_, exit)) = slab(&ray, min, max) {
                 w.path += t;
-                w.basis = Basis::new(ray, scene.step, (0.0, exit), phase, field.support, scene);
-                w.chunk = Chunk::empty();
+                seg.basis = Basis::new(ray, scene.step, (0.0, exit), phase, field.support, scene);
+                seg.chunk = Chunk::empty();
                 w.previous = None;
                 g.shaded = None;
                 w.k = 1;
