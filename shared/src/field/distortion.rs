@@ -808,32 +808,12 @@ mod tests {
     /// [`Distortion::apply_lanes`] compiled for `isa`, as the density's
     /// lane code inlines it.
     fn lanes_on(d: &Distortion, x: &Points, object: &Density, field: &Field, isa: Isa) -> Points {
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-            fn avx512(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
-                d.apply_lanes(x, o, f, Isa::Avx512)
-            }
-            #[target_feature(enable = "avx2")]
-            fn avx2(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
-                d.apply_lanes(x, o, f, Isa::Avx2)
-            }
-            #[target_feature(enable = "sse4.1")]
-            fn sse41(d: &Distortion, x: &Points, o: &Density, f: &Field) -> Points {
-                d.apply_lanes(x, o, f, Isa::Sse41)
-            }
-            // SAFETY: `isa` is one `Isa::available` reported.
-            unsafe {
-                match isa {
-                    Isa::Avx512 => avx512(d, x, object, field),
-                    Isa::Avx2 => avx2(d, x, object, field),
-                    Isa::Sse41 => sse41(d, x, object, field),
-                    Isa::Scalar => unreachable!("the lane paths only"),
-                }
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        unreachable!("no lane path on {isa:?}")
+        crate::math::simd::per_isa!(isa, (
+            d: &Distortion = d, x: &Points = x, o: &Density = object, f: &Field = field,
+        ) -> Points {
+            scalar => x.map(|p| d.apply(p, o, f)),
+            lanes => d.apply_lanes(x, o, f, lanes),
+        })
     }
 
     fn object_scene(object: &str, distortion: &str) -> Scene {

@@ -35,7 +35,9 @@ use glam::Vec3;
 
 use crate::math::fastmath::{floor, lattice};
 use crate::math::random::SplitMix64;
-use crate::math::simd::{Isa, LANES, Lanes, deinterleave};
+use crate::math::simd::{Isa, Lanes};
+#[cfg(target_arch = "x86_64")]
+use crate::math::simd::{LANES, deinterleave};
 
 use crate::desc::DEFAULT_SEED;
 
@@ -136,6 +138,92 @@ impl Default for Noise {
     fn default() -> Self {
         Noise::new(DEFAULT_SEED)
     }
+}
+
+/// 8 points' cells (i, j, k mod n) and their offsets from the cell's
+/// corners with the knots' weights, in AVX registers: what the sums of
+/// [`Noise::noise8_on`] run over.
+#[cfg(target_arch = "x86_64")]
+struct Cells8 {
+    i: std::arch::x86_64::__m256i,
+    j: std::arch::x86_64::__m256i,
+    k: std::arch::x86_64::__m256i,
+    /// u and u − 1; v and v − 1; w and w − 1.
+    xs: [std::arch::x86_64::__m256; 2],
+    ys: [std::arch::x86_64::__m256; 2],
+    zs: [std::arch::x86_64::__m256; 2],
+    /// ω(u), ω(u − 1); ω(v), ω(v − 1); ω(w), ω(w − 1).
+    wx: [std::arch::x86_64::__m256; 2],
+    wy: [std::arch::x86_64::__m256; 2],
+    wz: [std::arch::x86_64::__m256; 2],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Cells8 {
+    /// The cells of the points (x, y, z), with `noise`'s operations.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[inline(always)]
+    unsafe fn of(
+        x: std::arch::x86_64::__m256,
+        y: std::arch::x86_64::__m256,
+        z: std::arch::x86_64::__m256,
+    ) -> Cells8 {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX2 by the caller's contract.
+        unsafe {
+            let (fx, fy, fz) = (floor8(x), floor8(y), floor8(z));
+            let n = _mm256_set1_epi32(255);
+            let one = _mm256_set1_ps(1.0);
+            let (u, v, w) = (
+                _mm256_sub_ps(x, fx),
+                _mm256_sub_ps(y, fy),
+                _mm256_sub_ps(z, fz),
+            );
+            let xs = [u, _mm256_sub_ps(u, one)];
+            let ys = [v, _mm256_sub_ps(v, one)];
+            let zs = [w, _mm256_sub_ps(w, one)];
+            Cells8 {
+                i: _mm256_and_si256(lattice8(fx), n),
+                j: _mm256_and_si256(lattice8(fy), n),
+                k: _mm256_and_si256(lattice8(fz), n),
+                wx: knots8(xs[0], one),
+                wy: knots8(ys[0], one),
+                wz: knots8(zs[0], one),
+                xs,
+                ys,
+                zs,
+            }
+        }
+    }
+}
+
+/// Σ over the corners of ω ω ω (Γ · offset) for the [`Cells8`] `$c`, Γ's
+/// components in lanes from `$gradient` of the corner (0, dj, dk) and di,
+/// in `noise`'s order. (A macro: a closure's intrinsics are left as calls,
+/// without the target features.)
+#[cfg(target_arch = "x86_64")]
+macro_rules! sum8 {
+    ($c:expr, |$corner:ident, $di:ident| $gradient:expr) => {{
+        let c: &Cells8 = $c;
+        let mut sum = _mm256_setzero_ps();
+        for dk in 0..2 {
+            for dj in 0..2 {
+                let wyz = _mm256_mul_ps(c.wy[dj], c.wz[dk]);
+                for $di in 0..2 {
+                    let $corner = dj + 2 * dk;
+                    let (gx, gy, gz) = $gradient;
+                    let dot = _mm256_add_ps(
+                        _mm256_add_ps(_mm256_mul_ps(gx, c.xs[$di]), _mm256_mul_ps(gy, c.ys[dj])),
+                        _mm256_mul_ps(gz, c.zs[dk]),
+                    );
+                    sum = _mm256_add_ps(sum, _mm256_mul_ps(_mm256_mul_ps(c.wx[$di], wyz), dot));
+                }
+            }
+        }
+        sum
+    }};
 }
 
 impl Noise {
@@ -341,9 +429,10 @@ impl Noise {
                 if (live >> (16 * h)) & 0xffff == 0 {
                     continue;
                 }
-                // SAFETY: the path is AVX-512 only on CPUs that have it, and
-                // this code is inlined into that path's copy; the loads and
-                // stores are of 16 f32 within arrays of LANES.
+                // SAFETY: `isa` is AVX-512 only in `per_isa!`'s AVX-512 copy,
+                // run once the CPU was checked, and this code is inlined into
+                // it; the loads and stores are of 16 f32 within arrays of
+                // LANES.
                 unsafe {
                     let n = self.noise16(
                         _mm512_loadu_ps(px.as_ptr().add(16 * h)),
@@ -363,10 +452,9 @@ impl Noise {
                 if (live >> (8 * h)) & 0xff == 0 {
                     continue;
                 }
-                // SAFETY: the path is AVX2 only on CPUs that have it (a scene
-                // carries only an available path), and this code is inlined
-                // into that path's copy; the loads and stores are of 8 f32
-                // within arrays of LANES.
+                // SAFETY: `isa` is AVX2 only in `per_isa!`'s AVX2 copy, run
+                // once the CPU was checked, and this code is inlined into it;
+                // the loads and stores are of 8 f32 within arrays of LANES.
                 unsafe {
                     let n = self.noise8_on(
                         _mm256_loadu_ps(px.as_ptr().add(8 * h)),
@@ -379,7 +467,7 @@ impl Noise {
             }
             return out;
         }
-        let _ = (isa, runs);
+        let _ = (isa, live, runs);
         self.noise_lanes(px, py, pz)
     }
 
@@ -417,98 +505,88 @@ impl Noise {
         z: std::arch::x86_64::__m256,
         runs: bool,
     ) -> std::arch::x86_64::__m256 {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX2 by the caller's contract; the stores are of 8 i32 into
-        // arrays of 8; the rows are 16-byte aligned and in the table (below).
+        // SAFETY: AVX2 by the caller's contract.
         unsafe {
-            let (fx, fy, fz) = (floor8(x), floor8(y), floor8(z));
-            let n = _mm256_set1_epi32(255);
-            let i = _mm256_and_si256(lattice8(fx), n);
-            let j = _mm256_and_si256(lattice8(fy), n);
-            let k = _mm256_and_si256(lattice8(fz), n);
-            let one = _mm256_set1_ps(1.0);
-            let (u, v, w) = (
-                _mm256_sub_ps(x, fx),
-                _mm256_sub_ps(y, fy),
-                _mm256_sub_ps(z, fz),
-            );
-            let xs = [u, _mm256_sub_ps(u, one)];
-            let ys = [v, _mm256_sub_ps(v, one)];
-            let zs = [w, _mm256_sub_ps(w, one)];
-            let wx = knots8(xs[0], one);
-            let wy = knots8(ys[0], one);
-            let wz = knots8(zs[0], one);
-            let rows = self.gradient_of.as_ptr();
-            // Σ over the corners of ω ω ω (Γ · offset), Γ's components in
-            // lanes from `$gradient` of the corner (0, dj, dk) and di, in
-            // `noise`'s order. (A macro: a closure's intrinsics are left
-            // as calls, without the target features.)
-            macro_rules! sum {
-                (|$corner:ident, $di:ident| $gradient:expr) => {{
-                    let mut sum = _mm256_setzero_ps();
-                    for dk in 0..2 {
-                        for dj in 0..2 {
-                            let wyz = _mm256_mul_ps(wy[dj], wz[dk]);
-                            for $di in 0..2 {
-                                let $corner = dj + 2 * dk;
-                                let (gx, gy, gz) = $gradient;
-                                let dot = _mm256_add_ps(
-                                    _mm256_add_ps(
-                                        _mm256_mul_ps(gx, xs[$di]),
-                                        _mm256_mul_ps(gy, ys[dj]),
-                                    ),
-                                    _mm256_mul_ps(gz, zs[dk]),
-                                );
-                                sum = _mm256_add_ps(
-                                    sum,
-                                    _mm256_mul_ps(_mm256_mul_ps(wx[$di], wyz), dot),
-                                );
-                            }
-                        }
-                    }
-                    sum
-                }};
+            let c = Cells8::of(x, y, z);
+            if runs && let Some(sum) = self.noise8_in_two_cells(&c) {
+                return sum;
             }
-            // Consecutive samples of a ray often lie in at most two cells:
-            // those of lanes 0 and 7. Then the two cells' rows, side by
-            // side in one register, give every lane its gradient by one
-            // permute per component, with no transpose.
-            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(k), j);
-            let cell = _mm256_or_si256(_mm256_slli_epi32::<16>(i), jk);
+            self.noise8_gathered(&c)
+        }
+    }
+
+    /// [`Noise::noise8_on`] where the lanes lie in at most two cells, those
+    /// of lanes 0 and 7 (consecutive samples of a ray often do): the two
+    /// cells' rows, side by side in one register, give every lane its
+    /// gradient by one permute per component, with no transpose. None
+    /// where the lanes lie in more cells.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn noise8_in_two_cells(&self, c: &Cells8) -> Option<std::arch::x86_64::__m256> {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX2 by the caller's contract; the rows are 16-byte
+        // aligned and in the table (below).
+        unsafe {
+            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(c.k), c.j);
+            let cell = _mm256_or_si256(_mm256_slli_epi32::<16>(c.i), jk);
             let first = _mm256_permutevar8x32_epi32(cell, _mm256_setzero_si256());
             let last = _mm256_permutevar8x32_epi32(cell, _mm256_set1_epi32(7));
             let in_first = _mm256_cmpeq_epi32(cell, first);
             let in_last = _mm256_cmpeq_epi32(cell, last);
-            if runs && _mm256_movemask_epi8(_mm256_or_si256(in_first, in_last)) == -1 {
-                let corners_of = |c: i32| {
-                    let c = c as usize;
-                    self.corners(c >> 16, c & 255, (c >> 8) & 255)
-                };
-                let (a, b) = (
-                    corners_of(_mm256_extract_epi32::<0>(cell)),
-                    corners_of(_mm256_extract_epi32::<7>(cell)),
-                );
-                // Component c of a lane's row: element c of the first
-                // cell's row (0..4) or of the last's (4..8).
-                let pick = _mm256_andnot_si256(in_first, _mm256_set1_epi32(4));
-                let picks = [
-                    pick,
-                    _mm256_add_epi32(pick, _mm256_set1_epi32(1)),
-                    _mm256_add_epi32(pick, _mm256_set1_epi32(2)),
-                ];
-                return sum!(|corner, di| {
-                    // SAFETY: `corners` are < 511, so the rows are in the table.
-                    let both = _mm256_set_m128(
-                        _mm_load_ps((*rows.add(b[corner] + di)).0.as_ptr()),
-                        _mm_load_ps((*rows.add(a[corner] + di)).0.as_ptr()),
-                    );
-                    (
-                        _mm256_permutevar8x32_ps(both, picks[0]),
-                        _mm256_permutevar8x32_ps(both, picks[1]),
-                        _mm256_permutevar8x32_ps(both, picks[2]),
-                    )
-                });
+            if _mm256_movemask_epi8(_mm256_or_si256(in_first, in_last)) != -1 {
+                return None;
             }
+            let corners_of = |c: i32| {
+                let c = c as usize;
+                self.corners(c >> 16, c & 255, (c >> 8) & 255)
+            };
+            let (a, b) = (
+                corners_of(_mm256_extract_epi32::<0>(cell)),
+                corners_of(_mm256_extract_epi32::<7>(cell)),
+            );
+            // Component c of a lane's row: element c of the first
+            // cell's row (0..4) or of the last's (4..8).
+            let pick = _mm256_andnot_si256(in_first, _mm256_set1_epi32(4));
+            let picks = [
+                pick,
+                _mm256_add_epi32(pick, _mm256_set1_epi32(1)),
+                _mm256_add_epi32(pick, _mm256_set1_epi32(2)),
+            ];
+            let rows = self.gradient_of.as_ptr();
+            Some(sum8!(c, |corner, di| {
+                // SAFETY: `corners` are < 511, so the rows are in the table.
+                let both = _mm256_set_m128(
+                    _mm_load_ps((*rows.add(b[corner] + di)).0.as_ptr()),
+                    _mm_load_ps((*rows.add(a[corner] + di)).0.as_ptr()),
+                );
+                (
+                    _mm256_permutevar8x32_ps(both, picks[0]),
+                    _mm256_permutevar8x32_ps(both, picks[1]),
+                    _mm256_permutevar8x32_ps(both, picks[2]),
+                )
+            }))
+        }
+    }
+
+    /// [`Noise::noise8_on`] by the cells' entries gathered: each lane's
+    /// corners, its rows loaded and transposed (rows of lanes l and l + 4 in
+    /// the two halves, so the in-half shuffles transpose both at once).
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn noise8_gathered(&self, c: &Cells8) -> std::arch::x86_64::__m256 {
+        use std::arch::x86_64::*;
+        // SAFETY: AVX2 by the caller's contract; the gather reads entries
+        // k·n + j < n² of `cells`; the stores are of 8 i32 into arrays of 8;
+        // the rows are 16-byte aligned and in the table (below).
+        unsafe {
+            let n = _mm256_set1_epi32(255);
+            let jk = _mm256_or_si256(_mm256_slli_epi32::<8>(c.k), c.j);
             // `corners`: the cells' entries gathered, their bytes added to i.
             let packed = _mm256_i32gather_epi32::<4>(self.cells.as_ptr().cast(), jk);
             let bytes = [
@@ -518,10 +596,11 @@ impl Noise {
                 _mm256_srli_epi32::<24>(packed),
             ];
             let mut corners = [[0u32; 8]; 4];
-            for (c, b) in corners.iter_mut().zip(bytes) {
-                _mm256_storeu_si256(c.as_mut_ptr().cast(), _mm256_add_epi32(i, b));
+            for (corner, b) in corners.iter_mut().zip(bytes) {
+                _mm256_storeu_si256(corner.as_mut_ptr().cast(), _mm256_add_epi32(c.i, b));
             }
-            sum!(|corner, di| {
+            let rows = self.gradient_of.as_ptr();
+            sum8!(c, |corner, di| {
                 // SAFETY: `corners` are < 511, so the row is in the table.
                 let row = |l: usize| {
                     let m = corners[corner][l] as usize;
@@ -552,10 +631,10 @@ impl Noise {
     /// sums (j + dj + φ(k + dk)) mod n are byte additions. The same indices.
     ///
     /// # Safety
-    /// The CPU must have AVX-512F, BW and VBMI; i, j, k are in 0..256.
+    /// The CPU must have AVX-512F, BW and VBMI; i, j, k are in 0..256. It
+    /// is inlined into the AVX-512 copy of the lane code.
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    #[inline]
+    #[inline(always)]
     unsafe fn corners16(
         &self,
         i: std::arch::x86_64::__m512i,
@@ -575,14 +654,16 @@ impl Noise {
                 _mm512_loadu_si512(p.add(192).cast()),
             ];
             // P at 64 byte indices: bits 0–6 pick among 128 bytes, bit 7 the
-            // half. (A function, not a closure: a closure does not take the
-            // target features, and its intrinsics were left as calls.)
-            #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-            #[inline]
-            fn look(table: &[__m512i; 4], idx: __m512i) -> __m512i {
-                let low = _mm512_permutex2var_epi8(table[0], idx, table[1]);
-                let high = _mm512_permutex2var_epi8(table[2], idx, table[3]);
-                _mm512_mask_blend_epi8(_mm512_movepi8_mask(idx), low, high)
+            // half. (A function inlined into the copy, not a closure: a
+            // closure's intrinsics were left as calls.)
+            #[inline(always)]
+            unsafe fn look(table: &[__m512i; 4], idx: __m512i) -> __m512i {
+                // SAFETY: AVX-512F, BW and VBMI by `corners16`'s contract.
+                unsafe {
+                    let low = _mm512_permutex2var_epi8(table[0], idx, table[1]);
+                    let high = _mm512_permutex2var_epi8(table[2], idx, table[3]);
+                    _mm512_mask_blend_epi8(_mm512_movepi8_mask(idx), low, high)
+                }
             }
             // φ(k) in bytes 0–15, φ(k + 1) in 16–31 (k + 1 = 256 wraps to 0).
             let kb = _mm512_cvtepi32_epi8(k);
@@ -798,73 +879,50 @@ impl Noise {
     /// `#[target_feature]` copy.
     #[inline]
     pub fn noise_on(&self, isa: Isa, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        let n = self;
-        match isa {
-            Isa::Scalar => {
-                let mut out = [0.0; LANES];
-                for l in 0..LANES {
-                    out[l] = n.noise(Vec3::new(x[l], y[l], z[l]));
-                }
-                out
-            }
-            // SAFETY: a scene only carries a path that `Isa::available` reported,
-            // and `Scene::with_isa` refuses the others.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { batch::noise_sse41(n, x, y, z) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { batch::noise_avx2(n, x, y, z, false) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { batch::noise_avx512(n, x, y, z) },
-            #[cfg(not(target_arch = "x86_64"))]
-            _ => n.noise_on(Isa::Scalar, x, y, z),
-        }
+        self.noise_runs_on(isa, false, x, y, z)
+    }
+
+    /// [`Noise::noise_on`]; with `runs` (points along a ray, [`runs`]), the
+    /// AVX2 kernel tries a register's first and last cells first.
+    #[inline]
+    fn noise_runs_on(&self, isa: Isa, runs: bool, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        crate::math::simd::per_isa!(isa, (
+            n: &Noise = self, runs: bool = runs, x: &Lanes = x, y: &Lanes = y, z: &Lanes = z,
+        ) -> Lanes {
+            scalar => std::array::from_fn(|l| n.noise(Vec3::new(x[l], y[l], z[l]))),
+            lanes => n.noise_lanes_along(lanes, u32::MAX, runs, x, y, z),
+        })
     }
 
     /// [`Noise::noise_on`] for points along a ray ([`runs`]): on AVX2, the
     /// kernel that tries a register's first and last cells first.
     #[cfg(test)]
     fn noise_along_on(&self, isa: Isa, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        match isa {
-            // SAFETY: as in `noise_on`.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { batch::noise_avx2(self, x, y, z, true) },
-            _ => self.noise_on(isa, x, y, z),
-        }
+        self.noise_runs_on(isa, true, x, y, z)
     }
 
     /// [`Noise::turbulence`] on `isa`: the octaves of the one point in the
-    /// lanes of a kernel (8 at a time in AVX registers, 4 in SSE ones), each
-    /// lane the scalar noise's bits, summed in the scalar order.
+    /// lanes of a kernel (8 at a time in AVX registers on AVX2 and AVX-512, 4
+    /// in SSE ones), each lane the scalar noise's bits, summed in the scalar
+    /// order.
     #[inline]
     pub fn turbulence_on(&self, isa: Isa, p: Vec3, octaves: u32) -> f32 {
-        match isa {
-            // SAFETY: as in `noise_on`; an AVX-512 CPU has AVX2.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 | Isa::Avx512 => unsafe { batch::turbulence_avx2(self, p, octaves) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { batch::turbulence_sse41(self, p, octaves) },
-            _ => self.turbulence(p, octaves),
-        }
+        crate::math::simd::per_isa!(isa, (n: &Noise = self, p: Vec3 = p, octaves: u32 = octaves) -> f32 {
+            scalar => n.turbulence(p, octaves),
+            lanes => turbulence_lanes(n, lanes, p, octaves),
+        })
     }
 
     /// `noise` at every point of `points`, into `out` (at least as long).
     pub fn noise_batch(&self, isa: Isa, points: &[Vec3], out: &mut [f32]) {
-        let n = self;
-        match isa {
-            Isa::Scalar => {
+        crate::math::simd::per_isa!(isa, (n: &Noise = self, points: &[Vec3] = points, out: &mut [f32] = out) -> () {
+            scalar => {
                 for (o, &p) in out.iter_mut().zip(points) {
                     *o = n.noise(p);
                 }
-            }
-            // SAFETY: as in `noise`.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { batch::noise_batch_sse41(n, points, out) },
-            // The slice kernel's AVX2 form serves AVX-512 too (the same bits).
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 | Isa::Avx512 => unsafe { batch::noise_batch_avx2(n, points, out) },
-            #[cfg(not(target_arch = "x86_64"))]
-            _ => n.noise_batch(Isa::Scalar, points, out),
-        }
+            },
+            lanes => noise_batch_lanes_on(n, lanes, points, out),
+        })
     }
 }
 
@@ -894,21 +952,20 @@ fn noise_batch_lanes(n: &Noise, points: &[Vec3], out: &mut [f32]) {
     o.copy_from_slice(&v[..o.len()]);
 }
 
-#[cfg(target_arch = "x86_64")]
-mod batch {
-    use std::arch::x86_64::*;
-
-    use super::*;
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn noise_batch_avx2(n: &Noise, points: &[Vec3], out: &mut [f32]) {
+/// [`Noise::noise_batch`] on a SIMD path (inlined into its copy): 8 points
+/// at a time in AVX registers on AVX2 and AVX-512, 4 at a time otherwise.
+#[inline(always)]
+fn noise_batch_lanes_on(n: &Noise, isa: Isa, points: &[Vec3], out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+        use std::arch::x86_64::*;
         let out = &mut out[..points.len()];
         let mut eights = points.chunks_exact(8);
         let mut outs = out.chunks_exact_mut(8);
         for (p, o) in (&mut eights).zip(&mut outs) {
             let ((x0, y0, z0), (x1, y1, z1)) = (deinterleave(&p[..4]), deinterleave(&p[4..]));
-            // SAFETY: this function is compiled for AVX2 (and only called on
-            // CPUs that have it); `o` holds 8 f32.
+            // SAFETY: the path is AVX2 or AVX-512 only in its copy, on CPUs
+            // that have it (`per_isa!`); `o` holds 8 f32.
             unsafe {
                 let n = n.noise8(
                     _mm256_set_m128(x1, x0),
@@ -918,62 +975,46 @@ mod batch {
                 _mm256_storeu_ps(o.as_mut_ptr(), n);
             }
         }
-        noise_batch_lanes(n, eights.remainder(), outs.into_remainder())
+        return noise_batch_lanes(n, eights.remainder(), outs.into_remainder());
     }
+    let _ = isa;
+    #[cfg(target_arch = "x86_64")]
+    noise_batch_lanes(n, points, out);
+    #[cfg(not(target_arch = "x86_64"))]
+    for (o, &p) in out.iter_mut().zip(points) {
+        *o = n.noise(p);
+    }
+}
 
-    /// [`Noise::turbulence`] with its octaves `WIDTH` at a time in the
-    /// lanes of `kernel`.
-    #[inline(always)]
-    fn turbulence_by<const WIDTH: usize>(
-        p: Vec3,
-        octaves: u32,
-        kernel: impl Fn(&[f32; WIDTH], &[f32; WIDTH], &[f32; WIDTH]) -> [f32; WIDTH],
-    ) -> f32 {
-        let (mut sum, mut scale) = (0.0, 1.0f32);
-        let mut left = octaves as usize;
-        while left > 0 {
-            let count = left.min(WIDTH);
-            let (mut x, mut y, mut z) = ([0.0; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
-            let mut s = scale;
-            for i in 0..count {
-                let q = p * s;
-                (x[i], y[i], z[i]) = (q.x, q.y, q.z);
-                s *= 2.0;
-            }
-            let n = kernel(&x, &y, &z);
-            for v in &n[..count] {
-                sum += v.abs() / scale;
-                scale *= 2.0;
-            }
-            left -= count;
+/// [`Noise::turbulence`] on a SIMD path (inlined into its copy): the
+/// octaves 8 at a time in AVX registers on AVX2 and AVX-512, 4 at a time
+/// otherwise.
+#[inline(always)]
+fn turbulence_lanes(n: &Noise, isa: Isa, p: Vec3, octaves: u32) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::*;
+        if matches!(isa, Isa::Avx2 | Isa::Avx512) {
+            return turbulence_by::<8>(p, octaves, |x, y, z| {
+                let mut out = [0.0; 8];
+                // SAFETY: the path is AVX2 or AVX-512 only in its copy, on
+                // CPUs that have it (`per_isa!`); the loads and the store are
+                // of 8 f32 within arrays of 8.
+                unsafe {
+                    let v = n.noise8(
+                        _mm256_loadu_ps(x.as_ptr()),
+                        _mm256_loadu_ps(y.as_ptr()),
+                        _mm256_loadu_ps(z.as_ptr()),
+                    );
+                    _mm256_storeu_ps(out.as_mut_ptr(), v);
+                }
+                out
+            });
         }
-        sum
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn turbulence_avx2(n: &Noise, p: Vec3, octaves: u32) -> f32 {
-        turbulence_by::<8>(p, octaves, |x, y, z| {
-            let mut out = [0.0; 8];
-            // SAFETY: compiled for AVX2 (and only called on CPUs that have
-            // it); the loads and the store are of 8 f32 within arrays of 8.
-            unsafe {
-                let v = n.noise8(
-                    _mm256_loadu_ps(x.as_ptr()),
-                    _mm256_loadu_ps(y.as_ptr()),
-                    _mm256_loadu_ps(z.as_ptr()),
-                );
-                _mm256_storeu_ps(out.as_mut_ptr(), v);
-            }
-            out
-        })
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn turbulence_sse41(n: &Noise, p: Vec3, octaves: u32) -> f32 {
+        let _ = isa;
         turbulence_by::<4>(p, octaves, |x, y, z| {
             let mut out = [0.0; 4];
-            // SAFETY: compiled for SSE4.1; the loads and the store are of 4
-            // f32 within arrays of 4.
+            // SAFETY: the loads and the store are of 4 f32 within arrays of 4.
             unsafe {
                 let v = n.noise4(
                     _mm_loadu_ps(x.as_ptr()),
@@ -985,26 +1026,42 @@ mod batch {
             out
         })
     }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn noise_batch_sse41(n: &Noise, points: &[Vec3], out: &mut [f32]) {
-        noise_batch_lanes(n, points, out)
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = isa;
+        turbulence_by::<4>(p, octaves, |x, y, z| {
+            std::array::from_fn(|l| n.noise(Vec3::new(x[l], y[l], z[l])))
+        })
     }
+}
 
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn noise_avx512(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        n.noise_lanes_on(Isa::Avx512, x, y, z)
+/// [`Noise::turbulence`] with its octaves `WIDTH` at a time in the
+/// lanes of `kernel`.
+#[inline(always)]
+fn turbulence_by<const WIDTH: usize>(
+    p: Vec3,
+    octaves: u32,
+    kernel: impl Fn(&[f32; WIDTH], &[f32; WIDTH], &[f32; WIDTH]) -> [f32; WIDTH],
+) -> f32 {
+    let (mut sum, mut scale) = (0.0, 1.0f32);
+    let mut left = octaves as usize;
+    while left > 0 {
+        let count = left.min(WIDTH);
+        let (mut x, mut y, mut z) = ([0.0; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
+        let mut s = scale;
+        for i in 0..count {
+            let q = p * s;
+            (x[i], y[i], z[i]) = (q.x, q.y, q.z);
+            s *= 2.0;
+        }
+        let n = kernel(&x, &y, &z);
+        for v in &n[..count] {
+            sum += v.abs() / scale;
+            scale *= 2.0;
+        }
+        left -= count;
     }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn noise_avx2(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes, runs: bool) -> Lanes {
-        n.noise_lanes_along(Isa::Avx2, u32::MAX, runs, x, y, z)
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn noise_sse41(n: &Noise, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
-        n.noise_lanes(x, y, z)
-    }
+    sum
 }
 
 /// The knot's cubic drop-off ω(t) = 2|t|³ − 3|t|² + 1 (0 for |t| ≥ 1) at

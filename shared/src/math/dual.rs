@@ -304,7 +304,7 @@ impl DualPoint {
     }
 
     /// `self / |self|`, or the constant `fallback` where `self` is too short to
-    /// have a direction (as [`crate::field::soft`]'s projections).
+    /// have a direction (as the soft objects' projections).
     #[inline(always)]
     pub fn direction_or(&self, fallback: Vec3) -> DualPoint {
         let len2 = self.length_squared();

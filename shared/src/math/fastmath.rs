@@ -137,19 +137,10 @@ pub fn pow01_on(isa: Isa, x: &Lanes, e: f32) -> Lanes {
 /// none of which is live is skipped (and comes out 1).
 #[inline]
 pub fn pow01_on_live(isa: Isa, x: &Lanes, e: f32, live: u32) -> Lanes {
-    match isa {
-        Isa::Scalar => x.map(|x| pow01(x, e)),
-        // SAFETY: a scene only carries a path that `Isa::available` reported,
-        // and `Scene::with_isa` refuses the others.
-        #[cfg(target_arch = "x86_64")]
-        Isa::Sse41 => unsafe { x86::pow01_sse41(x, e, live) },
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { x86::pow01_avx2(x, e, live) },
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => unsafe { x86::pow01_avx512(x, e, live) },
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => pow01_on(Isa::Scalar, x, e),
-    }
+    crate::math::simd::per_isa!(isa, (x: &Lanes = x, e: f32 = e, live: u32 = live) -> Lanes {
+        scalar => x.map(|x| pow01(x, e)),
+        lanes => pow01_lanes_live(x, e, live),
+    })
 }
 
 /// `pow01` written lane-parallel (both branches computed, then selected, so
@@ -192,26 +183,6 @@ fn pow01_block<const N: usize>(x: &[f32; N], out: &mut [f32; N], e: f32) {
         } else {
             p
         };
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::*;
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn pow01_avx512(x: &Lanes, e: f32, live: u32) -> Lanes {
-        pow01_lanes_live(x, e, live)
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn pow01_avx2(x: &Lanes, e: f32, live: u32) -> Lanes {
-        pow01_lanes_live(x, e, live)
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn pow01_sse41(x: &Lanes, e: f32, live: u32) -> Lanes {
-        pow01_lanes_live(x, e, live)
     }
 }
 

@@ -1,25 +1,24 @@
 //! The instruction sets the hot kernels are compiled for, chosen at run time,
 //! and the lanes they work on.
 //!
-//! The bottom layer of the crate: it uses nothing of it. Each kernel (noise in
-//! [`crate::field::noise`], `pow01` in [`crate::math::fastmath`]) is written once,
-//! lane-parallel over [`LANES`] points (noise with SSE intrinsics, 8 lanes in
-//! AVX registers on AVX2, 16 in AVX-512 registers), and compiled for
-//! AVX-512, AVX2 and SSE4.1 behind
-//! `#[target_feature]` beside its scalar form. The hot paths that call them
-//! have their own `#[target_feature]` copies with the kernels inlined
-//! (`density::lanes::x86`, `march::x86`); the rest of the program is built for
-//! the x86-64 baseline (SSE2). Every path does
-//! the same IEEE operations in the same order per lane (no FMA: Rust never
-//! contracts `a * b + c`, and the fused instructions that AVX-512 brings are
-//! never asked for), so [`Isa::Scalar`], [`Isa::Sse41`], [`Isa::Avx2`] and
-//! [`Isa::Avx512`]
-//! give the same bits; `tests/` renders whole images on each and compares them.
+//! The bottom layer of the crate: it uses nothing of it. A kernel is written
+//! once, lane-parallel over [`LANES`] points, and [`per_isa!`] compiles it
+//! once per instruction set behind `#[target_feature]` (AVX-512, AVX2 and
+//! SSE4.1 on x86-64; NEON on aarch64) beside its scalar form, and writes the
+//! dispatch on an [`Isa`]: the one place where a `#[target_feature]` function
+//! is called, after the CPU was checked ([`Isa::runs_here`]). The kernels'
+//! helpers are `#[inline(always)]`, so each copy holds its path's code; the
+//! rest of the program is built for the baseline (SSE2 on x86-64). Every path
+//! does the same IEEE operations in the same order per lane (no FMA: Rust
+//! never contracts `a * b + c`, and the fused instructions are never asked
+//! for), so every [`Isa`] gives the same bits; `tests/` renders whole images
+//! on each and compares them.
 //!
-//! The choice is a field of the scene (`Scene::isa`), not global
-//! state: a test can force any path, and a farm of mixed CPUs stays exact.
-
-use glam::Vec3;
+//! The choice is a field of the scene (`Scene::isa`), not global state: a
+//! test can force any path, and a farm of mixed CPUs stays exact.
+//!
+//! Architecture invariant: no `#[target_feature]` function is written by
+//! hand outside this module; [`per_isa!`] writes them all.
 
 /// Points per batch in the vectorised paths: 16 (a ray's chunk of samples,
 /// or the gradient neighbours of 8 samples). Fewer calls of the kernels per
@@ -81,9 +80,9 @@ pub fn nonzero_mask(isa: Isa, v: &Lanes) -> u32 {
     #[cfg(target_arch = "x86_64")]
     if matches!(isa, Isa::Avx2 | Isa::Avx512) {
         use std::arch::x86_64::*;
-        // SAFETY: the path is AVX2 or AVX-512 only on CPUs that have it, and
-        // this code is inlined into that path's copy; the loads are of 8
-        // lanes within arrays of LANES.
+        // SAFETY: `isa` is AVX2 or AVX-512 only in `per_isa!`'s copies for
+        // them, run once the CPU was checked, and this code is inlined into
+        // them; the loads are of 8 lanes within arrays of LANES.
         return unsafe {
             let zero = _mm256_setzero_si256();
             let mut m = 0u32;
@@ -136,6 +135,8 @@ pub enum Isa {
     /// [`LANES`] in one register; Ice Lake, Sapphire Rapids, Zen 4 and
     /// later).
     Avx512,
+    /// Lane-parallel code compiled for NEON (aarch64, 4-wide).
+    Neon,
 }
 
 impl Isa {
@@ -143,35 +144,51 @@ impl Isa {
     /// 16-wide path looks up the noise's permutation by byte permutes
     /// (VBMI), which leaves it 0.89× the CPU time of AVX2 for the fur and
     /// 0.88× for the noisy sphere on the Xeon measured (docs/benchmark-log.md).
-    /// [`crate::Scene::set_isa`] asks for another (`ISA=avx2` in the examples).
+    /// `Scene::set_isa` asks for another (`ISA=avx2` in the examples).
     pub fn detect() -> Isa {
         Isa::available().into_iter().last().unwrap_or(Isa::Scalar)
     }
 
     /// Every path this CPU can run, slowest first.
     pub fn available() -> Vec<Isa> {
-        let mut v = vec![Isa::Scalar];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("sse4.1") {
-                v.push(Isa::Sse41);
-            }
-            if std::is_x86_feature_detected!("avx2") {
-                v.push(Isa::Avx2);
-            }
-            if std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512bw")
-                && std::is_x86_feature_detected!("avx512vbmi")
-            {
-                v.push(Isa::Avx512);
-            }
-        }
-        v
+        [Isa::Scalar, Isa::Neon, Isa::Sse41, Isa::Avx2, Isa::Avx512]
+            .into_iter()
+            .filter(|isa| isa.runs_here())
+            .collect()
     }
 
     /// Whether this CPU can run the path.
     pub fn is_available(self) -> bool {
-        Isa::available().contains(&self)
+        self.runs_here()
+    }
+
+    /// Whether this CPU has the path's features: the check [`per_isa!`]'s
+    /// dispatch makes before it calls a `#[target_feature]` copy (one load
+    /// and a test of the paths found once, [`available_paths`]).
+    #[inline(always)]
+    pub fn runs_here(self) -> bool {
+        self == Isa::Scalar || available_paths() & (1 << self as u32) != 0
+    }
+
+    /// Whether this CPU has the path's features, asked of the CPU.
+    fn detected(self) -> bool {
+        match self {
+            Isa::Scalar => true,
+            #[cfg(target_arch = "x86_64")]
+            Isa::Sse41 => std::is_x86_feature_detected!("sse4.1"),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => std::is_x86_feature_detected!("avx2"),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => {
+                std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512bw")
+                    && std::is_x86_feature_detected!("avx512vbmi")
+            }
+            #[cfg(target_arch = "aarch64")]
+            Isa::Neon => std::arch::is_aarch64_feature_detected!("neon"),
+            #[allow(unreachable_patterns)]
+            _ => false,
+        }
     }
 
     /// The path's name, as `--isa` spells it.
@@ -181,22 +198,125 @@ impl Isa {
             Isa::Sse41 => "sse4.1",
             Isa::Avx2 => "avx2",
             Isa::Avx512 => "avx512",
+            Isa::Neon => "neon",
         }
     }
 }
+
+/// The paths this CPU runs, bit `isa as u32` for each (and bit 31 once
+/// they are found): asked of the CPU at the first call, then one load.
+#[inline(always)]
+fn available_paths() -> u32 {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static PATHS: AtomicU32 = AtomicU32::new(0);
+    let paths = PATHS.load(Ordering::Relaxed);
+    if paths != 0 {
+        return paths;
+    }
+    let paths = find_paths();
+    PATHS.store(paths, Ordering::Relaxed);
+    paths
+}
+
+/// The bits of [`available_paths`], asked of the CPU.
+#[cold]
+#[inline(never)]
+fn find_paths() -> u32 {
+    [Isa::Scalar, Isa::Neon, Isa::Sse41, Isa::Avx2, Isa::Avx512]
+        .into_iter()
+        .filter(|isa| isa.detected())
+        .fold(1 << 31, |bits, isa| bits | 1 << isa as u32)
+}
+
+/// A kernel's copies per instruction set and its dispatch on an [`Isa`], as
+/// an expression (the body of the function that dispatches):
+///
+/// ```ignore
+/// per_isa!(isa, (d: &Density = self, x: &Points = x, field: &Field = field) -> Lanes {
+///     scalar => each(x, |p| d.eval(p, field)),
+///     lanes => d.eval_lanes_simd(x, field, lanes),
+/// })
+/// ```
+///
+/// writes the scalar form and one `#[target_feature]` copy of the lane form
+/// per SIMD path (in the copy, `lanes` is that path's [`Isa`], a constant the
+/// inlined helpers branch on), each a function of the listed parameters, and
+/// calls the copy of `isa` with the listed values. A path this CPU lacks
+/// takes the scalar form (every path gives the same bits), so no caller can
+/// reach a copy whose features the CPU does not have. Adding a path is one
+/// copy and one arm here.
+macro_rules! per_isa {
+    ($isa:expr, ($($arg:ident: $ty:ty = $val:expr),* $(,)?) -> $ret:ty {
+        scalar => $scalar:expr,
+        $lanes:ident => $simd:expr $(,)?
+    }) => {{
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments, clippy::unused_unit, unused_variables)]
+        fn scalar($($arg: $ty),*) -> $ret {
+            $scalar
+        }
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+        #[allow(clippy::too_many_arguments, clippy::unused_unit, unused_variables)]
+        fn avx512($($arg: $ty),*) -> $ret {
+            let $lanes = $crate::math::simd::Isa::Avx512;
+            $simd
+        }
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments, clippy::unused_unit, unused_variables)]
+        fn avx2($($arg: $ty),*) -> $ret {
+            let $lanes = $crate::math::simd::Isa::Avx2;
+            $simd
+        }
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "sse4.1")]
+        #[allow(clippy::too_many_arguments, clippy::unused_unit, unused_variables)]
+        fn sse41($($arg: $ty),*) -> $ret {
+            let $lanes = $crate::math::simd::Isa::Sse41;
+            $simd
+        }
+        #[cfg(target_arch = "aarch64")]
+        #[target_feature(enable = "neon")]
+        #[allow(clippy::too_many_arguments, clippy::unused_unit, unused_variables)]
+        fn neon($($arg: $ty),*) -> $ret {
+            let $lanes = $crate::math::simd::Isa::Neon;
+            $simd
+        }
+        let isa: $crate::math::simd::Isa = $isa;
+        $(let $arg: $ty = $val;)*
+        // SAFETY: the copy compiled for a path is called only in that path's
+        // arm, once `Isa::runs_here` found the path's features on this CPU;
+        // `scalar` is a safe function.
+        unsafe {
+            match isa {
+                #[cfg(target_arch = "x86_64")]
+                $crate::math::simd::Isa::Avx512 if isa.runs_here() => avx512($($arg),*),
+                #[cfg(target_arch = "x86_64")]
+                $crate::math::simd::Isa::Avx2 if isa.runs_here() => avx2($($arg),*),
+                #[cfg(target_arch = "x86_64")]
+                $crate::math::simd::Isa::Sse41 if isa.runs_here() => sse41($($arg),*),
+                #[cfg(target_arch = "aarch64")]
+                $crate::math::simd::Isa::Neon if isa.runs_here() => neon($($arg),*),
+                _ => scalar($($arg),*),
+            }
+        }
+    }};
+}
+pub(crate) use per_isa;
 
 /// The x, y and z of 4 `Vec3`s (3 loads and 6 shuffles).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 pub(crate) fn deinterleave(
-    p: &[Vec3],
+    p: &[glam::Vec3],
 ) -> (
     std::arch::x86_64::__m128,
     std::arch::x86_64::__m128,
     std::arch::x86_64::__m128,
 ) {
     use std::arch::x86_64::*;
-    const _: () = assert!(std::mem::size_of::<Vec3>() == 12);
+    const _: () = assert!(std::mem::size_of::<glam::Vec3>() == 12);
     assert!(p.len() == 4);
     // SAFETY: 4 `Vec3`s are 12 contiguous f32 (glam's `Vec3` is `repr(C)` of
     // 3 f32), loaded as 3 unaligned vectors. SSE is part of the x86-64 baseline.
@@ -227,6 +347,24 @@ pub(crate) fn deinterleave(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `per_isa!` runs the copy of a path this CPU has, and the scalar form
+    /// for every other path, so that no caller reaches a copy whose features
+    /// the CPU lacks.
+    #[test]
+    fn per_isa_runs_the_copy_of_an_available_path_only() {
+        fn which(isa: Isa) -> Option<Isa> {
+            per_isa!(isa, () -> Option<Isa> {
+                scalar => None,
+                lanes => Some(lanes),
+            })
+        }
+        for isa in [Isa::Scalar, Isa::Sse41, Isa::Avx2, Isa::Avx512, Isa::Neon] {
+            let expected = (isa != Isa::Scalar && Isa::available().contains(&isa)).then_some(isa);
+            assert_eq!(which(isa), expected, "{isa:?}");
+            assert_eq!(isa.runs_here(), isa.detected(), "{isa:?}");
+        }
+    }
 
     /// The masks by compare and `movemask` are [`lane_mask`]'s on every
     /// path, at ±0, NaN, subnormals, the bound itself and its neighbours.

@@ -316,37 +316,34 @@ impl Program {
     /// both branches run with the lanes that did not take one masked: an
     /// operation's result is kept only in the lanes whose path runs it.
     pub fn eval_lanes(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3] {
-        match isa {
-            Isa::Scalar => {
-                let mut out = [[0.0; LANES]; 3];
-                for l in 0..LANES {
-                    let v = self.eval(
-                        Inputs {
-                            x: x.get(l),
-                            d: d[l],
-                        },
-                        field,
-                    );
-                    for c in 0..3 {
-                        out[c][l] = v[c];
-                    }
-                }
-                out
+        crate::math::simd::per_isa!(isa, (
+            program: &Program = self, x: &Points = x, d: &Lanes = d, field: &Field = field,
+        ) -> [Lanes; 3] {
+            scalar => program.eval_points(x, d, field),
+            lanes => program.run_simd(x, d, field, lanes),
+        })
+    }
+
+    /// [`Program::eval`] at each of [`LANES`] points, one after another.
+    fn eval_points(&self, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
+        let mut out = [[0.0; LANES]; 3];
+        for l in 0..LANES {
+            let v = self.eval(
+                Inputs {
+                    x: x.get(l),
+                    d: d[l],
+                },
+                field,
+            );
+            for c in 0..3 {
+                out[c][l] = v[c];
             }
-            // SAFETY: a scene only carries a path that `Isa::available` reported.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::run_sse41(self, x, d, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::run_avx2(self, x, d, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::run_avx512(self, x, d, field) },
-            #[cfg(not(target_arch = "x86_64"))]
-            _ => self.eval_lanes(x, d, field, Isa::Scalar),
         }
+        out
     }
 
     /// [`Program::eval_lanes`] on a SIMD path, inlined into one copy per
-    /// instruction set (`x86` below) with the noise and power kernels.
+    /// instruction set (by `per_isa!`) with the noise and power kernels.
     #[inline(always)]
     fn run_simd(&self, x: &Points, d: &Lanes, field: &Field, isa: Isa) -> [Lanes; 3] {
         if self.template.len() <= 32 {
@@ -602,27 +599,6 @@ impl Program {
             Result3::Scalar(a) => [r[a as usize]; 3],
             Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
         }
-    }
-}
-
-/// The copies of [`Program::run_simd`] per instruction set.
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::*;
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn run_avx512(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
-        p.run_simd(x, d, field, Isa::Avx512)
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn run_avx2(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
-        p.run_simd(x, d, field, Isa::Avx2)
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn run_sse41(p: &Program, x: &Points, d: &Lanes, field: &Field) -> [Lanes; 3] {
-        p.run_simd(x, d, field, Isa::Sse41)
     }
 }
 

@@ -234,24 +234,18 @@ impl Chunk {
     /// Evaluates samples k .. k + [`LANES`]; f and α_k at k.
     #[inline(never)]
     fn fill(&mut self, k: u32, basis: &Basis, scene: &Scene, field: &Field) -> (f32, f32) {
-        match scene.isa {
-            Isa::Scalar => self.fill_on(k, basis, scene, field, false),
-            // SAFETY: a scene only carries a path that `Isa::available`
-            // reported, and `Scene::with_isa` refuses the others.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::fill_sse41(self, k, basis, scene, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::fill_avx2(self, k, basis, scene, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::fill_avx512(self, k, basis, scene, field) },
-            #[cfg(not(target_arch = "x86_64"))]
-            _ => self.fill_on(k, basis, scene, field, false),
-        }
+        crate::math::simd::per_isa!(scene.isa, (
+            chunk: &mut Chunk = self, k: u32 = k, basis: &Basis = basis, scene: &Scene = scene,
+            field: &Field = field,
+        ) -> () {
+            scalar => chunk.fill_on(k, basis, scene, field, false),
+            _lanes => chunk.fill_on(k, basis, scene, field, true),
+        });
         (self.f[0], self.alpha[0])
     }
 
     /// [`Chunk::fill`]'s work; with `simd` (a constant where it is inlined:
-    /// into the copies per instruction set in [`x86`]) the points, the
+    /// into the copies per instruction set that `per_isa!` writes) the points, the
     /// density tree's lane code, the powers and the masks are all compiled
     /// for that set, and the points go to the density in registers.
     #[inline(always)]
@@ -437,40 +431,6 @@ fn samples(scene: &Scene, x: &Points, field: &Field, simd: bool) -> (Lanes, Lane
 #[inline(always)]
 fn outside(field: &Field) -> Option<Vec3> {
     field.support.map(|s| s.aabb.1 + Vec3::ONE)
-}
-
-/// The copies of [`Chunk::fill`]'s and [`Deferred::flush`]'s work per
-/// instruction set.
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::*;
-
-    /// For each instruction set, its copies of the two.
-    macro_rules! copies {
-        ($($feature:literal => $fill:ident, $flush:ident;)*) => {$(
-            #[target_feature(enable = $feature)]
-            pub(super) fn $fill(chunk: &mut Chunk, k: u32, b: &Basis, scene: &Scene, field: &Field) {
-                chunk.fill_on(k, b, scene, field, true);
-            }
-
-            #[target_feature(enable = $feature)]
-            pub(super) fn $flush(
-                batch: &mut Deferred,
-                scene: &Scene,
-                b: &Basis,
-                field: &Field,
-                colour: &mut Vec3,
-            ) {
-                batch.flush_on(scene, b, field, colour, true);
-            }
-        )*};
-    }
-
-    copies! {
-        "avx512f,avx512bw,avx512vbmi" => fill_avx512, flush_avx512;
-        "avx2" => fill_avx2, flush_avx2;
-        "sse4.1" => fill_sse41, flush_sse41;
-    }
 }
 
 /// Marches one ray through the scene and returns what the pixel records.
@@ -723,6 +683,169 @@ fn hold_normals(
     }
 }
 
+/// The choices of [`march`] made once per ray, from the scene and
+/// `shortcuts`.
+#[derive(Clone, Copy)]
+struct Policy {
+    /// The scene has lights. Without, the shading ignores the normal: only
+    /// the first one is recorded (the normal AOV), and refraction asks for
+    /// its own.
+    lit: bool,
+    /// A transparent sample (α_k = 0, where an alpha map gives its density
+    /// no opacity) adds nothing to the colour. Where its normal is a
+    /// function of its point alone (central differences, dual numbers) and
+    /// no ray bends, such a soft sample after the first normal is passed
+    /// without its normal or shading: [`Gathered::passed`] holds the first
+    /// and last of them since the last normal, whose normals are found only
+    /// where a later sample's normal vanishes and falls back on the last one
+    /// ([`latest_normal`]).
+    lazy: bool,
+    /// Under directional lights only, with no refraction, normal expression
+    /// or shadows, the samples' light waits and is found [`LANES`] samples
+    /// at a time ([`Deferred`]); their base colours are found as they come.
+    /// The batch is set up at the ray's first sample that adds colour.
+    defers: bool,
+    /// With the paper's forward differences, the gradients wait too: a
+    /// shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are
+    /// evaluated with the other waiting samples', [`LANES`] / 2 samples a
+    /// call across the chunks, and the normals (and the last one, which a
+    /// sample without its own takes) are found in the order of the samples
+    /// ([`Deferred::resolves`]).
+    gradients_wait: bool,
+    /// The strata's keys wait too, where no colour expression stands in for
+    /// the colour map.
+    keys_wait: bool,
+}
+
+impl Policy {
+    #[inline(always)]
+    fn new<const COMMON: bool, const WAIT: bool>(scene: &Scene, shortcuts: bool) -> Policy {
+        let lazy = !WAIT
+            && shortcuts
+            && scene.refraction.is_none()
+            && matches!(scene.gradient, Gradient::Central | Gradient::Dual);
+        let defers = WAIT || (shortcuts && scene.light_waits);
+        let gradients_wait = WAIT || (defers && matches!(scene.gradient, Gradient::Forward));
+        let keys_wait = !COMMON
+            && defers
+            && matches!(scene.colour_index, ColourIndex::Strata { .. })
+            && scene.expressions.colour.is_none();
+        Policy {
+            lit: !scene.lights.is_empty(),
+            lazy,
+            defers,
+            gradients_wait,
+            keys_wait,
+        }
+    }
+
+    /// An empty batch of waiting samples.
+    #[inline(always)]
+    fn batch(self) -> Deferred {
+        Deferred {
+            resolves: self.gradients_wait,
+            keys_wait: self.keys_wait,
+            ..Deferred::default()
+        }
+    }
+}
+
+/// A ray's current segment (a refracted ray starts another) and the chunk
+/// of samples held along it: what the kernels read by reference.
+struct Segment {
+    basis: Basis,
+    chunk: Chunk,
+}
+
+/// Where a ray's march is along its [`Segment`]: the sample k, f at the
+/// previous sample when it lay on the segment, the distance travelled
+/// before the segment, the index of the medium, and the samples left in
+/// the budget. (Apart from the segment, whose address the kernels take, so
+/// that these stay in registers.)
+struct Walk {
+    k: u32,
+    /// f(x − Δx_μ): the previous sample, when it lay on the current segment.
+    previous: Option<f32>,
+    path: f32,
+    medium_index: Option<f32>,
+    /// Every sample costs a step of the budget, so a ray bent back and forth
+    /// inside the volume (total internal reflection) still terminates.
+    budget: u64,
+}
+
+impl Walk {
+    /// Passes samples k .. first, which are empty: they would cost budget
+    /// and leave f(x − Δx_μ) = 0, and nothing else. False when the ray ends
+    /// or the budget runs out among them.
+    #[inline(always)]
+    fn skip_empty(&mut self, basis: &Basis, step: f32) -> bool {
+        if self.k < basis.first {
+            let skipped = u64::from(basis.first.min(u32::MAX - 1) - self.k);
+            if skipped >= self.budget || basis.t(basis.first, step) > basis.t1 {
+                return false;
+            }
+            self.budget -= skipped;
+            self.k = basis.first;
+            self.previous = Some(0.0);
+        }
+        true
+    }
+
+    /// After sample k − 1 of density `f`: where it is +0 and went through
+    /// the loop without effect (no colour; no bend, and after it none at
+    /// f = 0 either), so would the held +0 samples after it, costing budget
+    /// and leaving f(x − Δx_μ) = 0. They are passed at once, to the next
+    /// held sample that is not +0 or the chunk's end. Should the ray end or
+    /// the budget run out among them, the loop ends at that sample (t grows
+    /// with k).
+    #[inline(always)]
+    fn skip_zeros(&mut self, chunk: &Chunk, f: f32) {
+        if f.to_bits() == 0 && chunk.full {
+            let j = self.k - chunk.start;
+            let ahead = chunk.nonzero.checked_shr(j).unwrap_or(0);
+            let next = if ahead == 0 {
+                LANES as u32
+            } else {
+                j + ahead.trailing_zeros()
+            };
+            self.budget = self.budget.saturating_sub(u64::from(next - j));
+            self.k = chunk.start + next;
+        }
+    }
+}
+
+/// What a ray has gathered so far, front to back, besides its colour
+/// (whose address the batch of waiting samples takes).
+#[derive(Default)]
+struct Gathered {
+    alpha: f32,
+    weighted_density: f32,
+    depth: f32,
+    first_normal: Option<Normal>,
+    last_normal: Option<Normal>,
+    /// The first and last transparent samples passed since the last normal
+    /// ([`Policy::lazy`]).
+    passed: Option<(u32, u32)>,
+    /// With `position_free_shading`, the colour of the latest sample shaded
+    /// without a normal of its own, and what it was a function of: f and the
+    /// shading normal (as bits), on the current segment. A run of samples
+    /// with the same f and normal (a hard region, where f = 1 and the normal
+    /// stays the last one) reuses it.
+    shaded: Option<((u32, [u32; 3]), Vec3)>,
+}
+
+/// A sample's normal as [`sample_normal`] finds it.
+struct SampleNormal {
+    /// The normal found now.
+    normal: Option<Normal>,
+    /// f(x − Δx_μ) of a soft sample whose gradient waits.
+    waits: Option<f32>,
+    /// Whether the normal of a hard region's first sample waits.
+    hard_waits: bool,
+    /// A transparent soft sample passed without its normal or shading.
+    pass: bool,
+}
+
 /// The sample loop of [`trace_with_phase`]. `COMMON` is the scene's
 /// `common_case`, chosen once per scene: no refraction, no motion, no colour
 /// or normal expressions, no shadows, the density as the colour key. Its
@@ -735,6 +858,10 @@ fn hold_normals(
 /// ([`Deferred`]) (the same result; off only to test that). `WAIT`
 /// ([`march_waits`]) is chosen once per scene too: its copy leaves out the normals
 /// found and the samples shaded in the loop.
+///
+/// Each sample: its density ([`Chunk::density`]), its normal
+/// ([`sample_normal`]), its colour and opacity added ([`accumulate`]), the
+/// ray bent where the index of refraction changes ([`bend`]).
 fn march<const COMMON: bool, const WAIT: bool>(
     scene: &Scene,
     ray: Ray,
@@ -753,305 +880,337 @@ fn march<const COMMON: bool, const WAIT: bool>(
         });
     };
     let step = scene.step;
-    let f_at = |x: Vec3| scene.density.eval(x, field);
-
-    let mut basis = Basis::new(ray, step, (t0, t1), phase, field.support, scene);
+    let basis = Basis::new(ray, step, (t0, t1), phase, field.support, scene);
     if basis.first == u32::MAX {
-        // The ray misses the support: no sample would be evaluated, and the
-        // loop below would end at once. What it would return, without
-        // setting up its chunk and batch.
-        let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
-        let (colour, alpha) = (Vec3::ZERO, 0.0f32);
-        let rgb = colour + bg * (1.0 - alpha);
-        return Some(Sample {
-            rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
-            ..Sample::default()
-        });
+        return Some(missing_support(scene, &basis));
     }
-    let mut chunk = Chunk::empty();
-    // Distance travelled along the path before the current ray segment.
-    let mut path = 0.0f32;
+    let mut seg = Segment {
+        basis,
+        chunk: Chunk::empty(),
+    };
+    let mut w = Walk {
+        k: 0,
+        previous: None,
+        path: 0.0,
+        medium_index: if COMMON {
+            None
+        } else {
+            scene.refraction.as_ref().map(|c| c.eval1(0.0))
+        },
+        budget: scene.budget,
+    };
     let mut colour = Vec3::ZERO;
-    let mut alpha = 0.0f32;
-    let mut weighted_density = 0.0f32;
-    let mut depth = 0.0f32;
-    let mut first_normal: Option<Normal> = None;
-    let mut last_normal: Option<Normal> = None;
-    // f(x - Δx_μ): the previous sample, when it lay on the current segment.
-    let mut previous: Option<f32> = None;
-    let mut medium_index = if COMMON {
-        None
-    } else {
-        scene.refraction.as_ref().map(|c| c.eval1(0.0))
-    };
-    // Every sample costs a step of the budget, so a ray bent back and forth inside
-    // the volume (total internal reflection) still terminates.
-    let mut budget = scene.budget;
-    let mut k: u32 = 0;
-    let lit = !scene.lights.is_empty();
-    // A transparent sample (α_k = 0, where an alpha map gives its density no
-    // opacity) adds nothing to the colour. Where its normal is a function of
-    // its point alone (central differences, dual numbers) and no ray bends,
-    // such a soft sample after the first normal is passed without its normal
-    // or shading: `passed` holds the first and last of them since the last
-    // normal, whose normals are found only where a later sample's normal
-    // vanishes and falls back on the last one ([`latest_normal`]).
-    let lazy = !WAIT
-        && shortcuts
-        && scene.refraction.is_none()
-        && matches!(scene.gradient, Gradient::Central | Gradient::Dual);
-    let mut passed: Option<(u32, u32)> = None;
-    // With `position_free_shading`, the colour of the latest sample shaded
-    // without a normal of its own, and what it was a function of: f and the
-    // shading normal (as bits), on the current segment. A run of samples
-    // with the same f and normal (a hard region, where f = 1 and the normal
-    // stays the last one) reuses it.
-    let mut shaded: Option<((u32, [u32; 3]), Vec3)> = None;
-    // Under directional lights only, with no refraction, normal expression
-    // or shadows, the samples' light waits and is found [`LANES`] samples at
-    // a time ([`Deferred`]); their base colours are found as they come. The
-    // batch is set up at the ray's first sample that adds colour.
-    let defers = WAIT || (shortcuts && scene.light_waits);
-    // With the paper's forward differences, the gradients wait too: a
-    // shaded soft sample's neighbours f(x + Δx_ν), f(x + Δx_ω) are evaluated
-    // with the other waiting samples', [`LANES`] / 2 samples a call across
-    // the chunks, and the normals (and the last one, which a sample without
-    // its own takes) are found in the order of the samples
-    // ([`Deferred::resolves`]).
-    let gradients_wait = WAIT || (defers && matches!(scene.gradient, Gradient::Forward));
-    // The strata's keys wait too, where no colour expression stands in for
-    // the colour map.
-    let keys_wait = !COMMON
-        && defers
-        && matches!(scene.colour_index, ColourIndex::Strata { .. })
-        && scene.expressions.colour.is_none();
-    let batch = || Deferred {
-        resolves: gradients_wait,
-        keys_wait,
-        ..Deferred::default()
-    };
+    let mut g = Gathered::default();
+    let policy = Policy::new::<COMMON, WAIT>(scene, shortcuts);
 
     loop {
-        if k < basis.first {
-            // Samples k .. first are empty: they would cost budget and leave
-            // f(x − Δx_μ) = 0, and nothing else.
-            let skipped = u64::from(basis.first.min(u32::MAX - 1) - k);
-            if skipped >= budget || basis.t(basis.first, step) > basis.t1 {
-                break;
-            }
-            budget -= skipped;
-            k = basis.first;
-            previous = Some(0.0);
-        }
-        let t = basis.t(k, step);
-        if t > basis.t1 || budget == 0 || t > basis.last {
+        if !w.skip_empty(&seg.basis, step) {
             break;
         }
-        budget -= 1;
-        let x = basis.ray.at(t);
-        let (f, alpha_k) = chunk.density(k, &basis, scene, field);
-
-        let mut normal = None;
-        // f(x − Δx_μ) of a soft sample whose gradient waits; whether the
-        // normal of a hard region's first sample waits.
-        let mut waits = None;
-        let mut hard_waits = false;
-        let soft = f > 0.0 && f < 1.0;
-        let pass = lazy && soft && alpha_k == 0.0 && first_normal.is_some();
-        // Without lights the shading ignores the normal: only the first one is
-        // recorded (the normal AOV), and refraction asks for its own below.
-        if pass {
-            if lit {
-                passed = Some((passed.map_or(k, |(a, _)| a), k));
-            }
-        } else if gradients_wait && soft {
-            waits = Some(previous.unwrap_or_else(|| f_at(x - basis.du)));
-        } else if soft && (lit || first_normal.is_none()) {
-            normal = match scene.gradient {
-                Gradient::Forward => {
-                    // Unlit, a ray reads only its first normal: that
-                    // sample's two neighbours, without the chunk's others.
-                    let (fv, fw) = if lit {
-                        chunk.neighbours(k, &basis, scene, field, alpha)
-                    } else {
-                        let mut p = Points::default();
-                        let spare = outside(field).unwrap_or(x);
-                        for l in 2..LANES {
-                            p.set(l, spare);
-                        }
-                        p.set(0, x + basis.dv);
-                        p.set(1, x + basis.dw);
-                        let f = scene.density.eval_lanes(&p, field, scene.isa);
-                        (f[0], f[1])
-                    };
-                    gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
-                }
-                Gradient::Central => central_normal_lanes(x, step, field, |p| {
-                    scene.density.eval_lanes(p, field, scene.isa)
-                }),
-                Gradient::Dual => dual_normal(scene, x, field),
-            };
-        } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || first_normal.is_none()) {
-            // The ray reaches a hard region, where f = 1 and ∇f = 0: the
-            // object's own D gives the normal, over a stencil wide enough to
-            // reach the soft region from a sample up to a step inside.
-            // Where the gradients wait, so does this one.
-            if gradients_wait {
-                hard_waits = true;
-            } else {
-                normal = central_normal_lanes(x, 2.0 * step, field, |p| {
-                    scene.object.eval_object_lanes(p, field, scene.isa)
-                });
-            }
+        let t = seg.basis.t(w.k, step);
+        if t > seg.basis.t1 || w.budget == 0 || t > seg.basis.last {
+            break;
         }
-
-        if f > 0.0 && depth == 0.0 {
-            depth = path + t;
+        w.budget -= 1;
+        let x = seg.basis.ray.at(t);
+        let (f, alpha_k) = seg.chunk.density(w.k, &seg.basis, scene, field);
+        let found = sample_normal(scene, field, policy, &mut seg, &w, &mut g, (x, f, alpha_k));
+        if f > 0.0 && g.depth == 0.0 {
+            g.depth = w.path + t;
         }
-        if f > 0.0 && gradients_wait {
-            let deferred = deferred.get_or_insert_with(batch);
-            let weight = alpha_k * (1.0 - alpha);
-            let own = match (waits, hard_waits) {
-                (Some(behind), _) => Own::Waiting {
-                    x: chunk.x.get((k - chunk.start) as usize),
-                    behind,
-                },
-                (None, true) => Own::Hard { x },
-                (None, false) => Own::Found(normal),
-            };
-            let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
-            deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
-            alpha += weight;
-            weighted_density += f * weight;
-            if alpha >= scene.threshold {
-                break;
-            }
-        } else if f > 0.0 && !pass {
-            if normal.is_some() {
-                last_normal = normal;
-                passed = None;
-                if first_normal.is_none() {
-                    first_normal = normal;
-                }
-            } else if let Some(range) = passed.take()
-                && let Some(n) = latest_normal(scene, &basis, range, field)
-            {
-                last_normal = Some(n);
-            }
-            let shading_normal = normal
-                .or(last_normal)
-                .unwrap_or(Normal::of_unit(-basis.ray.direction));
-            let weight = alpha_k * (1.0 - alpha);
-            if defers {
-                let deferred = deferred.get_or_insert_with(batch);
-                let own = Own::Found(Some(shading_normal));
-                let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
-                deferred.push(own, f, base, weight, scene, &basis, field, &mut colour);
-            } else {
-                // Without a normal of its own a sample takes the last one, and
-                // perhaps the latest such sample's colour (in the general copy:
-                // the common case's rays stop at a hard region, where the runs
-                // are, unless an alpha map makes it transparent).
-                let shading_normal = shading_normal.unit();
-                let key = (!COMMON && shortcuts && normal.is_none() && scene.position_free_shading)
-                    .then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
-                let sample_colour = match (key, shaded) {
-                    (Some(key), Some((held, colour))) if key == held => {
-                        #[cfg(test)]
-                        tests::REUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        colour
-                    }
-                    _ => {
-                        let colour = sample_colour::<COMMON>(
-                            scene,
-                            x,
-                            f,
-                            shading_normal,
-                            &basis,
-                            field,
-                            lit,
-                        );
-                        if let Some(key) = key {
-                            shaded = Some((key, colour));
-                        }
-                        colour
-                    }
-                };
-                colour += sample_colour * weight;
-            }
-            alpha += weight;
-            weighted_density += f * weight;
-            if alpha >= scene.threshold {
-                break;
-            }
+        let (sample, gathered) = ((x, f, alpha_k), (&mut g, &mut colour));
+        if accumulate::<COMMON>(
+            scene, field, policy, shortcuts, &seg, &w, gathered, sample, &found, deferred,
+        ) {
+            break;
         }
-
-        if let (false, Some(refraction), Some(n1)) =
-            (COMMON, scene.refraction.as_ref(), medium_index)
+        let at = (t, x, f);
+        if !COMMON
+            && bend(
+                scene,
+                field,
+                phase,
+                shortcuts,
+                &mut seg,
+                &mut w,
+                &mut g,
+                at,
+                found.normal,
+            )
         {
-            // The index at the previous sample's f was compared with (or
-            // became) n1: the same f changes nothing.
-            let same = shortcuts && previous.is_some_and(|p| p.to_bits() == f.to_bits());
-            let n2 = if same { n1 } else { refraction.eval1(f) };
-            if (n2 - n1).abs() > 1e-6 {
-                medium_index = Some(n2);
-                let n = normal.or_else(|| match scene.gradient {
-                    Gradient::Dual => dual_normal(scene, x, field),
-                    _ => {
-                        let (fv, fw) = chunk.neighbours(k, &basis, scene, field, 0.0);
-                        gradient_normal(&f_at, x, f, previous, fv, fw, &basis)
-                    }
-                });
-                if let Some(n) = n {
-                    let bent = refract(basis.ray.direction, n.unit(), n1 / n2);
-                    let ray = Ray {
-                        origin: x,
-                        direction: bent,
-                    };
-                    if let Some((_, exit)) = slab(&ray, min, max) {
-                        path += t;
-                        basis = Basis::new(ray, step, (0.0, exit), phase, field.support, scene);
-                        chunk = Chunk::empty();
-                        previous = None;
-                        shaded = None;
-                        k = 1;
-                        continue;
-                    }
-                }
-            }
+            continue;
         }
-
-        previous = Some(f);
-        k += 1;
-        if f.to_bits() == 0 && chunk.full {
-            // Sample k − 1 is +0 and went through the loop without effect
-            // (no colour; no bend, and after it none at f = 0 either); so
-            // would the held +0 samples after it, costing budget and leaving
-            // f(x − Δx_μ) = 0. They are passed at once, to the next held
-            // sample that is not +0 or the chunk's end. Should the ray end or
-            // the budget run out among them, the loop ends at that sample
-            // (t grows with k).
-            let j = k - chunk.start;
-            let ahead = chunk.nonzero.checked_shr(j).unwrap_or(0);
-            let next = if ahead == 0 {
-                LANES as u32
-            } else {
-                j + ahead.trailing_zeros()
-            };
-            budget = budget.saturating_sub(u64::from(next - j));
-            k = chunk.start + next;
-        }
+        w.previous = Some(f);
+        w.k += 1;
+        w.skip_zeros(&seg.chunk, f);
     }
 
     *waiting = Some(Waiting {
-        basis,
+        basis: seg.basis,
         colour,
-        alpha,
-        weighted_density,
-        depth,
-        first_normal,
+        alpha: g.alpha,
+        weighted_density: g.weighted_density,
+        depth: g.depth,
+        first_normal: g.first_normal,
     });
     None
+}
+
+/// What a ray that misses the support records: no sample would be
+/// evaluated, and the loop of [`march`] would end at once; what it would
+/// return, without setting up its chunk and batch.
+#[inline(always)]
+fn missing_support(scene: &Scene, basis: &Basis) -> Sample {
+    let (bg, bg_alpha) = scene.background.sample(basis.ray.direction);
+    let (colour, alpha) = (Vec3::ZERO, 0.0f32);
+    let rgb = colour + bg * (1.0 - alpha);
+    Sample {
+        rgba: [rgb.x, rgb.y, rgb.z, alpha + bg_alpha * (1.0 - alpha)],
+        ..Sample::default()
+    }
+}
+
+/// The normal of sample k at `x` of density `f` and opacity `alpha_k`:
+/// passed (a transparent soft sample, [`Policy::lazy`]), waiting (the
+/// gradients wait, [`Policy::gradients_wait`]), or found now by the scene's
+/// gradient; at a hard region's first sample, from the object's own D.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn sample_normal(
+    scene: &Scene,
+    field: &Field,
+    policy: Policy,
+    seg: &mut Segment,
+    w: &Walk,
+    g: &mut Gathered,
+    (x, f, alpha_k): (Vec3, f32, f32),
+) -> SampleNormal {
+    let step = scene.step;
+    let f_at = |x: Vec3| scene.density.eval(x, field);
+    let (basis, k, previous, lit) = (&seg.basis, w.k, w.previous, policy.lit);
+    let mut found = SampleNormal {
+        normal: None,
+        waits: None,
+        hard_waits: false,
+        pass: false,
+    };
+    let soft = f > 0.0 && f < 1.0;
+    found.pass = policy.lazy && soft && alpha_k == 0.0 && g.first_normal.is_some();
+    if found.pass {
+        if lit {
+            g.passed = Some((g.passed.map_or(k, |(a, _)| a), k));
+        }
+    } else if policy.gradients_wait && soft {
+        found.waits = Some(previous.unwrap_or_else(|| f_at(x - basis.du)));
+    } else if soft && (lit || g.first_normal.is_none()) {
+        found.normal = match scene.gradient {
+            Gradient::Forward => {
+                // Unlit, a ray reads only its first normal: that
+                // sample's two neighbours, without the chunk's others.
+                let (fv, fw) = if lit {
+                    seg.chunk.neighbours(k, basis, scene, field, g.alpha)
+                } else {
+                    let mut p = Points::default();
+                    let spare = outside(field).unwrap_or(x);
+                    for l in 2..LANES {
+                        p.set(l, spare);
+                    }
+                    p.set(0, x + basis.dv);
+                    p.set(1, x + basis.dw);
+                    let f = scene.density.eval_lanes(&p, field, scene.isa);
+                    (f[0], f[1])
+                };
+                gradient_normal(&f_at, x, f, previous, fv, fw, basis)
+            }
+            Gradient::Central => central_normal_lanes(x, step, field, |p| {
+                scene.density.eval_lanes(p, field, scene.isa)
+            }),
+            Gradient::Dual => dual_normal(scene, x, field),
+        };
+    } else if f >= 1.0 && previous.is_none_or(|p| p < 1.0) && (lit || g.first_normal.is_none()) {
+        // The ray reaches a hard region, where f = 1 and ∇f = 0: the
+        // object's own D gives the normal, over a stencil wide enough to
+        // reach the soft region from a sample up to a step inside.
+        // Where the gradients wait, so does this one.
+        if policy.gradients_wait {
+            found.hard_waits = true;
+        } else {
+            found.normal = central_normal_lanes(x, 2.0 * step, field, |p| {
+                scene.object.eval_object_lanes(p, field, scene.isa)
+            });
+        }
+    }
+    found
+}
+
+/// Adds sample k (`sample`: its point, f and α_k) to what the ray has
+/// gathered: into the batch of waiting samples, or shaded now. True when
+/// the ray is opaque enough to stop.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn accumulate<const COMMON: bool>(
+    scene: &Scene,
+    field: &Field,
+    policy: Policy,
+    shortcuts: bool,
+    seg: &Segment,
+    w: &Walk,
+    (g, colour): (&mut Gathered, &mut Vec3),
+    (x, f, alpha_k): (Vec3, f32, f32),
+    found: &SampleNormal,
+    deferred: &mut Option<Deferred>,
+) -> bool {
+    let (basis, chunk, k) = (&seg.basis, &seg.chunk, w.k);
+    let keys_wait = policy.keys_wait;
+    if f > 0.0 && policy.gradients_wait {
+        let deferred = deferred.get_or_insert_with(|| policy.batch());
+        let weight = alpha_k * (1.0 - g.alpha);
+        let own = match (found.waits, found.hard_waits) {
+            (Some(behind), _) => Own::Waiting {
+                x: chunk.x.get((k - chunk.start) as usize),
+                behind,
+            },
+            (None, true) => Own::Hard { x },
+            (None, false) => Own::Found(found.normal),
+        };
+        let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
+        deferred.push(own, f, base, weight, scene, basis, field, colour);
+        g.alpha += weight;
+        g.weighted_density += f * weight;
+        if g.alpha >= scene.threshold {
+            return true;
+        }
+    } else if f > 0.0 && !found.pass {
+        let normal = found.normal;
+        if normal.is_some() {
+            g.last_normal = normal;
+            g.passed = None;
+            if g.first_normal.is_none() {
+                g.first_normal = normal;
+            }
+        } else if let Some(range) = g.passed.take()
+            && let Some(n) = latest_normal(scene, basis, range, field)
+        {
+            g.last_normal = Some(n);
+        }
+        let shading_normal = normal
+            .or(g.last_normal)
+            .unwrap_or(Normal::of_unit(-basis.ray.direction));
+        let weight = alpha_k * (1.0 - g.alpha);
+        if policy.defers {
+            let deferred = deferred.get_or_insert_with(|| policy.batch());
+            let own = Own::Found(Some(shading_normal));
+            let base = waiting_base::<COMMON>(scene, x, f, field, keys_wait);
+            deferred.push(own, f, base, weight, scene, basis, field, colour);
+        } else {
+            let reuse = !COMMON && shortcuts && normal.is_none() && scene.position_free_shading;
+            let sample_colour = shade_now::<COMMON>(
+                scene,
+                field,
+                basis,
+                g,
+                (x, f),
+                shading_normal,
+                reuse,
+                policy.lit,
+            );
+            *colour += sample_colour * weight;
+        }
+        g.alpha += weight;
+        g.weighted_density += f * weight;
+        if g.alpha >= scene.threshold {
+            return true;
+        }
+    }
+    false
+}
+
+/// The colour of a sample at x of density f shaded now with
+/// `shading_normal`. Without a normal of its own (`reuse`) a sample takes
+/// the last one, and perhaps the latest such sample's colour (in the
+/// general copy: the common case's rays stop at a hard region, where the
+/// runs are, unless an alpha map makes it transparent).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn shade_now<const COMMON: bool>(
+    scene: &Scene,
+    field: &Field,
+    basis: &Basis,
+    g: &mut Gathered,
+    (x, f): (Vec3, f32),
+    shading_normal: Normal,
+    reuse: bool,
+    lit: bool,
+) -> Vec3 {
+    let shading_normal = shading_normal.unit();
+    let key = reuse.then(|| (f.to_bits(), shading_normal.to_array().map(f32::to_bits)));
+    match (key, g.shaded) {
+        (Some(key), Some((held, colour))) if key == held => {
+            #[cfg(test)]
+            tests::REUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            colour
+        }
+        _ => {
+            let colour = sample_colour::<COMMON>(scene, x, f, shading_normal, basis, field, lit);
+            if let Some(key) = key {
+                g.shaded = Some((key, colour));
+            }
+            colour
+        }
+    }
+}
+
+/// Bends the ray at sample (t, x, f) where the index of refraction
+/// changes: the index at the previous sample's f was compared with (or
+/// became) n1, so the same f changes nothing. True when the ray goes on
+/// along a new segment (from sample 1 of it).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn bend(
+    scene: &Scene,
+    field: &Field,
+    phase: f32,
+    shortcuts: bool,
+    seg: &mut Segment,
+    w: &mut Walk,
+    g: &mut Gathered,
+    (t, x, f): (f32, Vec3, f32),
+    normal: Option<Normal>,
+) -> bool {
+    let (Some(refraction), Some(n1)) = (scene.refraction.as_ref(), w.medium_index) else {
+        return false;
+    };
+    let same = shortcuts && w.previous.is_some_and(|p| p.to_bits() == f.to_bits());
+    let n2 = if same { n1 } else { refraction.eval1(f) };
+    if (n2 - n1).abs() > 1e-6 {
+        w.medium_index = Some(n2);
+        let f_at = |x: Vec3| scene.density.eval(x, field);
+        let n = normal.or_else(|| match scene.gradient {
+            Gradient::Dual => dual_normal(scene, x, field),
+            _ => {
+                let (fv, fw) = seg.chunk.neighbours(w.k, &seg.basis, scene, field, 0.0);
+                gradient_normal(&f_at, x, f, w.previous, fv, fw, &seg.basis)
+            }
+        });
+        if let Some(n) = n {
+            let bent = refract(seg.basis.ray.direction, n.unit(), n1 / n2);
+            let ray = Ray {
+                origin: x,
+                direction: bent,
+            };
+            let (min, max) = scene.bounds;
+            if let Some((_, exit)) = slab(&ray, min, max) {
+                w.path += t;
+                seg.basis = Basis::new(ray, scene.step, (0.0, exit), phase, field.support, scene);
+                seg.chunk = Chunk::empty();
+                w.previous = None;
+                g.shaded = None;
+                w.k = 1;
+                return true;
+            }
+        }
+    }
+    false
 }
 
 /// The colour a sample at x of density f contributes per unit of opacity:
@@ -1448,21 +1607,17 @@ impl Deferred {
         if self.len == 0 {
             return;
         }
-        match scene.isa {
-            // SAFETY: a scene only carries a path that `Isa::available`
-            // reported, and `Scene::with_isa` refuses the others.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::flush_sse41(self, scene, basis, field, colour) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::flush_avx2(self, scene, basis, field, colour) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::flush_avx512(self, scene, basis, field, colour) },
-            _ => self.flush_on(scene, basis, field, colour, false),
-        }
+        crate::math::simd::per_isa!(scene.isa, (
+            batch: &mut Deferred = self, scene: &Scene = scene, basis: &Basis = basis,
+            field: &Field = field, colour: &mut Vec3 = colour,
+        ) -> () {
+            scalar => batch.flush_on(scene, basis, field, colour, false),
+            _lanes => batch.flush_on(scene, basis, field, colour, true),
+        })
     }
 
     /// [`Deferred::flush`]'s work; with `simd` (a constant where it is
-    /// inlined: into the copies per instruction set in [`x86`]) the
+    /// inlined: into the copies per instruction set that `per_isa!` writes) the
     /// normals, the light and the highlights' powers are compiled for that
     /// set.
     #[inline(always)]

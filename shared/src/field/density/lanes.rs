@@ -205,19 +205,10 @@ impl Density {
     /// the noise and the powers computed a batch at a time on `isa`.
     #[inline]
     pub fn eval_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        match isa {
-            Isa::Scalar => each(x, |p| self.eval(p, field)),
-            // SAFETY: a scene only carries a path that `Isa::available`
-            // reported, and `Scene::with_isa` refuses the others.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::eval_lanes_sse41(self, x, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::eval_lanes_avx2(self, x, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::eval_lanes_avx512(self, x, field) },
-            #[cfg(not(target_arch = "x86_64"))]
-            _ => each(x, |p| self.eval(p, field)),
-        }
+        crate::math::simd::per_isa!(isa, (d: &Density = self, x: &Points = x, field: &Field = field) -> Lanes {
+            scalar => each(x, |p| d.eval(p, field)),
+            lanes => d.eval_lanes_simd(x, field, lanes),
+        })
     }
 
     /// [`Density::eval_object`] (D without the value DMFs) at [`LANES`]
@@ -226,16 +217,10 @@ impl Density {
     /// booleans, motion) point by point.
     #[inline]
     pub fn eval_object_lanes(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        match isa {
-            // SAFETY: as in `eval_lanes`.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Sse41 => unsafe { x86::eval_object_lanes_sse41(self, x, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { x86::eval_object_lanes_avx2(self, x, field) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { x86::eval_object_lanes_avx512(self, x, field) },
-            _ => each(x, |p| self.eval_object(p, field)),
-        }
+        crate::math::simd::per_isa!(isa, (d: &Density = self, x: &Points = x, field: &Field = field) -> Lanes {
+            scalar => each(x, |p| d.eval_object(p, field)),
+            lanes => d.eval_object_lanes_simd(x, field, lanes),
+        })
     }
 
     /// [`Density::eval_object_lanes`] on a SIMD path: a hypertexture's warps
@@ -352,43 +337,6 @@ impl Density {
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
             _ => self.eval_lanes(x, field, isa),
         }
-    }
-}
-
-/// The copies of [`Density::eval_lanes_simd`] per instruction set: the one
-/// `#[target_feature]` function at the top of the density's hot path.
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::*;
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn eval_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_lanes_simd(x, field, Isa::Avx512)
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn eval_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_lanes_simd(x, field, Isa::Avx2)
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn eval_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_lanes_simd(x, field, Isa::Sse41)
-    }
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-    pub(super) fn eval_object_lanes_avx512(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_object_lanes_simd(x, field, Isa::Avx512)
-    }
-
-    #[target_feature(enable = "avx2")]
-    pub(super) fn eval_object_lanes_avx2(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_object_lanes_simd(x, field, Isa::Avx2)
-    }
-
-    #[target_feature(enable = "sse4.1")]
-    pub(super) fn eval_object_lanes_sse41(d: &Density, x: &Points, field: &Field) -> Lanes {
-        d.eval_object_lanes_simd(x, field, Isa::Sse41)
     }
 }
 
