@@ -1,6 +1,8 @@
 //! The one-shot pipeline: what `coordinator render`, `bake`, `recolor`,
 //! `grid` and `bench` do once and end, on top of the farm.
 //!
+//! - [`run`]: a scene rendered on the farm or in this process, written as
+//!   an image or a numbered sequence.
 //! - [`output`]: frames to PNG and EXR files.
 //! - [`bake`], [`vdb`]: H(x) sampled on a lattice and written as OpenVDB.
 //! - [`recolor`]: an EXR's density channel mapped through new curves.
@@ -12,4 +14,5 @@ pub mod bench;
 pub mod grid;
 pub mod output;
 pub mod recolor;
+pub mod run;
 pub mod vdb;

@@ -19,6 +19,7 @@ pub mod interleave;
 pub mod lighting;
 pub mod march;
 pub mod probe;
+pub mod request;
 pub mod sampling;
 
 use rayon::prelude::*;
