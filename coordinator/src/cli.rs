@@ -1008,7 +1008,7 @@ mod tests {
             ),
             (&["--scene", "s.ron", "--quality", "best"], "--quality"),
             (
-                &["--scene", "s.ron", "--lease-timeout", "-1"],
+                &["--scene", "s.ron", "--lease-timeout", "0"],
                 "--lease-timeout",
             ),
             (&["--scene", "s.ron", "--verify", "2"], "--verify"),

@@ -153,7 +153,7 @@ mod tests {
         assert_eq!(wire_hash(&job).unwrap(), job.scene_hash);
         let baked = RenderRequest {
             overrides: Overrides {
-                width: Some(4096),
+                width: Some(64),
                 height: Some(1),
                 spp: None,
                 quality: None,

@@ -1528,6 +1528,7 @@ mod tests {
             scene_name: "test.ron".into(),
             width: 8,
             height: 8,
+            pixel_format: pb::PixelFormat::Srgb8 as i32,
             ..Default::default()
         }
     }
@@ -1591,6 +1592,7 @@ mod tests {
                 hash,
                 size: obj.len() as u64,
             }],
+            pixel_format: pb::PixelFormat::Srgb8 as i32,
             ..Default::default()
         };
         (job, Fetched::from([(hash, Arc::new(mesh))]))

@@ -29,47 +29,53 @@ pub struct JobSpec {
     pub require_tags: Vec<String>,
 }
 
-/// A job as submitted, as JSON: `POST /api/v1/jobs`'s body and the store's
-/// record (both read by [`JobSpec`]).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-#[serde(rename = "JobSpec")]
-#[schema(as = JobSpec)]
-pub struct JobJson {
-    /// The scene's RON text (at most 64 KiB).
-    pub scene: String,
-    /// The scene's name for messages (its file path); default `scene.ron`.
-    #[serde(default)]
-    pub scene_name: Option<String>,
-    /// The output path pattern, on the coordinator's machine. `#` runs are the
-    /// frame number padded to their length (`out/fur.####.exr` →
-    /// `out/fur.0007.exr`); without `#` the job has one frame. The extension
-    /// (`.png`, `.exr`) chooses the format.
-    pub out: String,
-    /// The first and last frame (inclusive); default: frame 0 only.
-    #[serde(default)]
-    pub frames: Option<[u32; 2]>,
-    /// Higher runs first; ties run oldest first. Default 0.
-    #[serde(default)]
-    pub priority: i32,
-    /// Image width (the scene's when absent).
-    #[serde(default)]
-    pub width: Option<u32>,
-    /// Image height (the scene's when absent).
-    #[serde(default)]
-    pub height: Option<u32>,
-    /// Samples per pixel (the scene's when absent).
-    #[serde(default)]
-    pub spp: Option<u32>,
-    /// `interactive` or `high` (the scene's step when absent).
-    #[serde(default)]
-    pub quality: Option<QualitySpec>,
-    /// Knob overrides, applied in name order.
-    #[serde(default)]
-    pub knobs: BTreeMap<String, f64>,
-    /// Only workers carrying every one of these tags render the job.
-    #[serde(default)]
-    pub require_tags: Vec<String>,
+/// A job as submitted, as JSON (named `JobSpec` in the API's document and
+/// its messages).
+pub use json::JobSpec as JobJson;
+
+mod json {
+    use super::*;
+
+    /// A job as submitted, as JSON: `POST /api/v1/jobs`'s body and the store's
+    /// record (both read by [`super::JobSpec`]).
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct JobSpec {
+        /// The scene's RON text (at most 64 KiB).
+        pub scene: String,
+        /// The scene's name for messages (its file path); default `scene.ron`.
+        #[serde(default)]
+        pub scene_name: Option<String>,
+        /// The output path pattern, on the coordinator's machine. `#` runs are the
+        /// frame number padded to their length (`out/fur.####.exr` →
+        /// `out/fur.0007.exr`); without `#` the job has one frame. The extension
+        /// (`.png`, `.exr`) chooses the format.
+        pub out: String,
+        /// The first and last frame (inclusive); default: frame 0 only.
+        #[serde(default)]
+        pub frames: Option<[u32; 2]>,
+        /// Higher runs first; ties run oldest first. Default 0.
+        #[serde(default)]
+        pub priority: i32,
+        /// Image width (the scene's when absent).
+        #[serde(default)]
+        pub width: Option<u32>,
+        /// Image height (the scene's when absent).
+        #[serde(default)]
+        pub height: Option<u32>,
+        /// Samples per pixel (the scene's when absent).
+        #[serde(default)]
+        pub spp: Option<u32>,
+        /// `interactive` or `high` (the scene's step when absent).
+        #[serde(default)]
+        pub quality: Option<QualitySpec>,
+        /// Knob overrides, applied in name order.
+        #[serde(default)]
+        pub knobs: BTreeMap<String, f64>,
+        /// Only workers carrying every one of these tags render the job.
+        #[serde(default)]
+        pub require_tags: Vec<String>,
+    }
 }
 
 /// The longest scene name kept (in characters); the rest is cut.
@@ -417,11 +423,9 @@ mod tests {
         let spec: JobSpec = serde_json::from_str(&json).unwrap();
         let name = &spec.request.scene_name;
         assert!(name.starts_with("a\\nb\\u{202e}x"), "{name}");
-        assert_eq!(
-            name.chars().count(),
-            MAX_SCENE_NAME_CHARS + 1,
-            "cut, with …"
-        );
+        // Cut after 256 characters of the name (4 of them escaped), with `…`.
+        assert_eq!(name.matches('x').count(), MAX_SCENE_NAME_CHARS - 4);
+        assert!(name.ends_with('…'), "{name}");
     }
 
     #[test]

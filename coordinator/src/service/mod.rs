@@ -118,6 +118,9 @@ struct JobMeta {
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
     metadata: Option<Arc<crate::pipeline::output::ImageMetadata>>,
+    /// Its scene while it is in the farm: the farm's checks and in-process
+    /// workers render this one rather than build it again.
+    scene: Option<Arc<hypertexture::Scene>>,
     /// When it first ran in this process, and its units done then (for the ETA).
     running_since: Option<(Instant, u64)>,
     /// Its progress when it left the scheduler (ended jobs).
@@ -453,6 +456,7 @@ impl Service {
             drop(state);
             shared.remove_job(id);
         }
+        meta.scene = None;
     }
 
     /// Records a job's final state in the store, then in its view.
@@ -722,6 +726,7 @@ impl Service {
             scene_name: stored.spec.request.scene_name.clone(),
             units_per_frame: 0,
             metadata: None,
+            scene: None,
             frames,
             state,
             error: job.error.clone(),
@@ -796,6 +801,7 @@ impl Service {
             )
             .map_err(bad)?;
         meta.metadata = Some(checked.metadata.clone());
+        meta.scene = Some(Arc::clone(&checked.built.scene));
         tracing::info!(
             "job {} resumed: {frames_done} of {} frames written, {tile_count} units of the next stored",
             job.id,
@@ -847,7 +853,9 @@ impl Control for Arc<Service> {
             .enqueue(id, &stored, &checked, Resume::default())
             .map_err(ApiError::Internal)?;
         let Checked {
-            frames, metadata, ..
+            frames,
+            metadata,
+            built,
         } = checked;
         let name = stored.spec.request.scene_name.clone();
         tracing::info!(
@@ -865,6 +873,7 @@ impl Control for Arc<Service> {
             units_per_frame,
             scene_name: name,
             metadata: Some(metadata),
+            scene: Some(built.scene),
             running_since: None,
             final_units: 0,
             final_blocklisted: Vec::new(),

@@ -110,6 +110,9 @@ struct LiveFrame {
     /// A high-quality frame's tile events not sent yet, and when they go.
     batch: Vec<serde_json::Value>,
     flush_at: Option<Instant>,
+    /// Its scene, held while the frame is in the farm: the farm's checks
+    /// and in-process workers render this one rather than build it again.
+    _scene: Arc<hypertexture::Scene>,
 }
 
 /// What the studio shows.
@@ -669,6 +672,7 @@ impl Studio {
             pixels: Vec::new(),
             batch: Vec::new(),
             flush_at: None,
+            _scene: Arc::clone(&checked.built.scene),
         });
         shared
             .add_job(plan, Resume::default(), WireJob::of(&frame_job))
@@ -1071,6 +1075,14 @@ mod tests {
             ],
             batch: Vec::new(),
             flush_at: None,
+            _scene: Arc::new(
+                hypertexture::RenderRequest::new(
+                    include_str!("../../../scenes/noisy_sphere.ron"),
+                    "noisy_sphere.ron",
+                )
+                .build(None)
+                .unwrap(),
+            ),
         });
         let range = |generation, from, to| TileRange {
             generation,

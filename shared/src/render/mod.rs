@@ -9,8 +9,9 @@
 //! The layer above [`crate::field`]: [`camera`] makes rays, [`march`] walks
 //! them through the density, [`lighting`] shades, [`sampling`] jitters and
 //! filters, [`film`] records, [`interleave`] cuts images into the farm's
-//! units, [`bake`] samples H(x) on a lattice and [`probe`] digests this
-//! build's arithmetic.
+//! units, [`bake`] samples H(x) on a lattice, [`probe`] digests this
+//! build's arithmetic and [`request`] says what to render (a scene, its
+//! overrides, frames and pixel format).
 
 pub mod bake;
 pub mod camera;
