@@ -4,11 +4,10 @@
 //! are stored. Then `coordinator serve --data DIR --local-workers 0` resumes
 //! them all; its log says how long that took.
 
-use std::collections::BTreeMap;
-
 use coordinator::service::jobs::JobSpec;
 use coordinator::service::store::Store;
 use hypertexture::render::interleave::farm_units;
+use hypertexture::{Overrides, PixelFormat, RenderRequest};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
@@ -27,16 +26,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut job = 0;
     while stored < units {
         let spec = JobSpec {
-            scene: scene.clone(),
-            scene_name: Some("noisy_sphere.ron".into()),
+            request: RenderRequest {
+                overrides: Overrides {
+                    width: Some(512),
+                    height: Some(512),
+                    ..Overrides::default()
+                },
+                pixel_format: PixelFormat::Srgb8,
+                ..RenderRequest::new(scene.clone(), "noisy_sphere.ron")
+            },
             out: out.join(format!("job{job}.png")).display().to_string(),
-            frames: None,
             priority: 0,
-            width: Some(512),
-            height: Some(512),
-            spp: None,
-            quality: None,
-            knobs: BTreeMap::new(),
             require_tags: Vec::new(),
         };
         let json = coordinator::service::stored_spec_json(&spec, 8, 64)?;

@@ -1,4 +1,5 @@
-//! Command-line arguments, converted into a library [`Config`].
+//! Command-line arguments, converted into the library's configurations
+//! ([`Config`], [`ServeConfig`], [`StudioConfig`]) and requests ([`JobSpec`]).
 
 use std::net::SocketAddr;
 use std::num::NonZeroUsize;
@@ -6,8 +7,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::Parser;
+use hypertexture::{FrameRange, Overrides, RenderRequest};
 
-use crate::{Config, FarmOptions};
+use crate::CoordinatorError;
+use crate::pipeline::run::{Config, FarmOptions};
+use crate::service::client::{ClientError, Endpoint};
+use crate::service::jobs::{JobSpec, QualitySpec};
+use crate::service::{ServeConfig, StudioConfig};
 
 /// Render a hypertexture scene to PNG or OpenEXR, on a farm of workers (by
 /// default local worker processes, one per core) or in-process.
@@ -24,12 +30,9 @@ pub struct Cli {
     /// Default: the scene's name with .png, in the current directory.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
-    /// Image width in pixels (overrides the scene's).
-    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
-    pub width: Option<u32>,
-    /// Image height in pixels (overrides the scene's).
-    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
-    pub height: Option<u32>,
+    /// What the render overrides: size, samples, quality, knobs.
+    #[command(flatten)]
+    pub request: RequestArgs,
     /// Render in this process with a thread pool, without the farm (no gRPC).
     #[arg(long)]
     pub in_process: bool,
@@ -38,26 +41,9 @@ pub struct Cli {
     /// the cores, and 1024.
     #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
     pub threads: Option<NonZeroUsize>,
-    /// Where the farm listens for workers. Anything but loopback needs --token.
-    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
-    pub listen: SocketAddr,
-    /// Local worker processes to start (default: one per core; 0 = remote workers only).
-    #[arg(long, value_name = "N")]
-    pub local_workers: Option<usize>,
-    /// Shared secret workers must present (required beyond loopback).
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
-    /// Give up (exit non-zero) when no worker is connected for this many seconds.
-    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
-    pub worker_timeout: f64,
+    /// The farm: where it listens, its local workers, token and time-outs.
+    #[command(flatten)]
+    pub farm: FarmArgs,
     /// Rewrite the partial image at --out every SECS seconds while rendering.
     #[arg(long, value_name = "SECS", value_parser = positive_seconds)]
     pub preview_every: Option<f64>,
@@ -80,6 +66,24 @@ pub struct Cli {
     /// see `frame` and `t = frame / frame_rate`).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
+    /// Render frames A to B as a numbered sequence (A..B excludes B, A..=B includes
+    /// it): --out fire.png writes fire_0001.png, fire_0002.png, …
+    #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
+    pub frames: Option<(u32, u32)>,
+    /// No progress bar and no log lines; errors are still printed.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// What a render asks besides its scene (`coordinator --scene` and `submit`).
+#[derive(Debug, clap::Args)]
+pub struct RequestArgs {
+    /// Image width in pixels (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub width: Option<u32>,
+    /// Image height in pixels (overrides the scene's).
+    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub height: Option<u32>,
     /// Samples per pixel: jittered positions, step phases and (with the scene's
     /// shutter) times within each pixel, averaged (overrides the scene's `sampling.spp`).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
@@ -87,33 +91,71 @@ pub struct Cli {
     /// Marching step: `interactive` (the scene's interactive_step, 4× its step by
     /// default) or `high` (the scene's step, the default).
     #[arg(long, value_name = "PRESET")]
-    pub quality: Option<QualityArg>,
-    /// Render frames A to B as a numbered sequence (A..B excludes B, A..=B includes
-    /// it): --out fire.png writes fire_0001.png, fire_0002.png, …
-    #[arg(long, value_name = "A..B", conflicts_with = "frame", value_parser = frame_range)]
-    pub frames: Option<(u32, u32)>,
+    pub quality: Option<QualitySpec>,
     /// Set a knob of the scene (repeatable): --set curliness=0.8.
     #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
     pub set: Vec<(String, f64)>,
-    /// No progress bar and no log lines; errors are still printed.
-    #[arg(long, short)]
-    pub quiet: bool,
 }
 
-/// `--quality` values.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum QualityArg {
-    /// Large step: fast exploration.
-    Interactive,
-    /// Small step: the scene's own.
-    High,
+impl RequestArgs {
+    /// The request these flags ask for, over `frames` (its scene text is
+    /// read later).
+    pub fn request(self, frames: FrameRange) -> RenderRequest {
+        RenderRequest {
+            overrides: Overrides {
+                width: self.width,
+                height: self.height,
+                spp: self.spp,
+                quality: self.quality.map(Into::into),
+                knobs: self.set,
+            },
+            frames,
+            ..RenderRequest::new(String::new(), String::new())
+        }
+    }
 }
 
-impl From<QualityArg> for hypertexture::Quality {
-    fn from(q: QualityArg) -> Self {
-        match q {
-            QualityArg::Interactive => hypertexture::Quality::Interactive,
-            QualityArg::High => hypertexture::Quality::High,
+/// How a one-shot render or bake runs its farm.
+#[derive(Debug, clap::Args)]
+pub struct FarmArgs {
+    /// Where the farm listens for workers. Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+    /// Shared secret workers must present (required beyond loopback).
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+    /// Give up (exit non-zero) when no worker is connected for this many seconds.
+    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
+    pub worker_timeout: f64,
+}
+
+impl FarmArgs {
+    /// The farm's options: these flags, no previews and no TLS, interleave
+    /// 8 and the default verified fraction.
+    pub fn options(self) -> FarmOptions {
+        FarmOptions {
+            listen: self.listen,
+            token: self.token.filter(|t| !t.is_empty()),
+            lease: Duration::from_secs_f64(self.lease_timeout),
+            worker_timeout: Duration::from_secs_f64(self.worker_timeout),
+            local_workers: self.local_workers.unwrap_or_else(|| {
+                std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
+            }),
+            preview_every: None,
+            tls: None,
+            interleave: 8,
+            verify: crate::farm::DEFAULT_VERIFY,
         }
     }
 }
@@ -356,21 +398,9 @@ pub struct SubmitArgs {
         allow_negative_numbers = true
     )]
     pub priority: i32,
-    /// Image width (overrides the scene's).
-    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
-    pub width: Option<u32>,
-    /// Image height (overrides the scene's).
-    #[arg(long, value_name = "PIXELS", value_parser = clap::value_parser!(u32).range(1..=16384))]
-    pub height: Option<u32>,
-    /// Samples per pixel (overrides the scene's).
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
-    pub spp: Option<u32>,
-    /// Marching step preset.
-    #[arg(long, value_name = "PRESET")]
-    pub quality: Option<QualityArg>,
-    /// Set a knob of the scene (repeatable).
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
-    pub set: Vec<(String, f64)>,
+    /// What the job overrides: size, samples, quality, knobs.
+    #[command(flatten)]
+    pub request: RequestArgs,
     /// Only workers carrying this tag render the job (repeatable: all of them).
     #[arg(long = "require-tag", value_name = "NAME")]
     pub require_tag: Vec<String>,
@@ -472,26 +502,9 @@ pub struct BakeArgs {
     /// Bake in this process with a thread pool, without the farm (no gRPC).
     #[arg(long)]
     pub in_process: bool,
-    /// Where the farm listens for workers. Anything but loopback needs --token.
-    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
-    pub listen: SocketAddr,
-    /// Local worker processes to start (default: one per core; 0 = remote workers only).
-    #[arg(long, value_name = "N")]
-    pub local_workers: Option<usize>,
-    /// Shared secret workers must present (required beyond loopback).
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
-    /// Give up (exit non-zero) when no worker is connected for this many seconds.
-    #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
-    pub worker_timeout: f64,
+    /// The farm: where it listens, its local workers, token and time-outs.
+    #[command(flatten)]
+    pub farm: FarmArgs,
     /// No log lines; errors are still printed.
     #[arg(long, short)]
     pub quiet: bool,
@@ -508,19 +521,7 @@ impl BakeArgs {
             frames: self.frames,
             threads: self.threads,
             knobs: self.set,
-            farm: (!self.in_process).then(|| FarmOptions {
-                listen: self.listen,
-                token: self.token.filter(|t| !t.is_empty()),
-                lease: Duration::from_secs_f64(self.lease_timeout),
-                worker_timeout: Duration::from_secs_f64(self.worker_timeout),
-                local_workers: self.local_workers.unwrap_or_else(|| {
-                    std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
-                }),
-                preview_every: None,
-                tls: None,
-                interleave: 8,
-                verify: crate::farm::DEFAULT_VERIFY,
-            }),
+            farm: (!self.in_process).then(|| self.farm.options()),
         }
     }
 }
@@ -596,8 +597,10 @@ impl BenchArgs {
 }
 
 impl Cli {
-    /// The library configuration these arguments ask for (a render: no subcommand).
-    pub fn into_config(self) -> Config {
+    /// The library configuration these arguments ask for (a render: no
+    /// subcommand): the output checked and the scene read
+    /// ([`Config::load`]).
+    pub fn into_config(self) -> Result<Config, CoordinatorError> {
         let scene = self.scene.unwrap_or_default();
         let out = self.out.unwrap_or_else(|| {
             let stem = scene
@@ -605,32 +608,97 @@ impl Cli {
                 .map_or_else(|| "render".into(), |s| s.to_os_string());
             PathBuf::from(stem).with_extension("png")
         });
-        let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
+        let frames = match self.frames {
+            Some((first, last)) => FrameRange { first, last },
+            None => FrameRange::one(self.frame),
+        };
+        let request = self.request.request(frames);
+        let config = Config::load(&scene, out, request, self.frames.is_some())?;
         let farm = (!self.in_process).then(|| FarmOptions {
-            listen: self.listen,
-            token: self.token.filter(|t| !t.is_empty()),
-            lease: Duration::from_secs_f64(self.lease_timeout),
-            worker_timeout: Duration::from_secs_f64(self.worker_timeout),
-            local_workers: self.local_workers.unwrap_or(cores),
             preview_every: self.preview_every.map(Duration::from_secs_f64),
             tls: self.tls_cert.zip(self.tls_key),
             interleave: self.interleave,
             verify: self.verify,
+            ..self.farm.options()
         });
-        Config {
-            scene,
-            out,
-            width: self.width,
-            height: self.height,
+        Ok(Config {
             threads: self.threads,
-            frame: self.frame,
-            spp: self.spp,
-            quality: self.quality.map(Into::into),
-            frames: self.frames,
-            knobs: self.set,
             progress: !self.quiet,
             farm,
+            ..config
+        })
+    }
+}
+
+impl ServeArgs {
+    /// The service's settings these arguments ask for.
+    pub fn into_config(self) -> ServeConfig {
+        ServeConfig {
+            data: self.data,
+            listen: self.listen,
+            local_workers: self.local_workers,
+            threads: self.threads,
+            token: self.token,
+            allow_hosts: self.allow_host,
+            tls: self.tls_cert.zip(self.tls_key),
+            lease: Duration::from_secs_f64(self.lease_timeout),
+            drain_timeout: Duration::from_secs_f64(self.drain_timeout),
+            verify: self.verify,
+            interleave: self.interleave,
+            accept_older_store: self.accept_older_store,
+            output_roots: self.output_root,
+            max_queued: self.max_queued,
+            keep_ended: self.keep_ended,
+            json_logs: self.log_format == LogFormat::Json,
+            quiet: self.quiet,
         }
+    }
+}
+
+impl StudioArgs {
+    /// The studio's settings these arguments ask for.
+    pub fn into_config(self) -> StudioConfig {
+        StudioConfig {
+            scene: self.scene,
+            listen: self.listen,
+            local_workers: self.local_workers,
+            data: self.data,
+            token: self.token,
+            allow_hosts: self.allow_host,
+            quiet: self.quiet,
+        }
+    }
+}
+
+impl ServerArgs {
+    /// The service these arguments name.
+    pub fn endpoint(&self) -> Endpoint {
+        Endpoint {
+            url: self.server.clone(),
+            token: self.token.clone(),
+            ca: self.ca.clone(),
+        }
+    }
+}
+
+impl SubmitArgs {
+    /// The job these arguments describe, with the scene's text read from
+    /// its file and a relative `--out` made absolute
+    /// ([`crate::service::client::read_job`]).
+    pub fn job(self) -> Result<JobSpec, ClientError> {
+        let frames = self
+            .frames
+            .map_or(FrameRange::one(0), |(first, last)| FrameRange {
+                first,
+                last,
+            });
+        let job = JobSpec {
+            request: self.request.request(frames),
+            out: self.out,
+            priority: self.priority,
+            require_tags: self.require_tag,
+        };
+        crate::service::client::read_job(&self.scene, job)
     }
 }
 
@@ -721,5 +789,241 @@ fn interleave(s: &str) -> Result<u32, String> {
     match s.parse::<u32>() {
         Ok(b) if b.is_power_of_two() && b <= 64 => Ok(b),
         _ => Err(format!("expected 1, 2, 4, 8, 16, 32 or 64, found {s:?}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hypertexture::Quality;
+
+    fn parse(args: &[&str]) -> Result<Cli, String> {
+        Cli::try_parse_from(std::iter::once("coordinator").chain(args.iter().copied()))
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn render_flags_become_the_request() {
+        let cli = parse(&[
+            "--scene",
+            "s.ron",
+            "--width",
+            "64",
+            "--height",
+            "32",
+            "--spp",
+            "4",
+            "--quality",
+            "interactive",
+            "--set",
+            "b=1",
+            "--set",
+            "a=0.5",
+            "--frames",
+            "3..=5",
+        ])
+        .unwrap();
+        assert_eq!(cli.frames, Some((3, 5)));
+        let request = cli.request.request(FrameRange { first: 3, last: 5 });
+        assert_eq!(
+            request.overrides,
+            Overrides {
+                width: Some(64),
+                height: Some(32),
+                spp: Some(4),
+                quality: Some(Quality::Interactive),
+                knobs: vec![("b".into(), 1.0), ("a".into(), 0.5)],
+            }
+        );
+        assert_eq!(request.frames, FrameRange { first: 3, last: 5 });
+    }
+
+    #[test]
+    fn a_render_reads_its_scene_and_takes_its_format_from_out() {
+        let dir = std::env::temp_dir().join(format!("coordinator-cli-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("s.ron");
+        std::fs::write(&scene, "Scene()").unwrap();
+        let out = dir.join("o.exr");
+        let cli = parse(&[
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--frame",
+            "7",
+            "--in-process",
+            "-q",
+        ])
+        .unwrap();
+        let config = cli.into_config().unwrap();
+        assert_eq!(config.request.scene_text, "Scene()");
+        assert_eq!(config.request.scene_name, scene.display().to_string());
+        assert_eq!(config.request.frames, FrameRange::one(7));
+        assert_eq!(
+            config.request.pixel_format,
+            hypertexture::PixelFormat::Samples
+        );
+        assert!(!config.sequence && config.farm.is_none() && !config.progress);
+        let bad = parse(&["--scene", scene.to_str().unwrap(), "--out", "o.jpg"]).unwrap();
+        let e = bad.into_config().unwrap_err().to_string();
+        assert!(e.contains("o.jpg"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn farm_flags_are_the_same_on_render_and_bake() {
+        let render = parse(&[
+            "--scene",
+            "s.ron",
+            "--listen",
+            "0.0.0.0:7000",
+            "--token",
+            "t",
+            "--lease-timeout",
+            "2.5",
+            "--worker-timeout",
+            "9",
+            "--local-workers",
+            "3",
+            "--interleave",
+            "16",
+        ])
+        .unwrap();
+        let Some(Command::Bake(bake)) = parse(&[
+            "bake",
+            "s.ron",
+            "--out",
+            "b.vdb",
+            "--listen",
+            "0.0.0.0:7000",
+            "--token",
+            "t",
+            "--lease-timeout",
+            "2.5",
+            "--worker-timeout",
+            "9",
+            "--local-workers",
+            "3",
+        ])
+        .unwrap()
+        .command
+        else {
+            panic!("not a bake")
+        };
+        let (a, b) = (render.farm.options(), bake.farm.options());
+        assert_eq!(
+            (
+                a.listen,
+                a.token.clone(),
+                a.lease,
+                a.worker_timeout,
+                a.local_workers
+            ),
+            (
+                b.listen,
+                b.token.clone(),
+                b.lease,
+                b.worker_timeout,
+                b.local_workers
+            )
+        );
+        assert_eq!(a.lease, Duration::from_millis(2500));
+        assert_eq!(render.interleave, 16);
+    }
+
+    #[test]
+    fn submit_flags_become_the_job() {
+        let Some(Command::Submit(submit)) = parse(&[
+            "submit",
+            "s.ron",
+            "--out",
+            "o_##.png",
+            "--frames",
+            "2..5",
+            "--priority",
+            "-1",
+            "--spp",
+            "8",
+            "--set",
+            "k=2",
+            "--require-tag",
+            "gpu",
+        ])
+        .unwrap()
+        .command
+        else {
+            panic!("not a submit")
+        };
+        assert_eq!(submit.frames, Some((2, 4)));
+        assert_eq!(
+            (submit.priority, submit.require_tag.clone()),
+            (-1, vec!["gpu".into()])
+        );
+        let request = submit.request.request(FrameRange { first: 2, last: 4 });
+        assert_eq!(request.overrides.spp, Some(8));
+        assert_eq!(request.overrides.knobs, vec![("k".into(), 2.0)]);
+    }
+
+    #[test]
+    fn serve_flags_become_the_service_settings() {
+        let Some(Command::Serve(serve)) = parse(&[
+            "serve",
+            "--data",
+            "d",
+            "--drain-timeout",
+            "3",
+            "--log-format",
+            "json",
+            "--allow-host",
+            "Farm.lan",
+            "--output-root",
+            "/tmp",
+        ])
+        .unwrap()
+        .command
+        else {
+            panic!("not a serve")
+        };
+        let config = serve.into_config();
+        assert_eq!(config.data, PathBuf::from("d"));
+        assert_eq!(config.drain_timeout, Duration::from_secs(3));
+        assert!(config.json_logs && !config.quiet);
+        assert_eq!(config.allow_hosts, vec!["farm.lan".to_string()]);
+        assert_eq!(config.output_roots, vec![PathBuf::from("/tmp")]);
+        assert_eq!(config.lease, Duration::from_secs(10));
+    }
+
+    #[test]
+    fn refusals_name_the_flag() {
+        for (args, flag) in [
+            (&["--scene", "s.ron", "--spp", "0"][..], "--spp"),
+            (&["--scene", "s.ron", "--width", "20000"], "--width"),
+            (&["--scene", "s.ron", "--set", "curliness"], "--set"),
+            (&["--scene", "s.ron", "--set", "k=inf"], "knob k"),
+            (&["--scene", "s.ron", "--frames", "5..2"], "--frames"),
+            (
+                &["--scene", "s.ron", "--frame", "1", "--frames", "1..3"],
+                "--frame",
+            ),
+            (&["--scene", "s.ron", "--quality", "best"], "--quality"),
+            (
+                &["--scene", "s.ron", "--lease-timeout", "0"],
+                "--lease-timeout",
+            ),
+            (&["--scene", "s.ron", "--verify", "2"], "--verify"),
+            (&["--scene", "s.ron", "--interleave", "3"], "--interleave"),
+            (&["--scene", "s.ron", "--tls-cert", "c.pem"], "--tls-key"),
+            (&["submit", "s.ron"], "--out"),
+            (
+                &["serve", "--data", "d", "--allow-host", "a:1"],
+                "--allow-host",
+            ),
+        ] {
+            let e = parse(args)
+                .err()
+                .unwrap_or_else(|| panic!("{args:?} was accepted"));
+            assert!(e.contains(flag), "{args:?}: {e}");
+        }
     }
 }

@@ -9,97 +9,9 @@ use coordinator::cli::{Cli, Command};
 fn main() -> ExitCode {
     let mut cli = Cli::parse();
     coordinator::farm::panics::install();
-    let result: Result<ExitCode, String> = match cli.command.take() {
-        Some(Command::Bench(args)) => {
-            coordinator::logging::init(true);
-            coordinator::pipeline::bench::run(&args.into_config())
-                .map(|()| ExitCode::SUCCESS)
-                .map_err(|e| e.to_string())
-        }
-        Some(Command::Grid(args)) => {
-            coordinator::pipeline::grid::png_to_grid(&args.png, args.side as usize)
-                .map(|grid| {
-                    say(format_args!("{grid}\n"));
-                    ExitCode::SUCCESS
-                })
-                .map_err(|e| e.to_string())
-        }
-        Some(Command::Eval(args)) => coordinator::eval(
-            &args.expression,
-            args.scene.as_deref(),
-            args.at,
-            args.frame,
-            &args.set,
-        )
-        .map(|value| {
-            say(format_args!("{value}\n"));
-            ExitCode::SUCCESS
-        })
-        .map_err(|e| e.to_string()),
-        Some(Command::Bake(args)) => {
-            coordinator::logging::init(args.quiet);
-            coordinator::pipeline::bake::run(&args.into_config())
-                .map(|_| ExitCode::SUCCESS)
-                .map_err(|e| e.to_string())
-        }
-        Some(Command::Recolor(args)) => {
-            coordinator::logging::init(false);
-            coordinator::pipeline::recolor::run(&args.input, &args.colormap, &args.out)
-                .map(|()| ExitCode::SUCCESS)
-                .map_err(|e| e.to_string())
-        }
-        Some(Command::Serve(args)) => coordinator::service::run(args)
-            .map(|()| ExitCode::SUCCESS)
-            .map_err(|e| e.to_string()),
-        Some(Command::Studio(args)) => coordinator::service::run_studio(args)
-            .map(|()| ExitCode::SUCCESS)
-            .map_err(|e| e.to_string()),
-        Some(Command::Submit(args)) => coordinator::service::client::submit(&args)
-            .map(|id| {
-                say(format_args!("{id}\n"));
-                ExitCode::SUCCESS
-            })
-            .map_err(|e| e.to_string()),
-        Some(Command::Status(args)) => coordinator::service::client::status(&args)
-            .map(|table| {
-                say(format_args!("{table}"));
-                ExitCode::SUCCESS
-            })
-            .map_err(|e| e.to_string()),
-        Some(Command::Cancel(args)) => coordinator::service::client::cancel(&args)
-            .map(|job| {
-                say(format_args!("{} {}\n", job.id, job.state.as_str()));
-                ExitCode::SUCCESS
-            })
-            .map_err(|e| e.to_string()),
-        Some(Command::Wait(args)) => coordinator::service::client::wait(&args)
-            .map(|job| {
-                say(format_args!("{} {}\n", job.id, job.state.as_str()));
-                if job.state == coordinator::service::jobs::JobState::Done {
-                    ExitCode::SUCCESS
-                } else {
-                    if let Some(e) = &job.error {
-                        complain(format_args!("error: job {}: {e}\n", job.id));
-                    }
-                    ExitCode::FAILURE
-                }
-            })
-            .map_err(|e| e.to_string()),
-        Some(Command::Store(command)) => store_command(command),
-        Some(Command::Cert(args)) => coordinator::farm::cert::make(&args.out, &args.name)
-            .map(|files| {
-                for f in &files {
-                    say(format_args!("{}\n", f.display()));
-                }
-                ExitCode::SUCCESS
-            })
-            .map_err(|e| e.to_string()),
-        None => {
-            coordinator::logging::init(cli.quiet);
-            coordinator::run_all(cli.into_config())
-                .map(|_| ExitCode::SUCCESS)
-                .map_err(|e| e.to_string())
-        }
+    let result = match cli.command.take() {
+        Some(command) => subcommand(command),
+        None => render(cli),
     };
     match result {
         Ok(code) => code,
@@ -108,6 +20,116 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `coordinator --scene …`: a one-shot render.
+fn render(cli: Cli) -> Result<ExitCode, String> {
+    coordinator::logging::init(cli.quiet);
+    cli.into_config()
+        .and_then(coordinator::pipeline::run::run_all)
+        .map(|_| ExitCode::SUCCESS)
+        .map_err(|e| e.to_string())
+}
+
+/// A subcommand: the one-shot tools, the service, or a client of it.
+fn subcommand(command: Command) -> Result<ExitCode, String> {
+    match command {
+        Command::Serve(args) => coordinator::service::run(args.into_config())
+            .map(|()| ExitCode::SUCCESS)
+            .map_err(|e| e.to_string()),
+        Command::Studio(args) => coordinator::service::run_studio(args.into_config())
+            .map(|()| ExitCode::SUCCESS)
+            .map_err(|e| e.to_string()),
+        Command::Submit(_) | Command::Status(_) | Command::Cancel(_) | Command::Wait(_) => {
+            client_command(command)
+        }
+        Command::Store(command) => store_command(command),
+        Command::Cert(args) => coordinator::farm::cert::make(&args.out, &args.name)
+            .map(|files| {
+                for f in &files {
+                    say(format_args!("{}\n", f.display()));
+                }
+                ExitCode::SUCCESS
+            })
+            .map_err(|e| e.to_string()),
+        tool => pipeline_command(tool),
+    }
+}
+
+/// `coordinator bench|grid|eval|bake|recolor`.
+fn pipeline_command(command: Command) -> Result<ExitCode, String> {
+    let done = |r: Result<(), coordinator::CoordinatorError>| {
+        r.map(|()| ExitCode::SUCCESS).map_err(|e| e.to_string())
+    };
+    let print = |r: Result<String, coordinator::CoordinatorError>| {
+        done(r.map(|text| say(format_args!("{text}\n"))))
+    };
+    match command {
+        Command::Bench(args) => {
+            coordinator::logging::init(true);
+            done(coordinator::pipeline::bench::run(&args.into_config()))
+        }
+        Command::Grid(args) => print(coordinator::pipeline::grid::png_to_grid(
+            &args.png,
+            args.side as usize,
+        )),
+        Command::Eval(args) => print(coordinator::pipeline::run::eval(
+            &args.expression,
+            args.scene.as_deref(),
+            args.at,
+            args.frame,
+            &args.set,
+        )),
+        Command::Bake(args) => {
+            coordinator::logging::init(args.quiet);
+            done(coordinator::pipeline::bake::run(&args.into_config()).map(|_| ()))
+        }
+        Command::Recolor(args) => {
+            coordinator::logging::init(false);
+            done(coordinator::pipeline::recolor::run(
+                &args.input,
+                &args.colormap,
+                &args.out,
+            ))
+        }
+        other => Err(format!("not a pipeline command: {other:?}")),
+    }
+}
+
+/// `coordinator submit|status|cancel|wait`: a client of a running service.
+fn client_command(command: Command) -> Result<ExitCode, String> {
+    use coordinator::service::client;
+    let said = |job: &coordinator::service::jobs::JobView| {
+        say(format_args!("{} {}\n", job.id, job.state.as_str()));
+    };
+    let answer = match command {
+        Command::Submit(args) => {
+            let server = args.server.endpoint();
+            args.job()
+                .and_then(|job| client::submit(&server, &job))
+                .map(|id| say(format_args!("{id}\n")))
+        }
+        Command::Status(args) => client::status(&args.server.endpoint(), args.job)
+            .map(|table| say(format_args!("{table}"))),
+        Command::Cancel(args) => {
+            client::cancel(&args.server.endpoint(), args.job).map(|job| said(&job))
+        }
+        Command::Wait(args) => {
+            let job = client::wait(&args.server.endpoint(), args.job).map_err(|e| e.to_string())?;
+            said(&job);
+            if job.state == coordinator::service::jobs::JobState::Done {
+                return Ok(ExitCode::SUCCESS);
+            }
+            if let Some(e) = &job.error {
+                complain(format_args!("error: job {}: {e}\n", job.id));
+            }
+            return Ok(ExitCode::FAILURE);
+        }
+        other => return Err(format!("not a client command: {other:?}")),
+    };
+    answer
+        .map(|()| ExitCode::SUCCESS)
+        .map_err(|e| e.to_string())
 }
 
 /// `coordinator store check|backup`.

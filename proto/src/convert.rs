@@ -340,11 +340,6 @@ pub fn reason_from_wire(reason: &str) -> String {
     }
 }
 
-/// Samples per pixel from the wire: 0 means the scene's own.
-pub fn spp_from_wire(spp: u32) -> Option<u32> {
-    (spp != 0).then_some(spp)
-}
-
 /// Knob overrides on the wire.
 pub fn knobs_to_wire(knobs: &[(String, f64)]) -> Vec<pb::KnobSetting> {
     knobs
@@ -478,7 +473,6 @@ mod tests {
             assert_eq!(quality_from_wire(quality_to_wire(q) as i32), Ok(q));
         }
         assert_eq!(quality_from_wire(7), Err(WireError::UnknownQuality(7)));
-        assert_eq!(spp_from_wire(0), None);
         for k in [
             FailureKind::Scene,
             FailureKind::Assignment,
@@ -512,7 +506,6 @@ mod tests {
             name_from_wire(&"y".repeat(65)),
             format!("{}…", "y".repeat(64))
         );
-        assert_eq!(spp_from_wire(4), Some(4));
     }
 
     #[test]

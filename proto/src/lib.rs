@@ -1,10 +1,12 @@
 //! The wire protocol of the render farm (package `hypertexture.v1`), and the one
-//! place where wire types and the program's own types meet ([`convert`]).
+//! place where wire types and the program's own types meet ([`convert`], and
+//! [`request`] for a render request).
 //!
 //! Only this crate knows the wire format: the coordinator and worker speak in
 //! `hypertexture` types and convert at the gRPC edge.
 
 pub mod convert;
+pub mod request;
 
 /// A tile's pixels on the wire (a slice of the received buffer, not a copy).
 pub use prost::bytes::Bytes;

@@ -25,4 +25,5 @@ pub mod render;
 pub mod scene;
 
 pub use render::film::{Film, PixelFormat, Sample};
+pub use render::request::{FrameRange, RenderRequest};
 pub use scene::{Overrides, Quality, Scene, SceneError};

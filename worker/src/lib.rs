@@ -24,8 +24,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use hypertexture::Scene;
 use hypertexture::render::interleave::WorkUnit;
-use hypertexture::{Overrides, Scene};
 use hypertexture_proto::pb::GetWorkResult;
 use hypertexture_proto::pb::farm_client::FarmClient;
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
@@ -1305,23 +1305,14 @@ impl SceneCache {
             });
         }
         let scene_failure = |e: String| (FailureKind::Scene, e);
-        let knobs = convert::knobs_from_wire(&job.knobs);
+        let request = hypertexture_proto::request::from_wire(job)
+            .map_err(|e| scene_failure(e.to_string()))?;
         let hashes: Vec<(String, u64)> = job
             .assets
             .iter()
             .map(|a| (a.path.clone(), a.hash))
             .collect();
-        let hash = convert::scene_hash_with_assets(
-            convert::scene_hash(
-                &job.scene_text,
-                job.width,
-                job.height,
-                job.spp,
-                job.quality,
-                &knobs,
-            ),
-            &hashes,
-        );
+        let hash = hypertexture_proto::request::content_hash(&request, &hashes);
         if hash != job.scene_hash {
             return Err(scene_failure(format!(
                 "{}: content hash mismatch ({hash:016x} ≠ {:016x})",
@@ -1345,22 +1336,11 @@ impl SceneCache {
             };
             assets.insert(&a.path, mesh);
         }
-        // Only the files that came with the job: a worker reads none from disk.
-        let scene = Scene::from_text_with(
-            &job.scene_text,
-            &job.scene_name,
-            Overrides {
-                width: Some(job.width),
-                height: Some(job.height),
-                spp: convert::spp_from_wire(job.spp),
-                quality: convert::quality_from_wire(job.quality)
-                    .map_err(|e| scene_failure(e.to_string()))?,
-                knobs,
-            },
-            Some(&assets),
-        )
-        .map_err(|e| scene_failure(e.to_string()))?;
-        let scene = Arc::new(scene);
+        // Only the files that came with the job: a worker reads none from
+        // disk. The scene the coordinator of this process built is taken as it is.
+        let scene = request
+            .build_shared(hash, Some(&assets))
+            .map_err(|e| scene_failure(e.to_string()))?;
         self.keep(hash, &scene, job, fetched);
         Ok(scene)
     }
@@ -1547,6 +1527,7 @@ mod tests {
             scene_name: "test.ron".into(),
             width: 8,
             height: 8,
+            pixel_format: pb::PixelFormat::Srgb8 as i32,
             ..Default::default()
         }
     }
@@ -1609,6 +1590,7 @@ mod tests {
                 hash,
                 size: obj.len() as u64,
             }],
+            pixel_format: pb::PixelFormat::Srgb8 as i32,
             ..Default::default()
         };
         (job, Fetched::from([(hash, Arc::new(mesh))]))

@@ -25,7 +25,6 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use hypertexture::PixelFormat;
 use hypertexture::render::interleave::farm_units;
 use hypertexture_proto::pb::farm_server::{Farm as FarmRpc, FarmServer};
 use hypertexture_proto::pb::{self, get_work_result::Outcome};
@@ -149,33 +148,28 @@ pub struct FrameOut {
 /// What to render: one scene, one frame or a sequence.
 #[derive(Clone, Debug)]
 pub struct FrameJob {
-    /// The scene's RON text.
-    pub scene_text: String,
-    /// Its name (file path) for messages.
-    pub scene_name: String,
-    /// Image width.
-    pub width: u32,
-    /// Image height.
-    pub height: u32,
+    /// The scene, its overrides with the image size every worker builds
+    /// ([`hypertexture::RenderRequest::with_size_of`], or a bake's lattice
+    /// laid out as an image), the tiles' pixel format and a bake's lattice.
+    pub request: hypertexture::RenderRequest,
     /// The frames, rendered in this order (at least one).
     pub frames: Vec<FrameOut>,
-    /// Samples per pixel override (`--spp`).
-    pub spp: Option<u32>,
-    /// Quality preset (`--quality`).
-    pub quality: Option<hypertexture::Quality>,
-    /// Knob overrides (`--set`).
-    pub knobs: Vec<(String, f64)>,
-    /// What the tiles carry: what the outputs need
-    /// ([`crate::pipeline::output::pixel_format_for`]).
-    pub pixel_format: PixelFormat,
     /// What the images record (previews too).
     pub metadata: std::sync::Arc<crate::pipeline::output::ImageMetadata>,
-    /// For a bake: the lattice whose voxels the pixels are
-    /// ([`hypertexture::render::bake`]); the image is `width` × `height` as
-    /// [`hypertexture::render::bake::Lattice::image_size`] lays it out.
-    pub bake: Option<hypertexture::render::bake::Lattice>,
     /// The files the scene names (meshes), which workers fetch by hash.
     pub assets: Vec<Asset>,
+}
+
+impl FrameJob {
+    /// Image width: the request's (0 when it carries none).
+    pub fn width(&self) -> u32 {
+        self.request.overrides.width.unwrap_or(0)
+    }
+
+    /// Image height: the request's (0 when it carries none).
+    pub fn height(&self) -> u32 {
+        self.request.overrides.height.unwrap_or(0)
+    }
 }
 
 /// A file a scene names, as the farm serves it (`GetAsset`).
@@ -268,43 +262,20 @@ pub struct WireJob {
 impl WireJob {
     /// The wire form of `job` (its frame is set per assignment).
     pub fn of(job: &FrameJob) -> WireJob {
-        let hashes: Vec<(String, u64)> = job
+        let request = hypertexture::RenderRequest {
+            frames: hypertexture::FrameRange::one(job.frames.first().map_or(0, |f| f.frame)),
+            ..job.request.clone()
+        };
+        let refs = job
             .assets
             .iter()
-            .map(|a| (a.path.clone(), a.hash))
+            .map(|a| pb::AssetRef {
+                path: a.path.clone(),
+                hash: a.hash,
+                size: a.bytes.len() as u64,
+            })
             .collect();
-        let with_text = pb::Job {
-            scene_hash: convert::scene_hash_with_assets(
-                convert::scene_hash(
-                    &job.scene_text,
-                    job.width,
-                    job.height,
-                    job.spp.unwrap_or(0),
-                    convert::quality_to_wire(job.quality) as i32,
-                    &job.knobs,
-                ),
-                &hashes,
-            ),
-            scene_text: job.scene_text.clone(),
-            scene_name: job.scene_name.clone(),
-            width: job.width,
-            height: job.height,
-            frame: job.frames.first().map_or(0, |f| f.frame),
-            spp: job.spp.unwrap_or(0),
-            quality: convert::quality_to_wire(job.quality) as i32,
-            knobs: convert::knobs_to_wire(&job.knobs),
-            pixel_format: convert::pixel_format_to_wire(job.pixel_format) as i32,
-            bake: job.bake.as_ref().map(convert::lattice_to_wire),
-            assets: job
-                .assets
-                .iter()
-                .map(|a| pb::AssetRef {
-                    path: a.path.clone(),
-                    hash: a.hash,
-                    size: a.bytes.len() as u64,
-                })
-                .collect(),
-        };
+        let with_text = hypertexture_proto::request::to_wire(&request, refs);
         WireJob {
             assets: job.assets.clone(),
             without_text: pb::Job {
@@ -1423,6 +1394,38 @@ pub async fn render_frames(
     on_frame: &mut dyn FnMut(FrameDone) -> Result<(), FarmError>,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<SessionReport, FarmError> {
+    let (mut farm, unit_count) = start_session(&job, &config).await?;
+    let start = Instant::now();
+    let bar = crate::farm::progress::FarmProgress::new(
+        config.progress,
+        (unit_count * job.frames.len()) as u64,
+    );
+    let outcome = run_session(&mut farm, &job, &config, &bar, on_frame, shutdown).await;
+    let render_time = farm.render_time(start);
+    let tile_bytes = farm
+        .shared
+        .tile_bytes
+        .load(std::sync::atomic::Ordering::Relaxed);
+    // Local workers see `finished` on their next call and exit; give them a
+    // moment. After a failure they are told nothing more: stop them now.
+    let grace = if outcome.is_ok() {
+        Duration::from_secs(10)
+    } else {
+        Duration::ZERO
+    };
+    let workers = farm.finish(grace, false).await;
+    outcome?;
+    Ok(SessionReport {
+        render_time,
+        workers,
+        tile_bytes,
+    })
+}
+
+/// Starts the farm of a one-shot session: `job`'s units, sized for the
+/// workers expected, in a scheduler of their own, and the job's wire form
+/// and files served. Returns the farm and the units per frame.
+async fn start_session(job: &FrameJob, config: &FarmConfig) -> Result<(Farm, usize), FarmError> {
     if job.frames.is_empty() {
         return Err(FarmError::Stopped("no frame to render".into()));
     }
@@ -1434,29 +1437,43 @@ pub async fn render_frames(
     } else {
         config.local_workers.max(64)
     };
-    let units = farm_units(job.width, job.height, config.interleave, expected);
-    hypertexture::render::interleave::check_partition(&units, job.width, job.height)
+    let (width, height) = (job.width(), job.height());
+    let units = farm_units(width, height, config.interleave, expected);
+    hypertexture::render::interleave::check_partition(&units, width, height)
         .map_err(FarmError::Units)?;
     let unit_count = units.len();
     let mut scheduler =
-        Scheduler::new(units, job.width, job.height, job.pixel_format, config.lease).with_frames(
+        Scheduler::new(units, width, height, job.request.pixel_format, config.lease).with_frames(
             crate::farm::scheduler::Frames::consecutive(job.frames.iter().map(|f| f.frame))
                 .ok_or_else(|| FarmError::Stopped("a render's frames are consecutive".into()))?,
         );
     scheduler.set_verify(config.verify);
-    let wire = WireJob::of(&job);
-    let mut farm = Farm::start(config.clone(), scheduler, None, None).await?;
+    let wire = WireJob::of(job);
+    let farm = Farm::start(config.clone(), scheduler, None, None).await?;
     farm.shared.add_assets(&wire.assets);
     farm.shared
         .lock()
         .wire
         .insert(crate::farm::scheduler::ONE_SHOT_JOB, wire);
     tracing::info!(
-        "{} × {}, {unit_count} units of {} pixel sets",
-        job.width,
-        job.height,
+        "{width} × {height}, {unit_count} units of {} pixel sets",
         config.interleave * config.interleave
     );
+    Ok((farm, unit_count))
+}
+
+/// Serves a one-shot session until every frame is done: hands each frame
+/// completed to `on_frame`, writes previews off this thread, and stops on a
+/// panic, a unit given up, an error from `on_frame`, `shutdown`, or no
+/// worker for `config.worker_timeout`.
+async fn run_session(
+    farm: &mut Farm,
+    job: &FrameJob,
+    config: &FarmConfig,
+    bar: &crate::farm::progress::FarmProgress,
+    on_frame: &mut dyn FnMut(FrameDone) -> Result<(), FarmError>,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), FarmError> {
     let out_of = |frame: u32| {
         job.frames
             .iter()
@@ -1464,11 +1481,6 @@ pub async fn render_frames(
             .map(|f| f.out.clone())
             .unwrap_or_default()
     };
-    let start = Instant::now();
-    let bar = crate::farm::progress::FarmProgress::new(
-        config.progress,
-        (unit_count * job.frames.len()) as u64,
-    );
     let mut last_preview = Instant::now();
     // A preview being encoded and written, off the thread that serves the workers.
     let mut writing_preview: Option<tokio::task::JoinHandle<()>> = None;
@@ -1481,10 +1493,10 @@ pub async fn render_frames(
         }
         let now = Instant::now();
         let tick = farm.tick(now);
+        let writing = writing_preview.as_ref().is_some_and(|t| !t.is_finished());
         let (done, preview) = {
             let s = farm.shared.lock();
             bar.update(&s.scheduler, now);
-            let writing = writing_preview.as_ref().is_some_and(|t| !t.is_finished());
             let preview = match config.preview_every {
                 Some(every)
                     if now - last_preview >= every && !s.scheduler.finished() && !writing =>
@@ -1507,56 +1519,25 @@ pub async fn render_frames(
             // The final image replaces the preview: let the preview finish first.
             let _ = task.await;
         }
-        let mut handed = Ok(());
-        for frame in tick.completed {
+        let handed = tick.completed.into_iter().try_for_each(|frame| {
             let out = out_of(frame.frame);
-            handed = handed.and_then(|()| on_frame(FrameDone { frame, out }));
-        }
+            on_frame(FrameDone { frame, out })
+        });
         if let Err(e) = handed {
             break Err(e);
         }
         if let Some((image, frame)) = preview {
             last_preview = now;
-            let path = out_of(frame);
             let meta = job.metadata.at_frame(frame);
-            writing_preview = Some(tokio::task::spawn_blocking(move || {
-                match crate::pipeline::output::write_frame_image(&image, &path, &meta) {
-                    Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),
-                    Err(e) => tracing::warn!("preview: {e}"),
-                }
-            }));
+            writing_preview = Some(write_preview(image, out_of(frame), meta));
         }
         if done {
             break Ok(());
         }
         if tick.able > 0 {
             no_worker_since = None;
-        } else {
-            let since = *no_worker_since.get_or_insert(now);
-            if now - since >= config.worker_timeout {
-                let s = farm.shared.lock();
-                let (complete, total) = s.scheduler.progress();
-                let unable = s.scheduler.alive() - s.scheduler.able();
-                let unable = if unable > 0 {
-                    format!(
-                        " ({unable} connected worker{} cannot build the scene or {} blocklisted: {})",
-                        if unable == 1 { "" } else { "s" },
-                        if unable == 1 { "is" } else { "are" },
-                        s.scheduler
-                            .blocklisted(crate::farm::scheduler::ONE_SHOT_JOB)
-                            .join(", ")
-                    )
-                } else {
-                    String::new()
-                };
-                break Err(FarmError::NoWorkers(format!(
-                    "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {}://{}:{}` or raise --worker-timeout",
-                    config.worker_timeout.as_secs_f64(),
-                    farm.scheme,
-                    farm.public,
-                    farm.addr.port()
-                )));
-            }
+        } else if now - *no_worker_since.get_or_insert(now) >= config.worker_timeout {
+            break Err(no_workers(farm, config));
         }
     };
     bar.finish();
@@ -1564,25 +1545,50 @@ pub async fn render_frames(
         // The final image replaces the preview: let the preview finish first.
         let _ = task.await;
     }
-    let render_time = farm.render_time(start);
-    let tile_bytes = farm
-        .shared
-        .tile_bytes
-        .load(std::sync::atomic::Ordering::Relaxed);
-    // Local workers see `finished` on their next call and exit; give them a
-    // moment. After a failure they are told nothing more: stop them now.
-    let grace = if outcome.is_ok() {
-        Duration::from_secs(10)
-    } else {
-        Duration::ZERO
-    };
-    let workers = farm.finish(grace, false).await;
-    outcome?;
-    Ok(SessionReport {
-        render_time,
-        workers,
-        tile_bytes,
+    outcome
+}
+
+/// Encodes and writes a preview of `frame` to `path` on a blocking thread.
+fn write_preview(
+    image: FrameImage,
+    path: PathBuf,
+    meta: crate::pipeline::output::ImageMetadata,
+) -> tokio::task::JoinHandle<()> {
+    let frame = meta.frame;
+    tokio::task::spawn_blocking(move || {
+        match crate::pipeline::output::write_frame_image(&image, &path, &meta) {
+            Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),
+            Err(e) => tracing::warn!("preview: {e}"),
+        }
     })
+}
+
+/// The error of a session no worker has been connected to for
+/// `config.worker_timeout`: the progress, the connected workers that cannot
+/// help, and how to start one.
+fn no_workers(farm: &Farm, config: &FarmConfig) -> FarmError {
+    let s = farm.shared.lock();
+    let (complete, total) = s.scheduler.progress();
+    let unable = s.scheduler.alive() - s.scheduler.able();
+    let unable = if unable > 0 {
+        format!(
+            " ({unable} connected worker{} cannot build the scene or {} blocklisted: {})",
+            if unable == 1 { "" } else { "s" },
+            if unable == 1 { "is" } else { "are" },
+            s.scheduler
+                .blocklisted(crate::farm::scheduler::ONE_SHOT_JOB)
+                .join(", ")
+        )
+    } else {
+        String::new()
+    };
+    FarmError::NoWorkers(format!(
+        "no worker has been connected for {:.0} s{unable} ({complete} of {total} units done); start workers with `worker --coordinator {}://{}:{}` or raise --worker-timeout",
+        config.worker_timeout.as_secs_f64(),
+        farm.scheme,
+        farm.public,
+        farm.addr.port()
+    ))
 }
 
 /// The coordinator's own renderings of units, one at a time, on a render

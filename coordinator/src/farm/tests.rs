@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use hypertexture::render::interleave::{WorkUnit, work_units};
-use hypertexture::{PixelFormat, Sample};
+use hypertexture::{Overrides, PixelFormat, RenderRequest, Sample};
 use hypertexture_proto::{convert, pb};
 use tokio::sync::watch;
 
@@ -35,11 +35,17 @@ fn config(listen: &str, token: Option<&str>) -> FarmConfig {
 }
 
 fn frame_job(frames: &[u32]) -> FrameJob {
+    let mut request = RenderRequest::new("(scene text)", "test.ron");
+    request.overrides = Overrides {
+        width: Some(16),
+        height: Some(16),
+        spp: Some(3),
+        quality: None,
+        knobs: vec![("radius".into(), 0.5)],
+    };
+    request.pixel_format = PixelFormat::Samples;
     FrameJob {
-        scene_text: "(scene text)".into(),
-        scene_name: "test.ron".into(),
-        width: 16,
-        height: 16,
+        request,
         frames: frames
             .iter()
             .map(|&frame| FrameOut {
@@ -47,14 +53,9 @@ fn frame_job(frames: &[u32]) -> FrameJob {
                 out: format!("frame{frame}.png").into(),
             })
             .collect(),
-        spp: Some(3),
-        quality: None,
-        knobs: vec![("radius".into(), 0.5)],
-        pixel_format: PixelFormat::Samples,
         metadata: Arc::new(crate::pipeline::output::ImageMetadata::without_scene(
             16, 16, None, None,
         )),
-        bake: None,
         assets: Vec::new(),
     }
 }
@@ -186,19 +187,19 @@ fn tags_are_checked_and_each_kept_once() {
 fn a_jobs_wire_form_leaves_the_text_out_only_for_workers_that_built_its_scene() {
     let job = frame_job(&[4, 5]);
     let wire = WireJob::of(&job);
-    assert_eq!(wire.with_text.scene_text, job.scene_text);
+    assert_eq!(wire.with_text.scene_text, job.request.scene_text);
     assert!(wire.without_text.scene_text.is_empty());
     assert_eq!(wire.with_text.scene_hash, wire.without_text.scene_hash);
     assert_eq!(wire.with_text.frame, 4);
     assert_eq!(wire.with_text.spp, 3);
     let mut other = job.clone();
-    other.knobs[0].1 = 0.75;
+    other.request.overrides.knobs[0].1 = 0.75;
     assert_ne!(
         WireJob::of(&other).with_text.scene_hash,
         wire.with_text.scene_hash
     );
-    other.knobs = job.knobs.clone();
-    other.spp = None;
+    other.request.overrides.knobs = job.request.overrides.knobs.clone();
+    other.request.overrides.spp = None;
     let none = WireJob::of(&other);
     assert_eq!(none.with_text.spp, 0, "no spp is 0 on the wire");
     assert_ne!(none.with_text.scene_hash, wire.with_text.scene_hash);

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 pub use hypertexture::render::bake::Lattice;
-use hypertexture::{Film, Overrides, Scene};
+use hypertexture::{Film, Overrides, RenderRequest, Scene};
 use rayon::prelude::*;
 
 use crate::CoordinatorError;
@@ -41,7 +41,7 @@ pub struct BakeConfig {
     /// Knob overrides (`--set name=value`).
     pub knobs: Vec<(String, f64)>,
     /// Bake on the farm with these options; `None`: in-process.
-    pub farm: Option<crate::FarmOptions>,
+    pub farm: Option<crate::pipeline::run::FarmOptions>,
 }
 
 /// The number of slabs of a lattice: layers of leaves along x.
@@ -204,13 +204,15 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         frames[0],
     ));
     crate::files::check_writable(&first)?;
-    let text = hypertexture::scene::read_text(&config.scene)?;
     let name = config.scene.display().to_string();
-    let overrides = Overrides {
-        knobs: config.knobs.clone(),
-        ..Overrides::default()
+    let request = RenderRequest {
+        overrides: Overrides {
+            knobs: config.knobs.clone(),
+            ..Overrides::default()
+        },
+        ..RenderRequest::new(hypertexture::scene::read_text(&config.scene)?, &name)
     };
-    let scene = Scene::from_text(&text, &name, overrides.clone())?;
+    let scene = request.build(None)?;
     let pool = match &config.farm {
         Some(_) => None,
         None => {
@@ -218,12 +220,12 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
                 || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
                 NonZeroUsize::get,
             );
-            Some((crate::thread_pool(threads, "bake")?, threads))
+            Some((crate::pipeline::run::thread_pool(threads, "bake")?, threads))
         }
     };
     // The farm's leaves are put together from the frame on the pool of this
     // process (the render threads of its local workers have finished).
-    let assemble = crate::thread_pool(
+    let assemble = crate::pipeline::run::thread_pool(
         std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
         "leaves",
     )?;
@@ -241,7 +243,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
                 }
                 (None, Some(options)) => {
                     let (film, time) =
-                        bake_on_farm(config, options, &scene, &text, &name, &overrides, &lattice, frame)?;
+                        bake_on_farm(config, options, &scene, &request, &lattice, frame)?;
                     let leaves = assemble.install(|| leaves_of_film(&lattice, &film));
                     (leaves, time, "the farm".to_string())
                 }
@@ -274,14 +276,11 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
 /// workers as configured): the lattice laid out as an image
 /// ([`hypertexture::render::bake`]), each pixel its voxel's value. Returns the image
 /// and the time from the first unit handed out to the last tile.
-#[allow(clippy::too_many_arguments)]
 fn bake_on_farm(
     config: &BakeConfig,
-    options: &crate::FarmOptions,
+    options: &crate::pipeline::run::FarmOptions,
     scene: &Scene,
-    text: &str,
-    name: &str,
-    overrides: &Overrides,
+    request: &RenderRequest,
     lattice: &Lattice,
     frame: u32,
 ) -> Result<(Film, Duration), CoordinatorError> {
@@ -294,23 +293,24 @@ fn bake_on_farm(
         ))
     })?;
     let job = crate::farm::FrameJob {
-        scene_text: text.to_string(),
-        scene_name: name.to_string(),
-        width,
-        height,
+        request: RenderRequest {
+            overrides: Overrides {
+                width: Some(width),
+                height: Some(height),
+                ..request.overrides.clone()
+            },
+            frames: hypertexture::FrameRange::one(frame),
+            pixel_format: hypertexture::PixelFormat::Samples,
+            bake: Some(*lattice),
+            ..request.clone()
+        },
         frames: vec![crate::farm::FrameOut {
             frame,
             out: PathBuf::new(),
         }],
-        spp: None,
-        quality: None,
-        knobs: config.knobs.clone(),
-        pixel_format: hypertexture::PixelFormat::Samples,
-        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(
-            scene, name, text, overrides,
-        )),
-        bake: Some(*lattice),
-        assets: crate::farm::Asset::of_scene(scene, name).map_err(CoordinatorError::Asset)?,
+        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(scene, request)),
+        assets: crate::farm::Asset::of_scene(scene, &request.scene_name)
+            .map_err(CoordinatorError::Asset)?,
     };
     let farm_config = options.farm_config(config.threads, false)?;
     let runtime = tokio::runtime::Builder::new_current_thread()

@@ -137,10 +137,10 @@ fn in_process_rows(
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---|");
 
-    let (serial_film, serial) = crate::render_in_process(scene, 0, 1, false)?;
+    let (serial_film, serial) = crate::pipeline::run::render_in_process(scene, 0, 1, false)?;
     let serial = serial.as_secs_f64();
     println!("| in-process, 1 thread | {serial:.3} | 1.00 | 100% | – | – | – | reference |");
-    let (film, all) = crate::render_in_process(scene, 0, cores, false)?;
+    let (film, all) = crate::pipeline::run::render_in_process(scene, 0, cores, false)?;
     let all = all.as_secs_f64();
     println!(
         "| in-process, {cores} threads | {all:.3} | {:.2} | {:.0}% | – | – | – | {} |",
@@ -312,28 +312,19 @@ fn farm_render(
     pixel_format: hypertexture::PixelFormat,
     n: usize,
 ) -> Result<farm::FarmReport, CoordinatorError> {
+    let request = hypertexture::RenderRequest {
+        pixel_format,
+        ..hypertexture::RenderRequest::new(text, path.display().to_string())
+    };
     let job = farm::FrameJob {
-        scene_text: text.to_string(),
-        scene_name: path.display().to_string(),
-        width: scene.width(),
-        height: scene.height(),
         frames: vec![farm::FrameOut {
             frame: 0,
             out: PathBuf::new(),
         }],
-        spp: None,
-        quality: None,
-        knobs: Vec::new(),
-        pixel_format,
-        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(
-            scene,
-            &path.display().to_string(),
-            text,
-            &Default::default(),
-        )),
-        bake: None,
-        assets: farm::Asset::of_scene(scene, &path.display().to_string())
+        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(scene, &request)),
+        assets: farm::Asset::of_scene(scene, &request.scene_name)
             .map_err(CoordinatorError::Asset)?,
+        request: request.with_size_of(scene),
     };
     let farm_config = farm::FarmConfig {
         listen: "127.0.0.1:0".parse().expect("a valid address"),

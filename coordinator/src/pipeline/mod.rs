@@ -2,6 +2,8 @@
 //! `grid` and `bench` do once and end, on top of the farm.
 //!
 //! - [`destination`]: where a job's images may go: output patterns and roots.
+//! - [`run`]: a scene rendered on the farm or in this process, written as
+//!   an image or a numbered sequence.
 //! - [`output`]: frames to PNG and EXR files.
 //! - [`bake`], [`vdb`]: H(x) sampled on a lattice and written as OpenVDB.
 //! - [`recolor`]: an EXR's density channel mapped through new curves.
@@ -14,4 +16,5 @@ pub mod destination;
 pub mod grid;
 pub mod output;
 pub mod recolor;
+pub mod run;
 pub mod vdb;

@@ -7,7 +7,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use hypertexture::{Film, Overrides, PixelFormat, Quality, Scene};
+use hypertexture::{Film, Overrides, PixelFormat, Quality, RenderRequest, Scene};
 
 use crate::farm::canvas::FrameImage;
 
@@ -113,17 +113,13 @@ pub mod keys {
 }
 
 impl ImageMetadata {
-    /// The metadata of frame 0 of `scene`, built from `scene_text` with `overrides`.
-    pub fn new(
-        scene: &Scene,
-        scene_name: &str,
-        scene_text: &str,
-        overrides: &Overrides,
-    ) -> ImageMetadata {
+    /// The metadata of frame 0 of `scene`, built from `request`.
+    pub fn new(scene: &Scene, request: &RenderRequest) -> ImageMetadata {
+        let overrides = &request.overrides;
         ImageMetadata {
             software: software(),
-            scene_name: scene_name.to_string(),
-            scene_text: scene_text.to_string(),
+            scene_name: request.scene_name.clone(),
+            scene_text: request.scene_text.clone(),
             width: scene.width(),
             height: scene.height(),
             spp_override: overrides.spp,
@@ -188,18 +184,17 @@ impl ImageMetadata {
 
     /// The hash the farm's workers cache the built scene by (the same inputs).
     pub fn scene_hash(&self) -> u64 {
-        use hypertexture_proto::convert;
-        convert::scene_hash_with_assets(
-            convert::scene_hash(
-                &self.scene_text,
-                self.width,
-                self.height,
-                self.spp_override.unwrap_or(0),
-                convert::quality_to_wire(self.quality) as i32,
-                &self.knobs,
-            ),
-            &self.assets,
-        )
+        let request = RenderRequest {
+            overrides: Overrides {
+                width: Some(self.width),
+                height: Some(self.height),
+                spp: self.spp_override,
+                quality: self.quality,
+                knobs: self.knobs.clone(),
+            },
+            ..RenderRequest::new(self.scene_text.clone(), self.scene_name.clone())
+        };
+        hypertexture_proto::request::content_hash(&request, &self.assets)
     }
 
     /// The command-line options beside the scene that changed the pixels:
@@ -221,9 +216,9 @@ impl ImageMetadata {
         words.join(" ")
     }
 
-    /// Parses [`ImageMetadata::options`] into (spp, quality, knobs).
-    pub fn parse_options(options: &str) -> Result<StoredOptions, String> {
-        let mut stored = StoredOptions::default();
+    /// Parses [`ImageMetadata::options`] into the overrides (spp, quality, knobs).
+    pub fn parse_options(options: &str) -> Result<Overrides, String> {
+        let mut stored = Overrides::default();
         let mut words = options.split(' ').filter(|w| !w.is_empty());
         while let Some(flag) = words.next() {
             let value = words
@@ -254,17 +249,6 @@ impl ImageMetadata {
     }
 }
 
-/// The options an image was rendered with ([`ImageMetadata::parse_options`]).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct StoredOptions {
-    /// `--spp`.
-    pub spp: Option<u32>,
-    /// `--quality`.
-    pub quality: Option<Quality>,
-    /// `--set`, in order.
-    pub knobs: Vec<(String, f64)>,
-}
-
 /// What an image written by [`write_image`] says about its render.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StoredRender {
@@ -278,8 +262,8 @@ pub struct StoredRender {
     pub height: u32,
     /// The frame.
     pub frame: u32,
-    /// The options beside the scene.
-    pub options: StoredOptions,
+    /// The options beside the scene ([`ImageMetadata::parse_options`]: no size).
+    pub options: Overrides,
 }
 
 /// Reads the render stored in a PNG's or EXR's metadata (the scene at most
@@ -882,7 +866,7 @@ mod tests {
         assert_eq!(parsed.knobs, m.knobs);
         assert_eq!(
             ImageMetadata::parse_options("").unwrap(),
-            StoredOptions::default()
+            Overrides::default()
         );
         assert!(ImageMetadata::parse_options("--spp").is_err());
         assert!(ImageMetadata::parse_options("--frobnicate 1").is_err());

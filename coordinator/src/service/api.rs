@@ -273,7 +273,7 @@ async fn readyz(State(control): State<Arc<dyn Control>>) -> Response {
     post,
     path = "/api/v1/jobs",
     tag = "jobs",
-    request_body = JobSpec,
+    request_body = crate::service::jobs::JobJson,
     responses(
         (status = 201, description = "Queued", body = JobView,
             headers(("Location" = String, description = "The job's URL: /api/v1/jobs/{id}"))),
@@ -294,13 +294,13 @@ async fn submit_job(
 ) -> Result<Response, Refusal> {
     let Json(spec) = body?;
     let max = hypertexture::scene::MAX_SCENE_BYTES;
-    if spec.scene.len() > max {
+    if spec.request.scene_text.len() > max {
         return Err(Refusal::new(
             StatusCode::PAYLOAD_TOO_LARGE,
             format!(
                 "{}: the scene text is {} bytes; the cap is {} bytes ({} KiB)",
-                spec.scene_name.as_deref().unwrap_or("scene.ron"),
-                spec.scene.len(),
+                spec.request.scene_name,
+                spec.request.scene_text.len(),
                 max,
                 max / 1024
             ),
@@ -611,15 +611,12 @@ mod tests {
     }
 
     pub(crate) fn view(id: u64, spec: &JobSpec) -> JobView {
-        let frames = spec.frames.map_or(1, |[a, b]| b - a + 1);
+        let frames = spec.request.frames.len() as u32;
         JobView {
             id,
             state: JobState::Queued,
             priority: spec.priority,
-            scene_name: spec
-                .scene_name
-                .clone()
-                .unwrap_or_else(|| "scene.ron".into()),
+            scene_name: spec.request.scene_name.clone(),
             out: spec.out.clone(),
             frames_done: 0,
             frames_total: frames,
@@ -638,7 +635,7 @@ mod tests {
             if self.draining {
                 return Err(ApiError::Unavailable("draining: no new jobs".into()));
             }
-            if spec.scene.contains("bad") {
+            if spec.request.scene_text.contains("bad") {
                 return Err(ApiError::BadRequest(
                     "scene.ron:3:7: expected `)` found `(`".into(),
                 ));

@@ -15,8 +15,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 
-use crate::cli::{JobArgs, QualityArg, ServerArgs, StatusArgs, SubmitArgs};
-use crate::service::jobs::{JobSpec, JobView, QualitySpec, WorkerView};
+use crate::service::jobs::{JobSpec, JobView, WorkerView};
 
 /// How long connecting, sending and each wait for an answer may take.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
@@ -96,6 +95,17 @@ pub enum ClientError {
     },
 }
 
+/// Where the service is and how to reach it (`--server`, `--token`, `--ca`).
+#[derive(Clone, Debug)]
+pub struct Endpoint {
+    /// The service's URL (`http://` or `https://`).
+    pub url: String,
+    /// The service's token (empty: none).
+    pub token: Option<String>,
+    /// A CA certificate (PEM) to verify an `https://` service.
+    pub ca: Option<PathBuf>,
+}
+
 /// A connection to the service: the agent, the base URL and the token.
 struct Client {
     agent: ureq::Agent,
@@ -105,10 +115,10 @@ struct Client {
 
 impl Client {
     /// A client for `args`: checks the URL, reads the CA certificate.
-    fn new(args: &ServerArgs) -> Result<Client, ClientError> {
-        let url = args.server.trim();
+    fn new(args: &Endpoint) -> Result<Client, ClientError> {
+        let url = args.url.trim();
         let bad = |message: &str| ClientError::BadServer {
-            url: args.server.clone(),
+            url: args.url.clone(),
             message: message.into(),
         };
         let rest = url
@@ -311,14 +321,15 @@ fn transport_error(url: &str, e: ureq::Error) -> ClientError {
     }
 }
 
-/// The job `args` describe, with the scene's text read from its file and a
-/// relative `--out` made absolute against this process's current directory
-/// (the service writes the images on its own machine, from its own directory).
-pub fn job_spec(args: &SubmitArgs) -> Result<JobSpec, ClientError> {
-    let scene = hypertexture::scene::read_text(&args.scene)?;
-    let out = Path::new(&args.out);
+/// `job` with the scene's text and name read from the file `scene`, and a
+/// relative output made absolute against this process's current directory
+/// (the service writes the images on its own machine, from its own
+/// directory).
+pub fn read_job(scene: &Path, job: JobSpec) -> Result<JobSpec, ClientError> {
+    let scene_text = hypertexture::scene::read_text(scene)?;
+    let out = Path::new(&job.out);
     let out = if out.is_absolute() {
-        args.out.clone()
+        job.out.clone()
     } else {
         std::path::absolute(out)
             .map_err(|e| ClientError::LocalFile {
@@ -329,36 +340,28 @@ pub fn job_spec(args: &SubmitArgs) -> Result<JobSpec, ClientError> {
             .to_string()
     };
     Ok(JobSpec {
-        scene,
-        scene_name: Some(args.scene.display().to_string()),
+        request: hypertexture::RenderRequest {
+            scene_text,
+            scene_name: scene.display().to_string(),
+            ..job.request
+        },
         out,
-        frames: args.frames.map(|(a, b)| [a, b]),
-        priority: args.priority,
-        width: args.width,
-        height: args.height,
-        spp: args.spp,
-        quality: args.quality.map(|q| match q {
-            QualityArg::Interactive => QualitySpec::Interactive,
-            QualityArg::High => QualitySpec::High,
-        }),
-        knobs: args.set.iter().cloned().collect(),
-        require_tags: args.require_tag.clone(),
+        ..job
     })
 }
 
 /// `coordinator submit`: queues the job, returns its id.
-pub fn submit(args: &SubmitArgs) -> Result<u64, ClientError> {
-    let client = Client::new(&args.server)?;
-    let spec = job_spec(args)?;
-    let job: JobView = client.post("/api/v1/jobs", Some(&spec), 201, "a job")?;
+pub fn submit(server: &Endpoint, spec: &JobSpec) -> Result<u64, ClientError> {
+    let client = Client::new(server)?;
+    let job: JobView = client.post("/api/v1/jobs", Some(spec), 201, "a job")?;
     Ok(job.id)
 }
 
 /// `coordinator status`: the table to print (every job and worker), or with
 /// a job id, that job's details.
-pub fn status(args: &StatusArgs) -> Result<String, ClientError> {
-    let client = Client::new(&args.server)?;
-    match args.job {
+pub fn status(server: &Endpoint, job: Option<u64>) -> Result<String, ClientError> {
+    let client = Client::new(server)?;
+    match job {
         Some(id) => {
             let job: JobView = client.get(&format!("/api/v1/jobs/{id}"), "a job")?;
             Ok(job_details(&job))
@@ -391,10 +394,10 @@ pub fn status(args: &StatusArgs) -> Result<String, ClientError> {
 }
 
 /// `coordinator cancel`: the job as cancelled.
-pub fn cancel(args: &JobArgs) -> Result<JobView, ClientError> {
-    let client = Client::new(&args.server)?;
+pub fn cancel(server: &Endpoint, job: u64) -> Result<JobView, ClientError> {
+    let client = Client::new(server)?;
     client.post(
-        &format!("/api/v1/jobs/{}/cancel", args.job),
+        &format!("/api/v1/jobs/{job}/cancel"),
         None::<&()>,
         200,
         "a job",
@@ -404,14 +407,19 @@ pub fn cancel(args: &JobArgs) -> Result<JobView, ClientError> {
 /// `coordinator wait`: the job once it has ended (done, failed or cancelled).
 /// Asks every [`POLL_EVERY`]; while the server cannot be reached it keeps
 /// trying for [`RECONNECT_FOR`] before giving up.
-pub fn wait(args: &JobArgs) -> Result<JobView, ClientError> {
-    wait_with(args, POLL_EVERY, RECONNECT_FOR)
+pub fn wait(server: &Endpoint, job: u64) -> Result<JobView, ClientError> {
+    wait_with(server, job, POLL_EVERY, RECONNECT_FOR)
 }
 
 /// [`wait`] with its poll interval and reconnection patience.
-fn wait_with(args: &JobArgs, every: Duration, patience: Duration) -> Result<JobView, ClientError> {
-    let client = Client::new(&args.server)?;
-    let path = format!("/api/v1/jobs/{}", args.job);
+fn wait_with(
+    server: &Endpoint,
+    job: u64,
+    every: Duration,
+    patience: Duration,
+) -> Result<JobView, ClientError> {
+    let client = Client::new(server)?;
+    let path = format!("/api/v1/jobs/{job}");
     let mut unreachable_since: Option<Instant> = None;
     loop {
         match client.get::<JobView>(&path, "a job") {
@@ -657,10 +665,10 @@ mod tests {
 
     impl Control for Farm {
         fn submit(&self, spec: JobSpec) -> Result<JobView, ApiError> {
-            if spec.scene.contains("bad") {
+            if spec.request.scene_text.contains("bad") {
                 return Err(ApiError::BadRequest(format!(
                     "{}:3:7: expected `)` found `(`",
-                    spec.scene_name.as_deref().unwrap_or("scene.ron")
+                    spec.request.scene_name
                 )));
             }
             let mut jobs = self.jobs.lock().unwrap();
@@ -668,10 +676,10 @@ mod tests {
                 id: jobs.len() as u64 + 1,
                 state: JobState::Queued,
                 priority: spec.priority,
-                scene_name: spec.scene_name.clone().unwrap_or_default(),
+                scene_name: spec.request.scene_name.clone(),
                 out: spec.out.clone(),
                 frames_done: 0,
-                frames_total: spec.frames.map_or(1, |[a, b]| b - a + 1),
+                frames_total: spec.request.frames.len() as u32,
                 units_done: 0,
                 units_total: 64,
                 eta_seconds: None,
@@ -794,9 +802,9 @@ mod tests {
         }
     }
 
-    fn server_args(url: &str, token: Option<&str>) -> ServerArgs {
-        ServerArgs {
-            server: url.to_string(),
+    fn server_args(url: &str, token: Option<&str>) -> Endpoint {
+        Endpoint {
+            url: url.to_string(),
             token: token.map(str::to_string),
             ca: None,
         }
@@ -819,20 +827,32 @@ mod tests {
         path
     }
 
-    fn submit_args(url: &str, token: Option<&str>, scene: PathBuf) -> SubmitArgs {
-        SubmitArgs {
-            server: server_args(url, token),
+    /// The job `coordinator submit` sends for the scene file `scene`.
+    fn job(scene: &Path) -> Result<JobSpec, ClientError> {
+        let request = hypertexture::RenderRequest {
+            overrides: hypertexture::Overrides {
+                width: Some(320),
+                height: None,
+                spp: Some(4),
+                quality: Some(hypertexture::Quality::Interactive),
+                knobs: vec![("curliness".into(), 0.8), ("amp".into(), 2.0)],
+            },
+            frames: hypertexture::FrameRange { first: 2, last: 5 },
+            ..hypertexture::RenderRequest::new("", "")
+        };
+        read_job(
             scene,
-            out: "renders/fur.####.exr".into(),
-            frames: Some((2, 5)),
-            priority: -3,
-            width: Some(320),
-            height: None,
-            spp: Some(4),
-            quality: Some(QualityArg::Interactive),
-            set: vec![("curliness".into(), 0.8), ("amp".into(), 2.0)],
-            require_tag: vec!["gpu".into()],
-        }
+            JobSpec {
+                request,
+                out: "renders/fur.####.exr".into(),
+                priority: -3,
+                require_tags: vec!["gpu".into()],
+            },
+        )
+    }
+
+    fn submit_job(url: &str, token: Option<&str>, scene: PathBuf) -> Result<u64, ClientError> {
+        submit(&server_args(url, token), &job(&scene)?)
     }
 
     #[test]
@@ -843,9 +863,9 @@ mod tests {
         });
         let server = Server::start(farm.clone(), Some("tok"));
         let scene = scene_file("submit", "Scene(name: \"fur\")");
-        let id = submit(&submit_args(&server.url, Some("tok"), scene.clone())).unwrap();
+        let id = submit_job(&server.url, Some("tok"), scene.clone()).unwrap();
         assert_eq!(id, 1);
-        let spec = farm.specs.lock().unwrap()[0].clone();
+        let spec = crate::service::jobs::JobJson::from(farm.specs.lock().unwrap()[0].clone());
         assert_eq!(spec.scene, "Scene(name: \"fur\")");
         assert_eq!(
             spec.scene_name.as_deref(),
@@ -861,18 +881,17 @@ mod tests {
             (spec.width, spec.height, spec.spp),
             (Some(320), None, Some(4))
         );
-        assert_eq!(spec.quality, Some(QualitySpec::Interactive));
+        assert_eq!(
+            spec.quality,
+            Some(crate::service::jobs::QualitySpec::Interactive)
+        );
         assert_eq!(
             spec.knobs,
             BTreeMap::from([("amp".to_string(), 2.0), ("curliness".to_string(), 0.8)])
         );
         assert_eq!(spec.require_tags, vec!["gpu".to_string()]);
 
-        let table = status(&StatusArgs {
-            server: server_args(&server.url, Some("tok")),
-            job: None,
-        })
-        .unwrap();
+        let table = status(&server_args(&server.url, Some("tok")), None).unwrap();
         assert!(
             table.contains("jobs: 1") && table.contains("workers: 2"),
             "{table}"
@@ -894,42 +913,33 @@ mod tests {
             "{table}"
         );
 
-        let job = JobArgs {
-            server: server_args(&server.url, Some("tok")),
-            job: 1,
-        };
-        let done = wait_with(&job, Duration::from_millis(10), Duration::from_secs(5)).unwrap();
+        let job = (server_args(&server.url, Some("tok")), 1);
+        let done = wait_with(
+            &job.0,
+            job.1,
+            Duration::from_millis(10),
+            Duration::from_secs(5),
+        )
+        .unwrap();
         assert_eq!(done.state, JobState::Done);
         assert!(farm.looks.load(Ordering::SeqCst) >= 3);
 
-        let details = status(&StatusArgs {
-            server: server_args(&server.url, Some("tok")),
-            job: Some(1),
-        })
-        .unwrap();
+        let details = status(&server_args(&server.url, Some("tok")), Some(1)).unwrap();
         assert!(details.contains("state:        done"), "{details}");
         assert!(
             details.contains(&format!("  {}", out.display())),
             "{details}"
         );
 
-        let e = cancel(&job).unwrap_err().to_string();
+        let e = cancel(&job.0, job.1).unwrap_err().to_string();
         assert!(
             e.contains("HTTP 409") && e.contains("job 1 has already ended"),
             "{e}"
         );
-        submit(&submit_args(&server.url, Some("tok"), scene)).unwrap();
-        let cancelled = cancel(&JobArgs {
-            server: server_args(&server.url, Some("tok")),
-            job: 2,
-        })
-        .unwrap();
+        submit_job(&server.url, Some("tok"), scene).unwrap();
+        let cancelled = cancel(&server_args(&server.url, Some("tok")), 2).unwrap();
         assert_eq!((cancelled.id, cancelled.state), (2, JobState::Cancelled));
-        let e = cancel(&JobArgs {
-            server: server_args(&server.url, Some("tok")),
-            job: 9,
-        })
-        .unwrap_err();
+        let e = cancel(&server_args(&server.url, Some("tok")), 9).unwrap_err();
         assert!(matches!(e, ClientError::Refused { status: 404, .. }), "{e}");
         assert!(e.to_string().contains("no job 9"), "{e}");
     }
@@ -938,7 +948,7 @@ mod tests {
     fn refusals_carry_the_servers_message() {
         let server = Server::start(Arc::new(Farm::default()), Some("tok"));
         let scene = scene_file("refusal", "bad scene");
-        let e = submit(&submit_args(&server.url, Some("tok"), scene.clone())).unwrap_err();
+        let e = submit_job(&server.url, Some("tok"), scene.clone()).unwrap_err();
         let message = e.to_string();
         assert!(
             matches!(e, ClientError::Refused { status: 400, .. }),
@@ -949,11 +959,7 @@ mod tests {
             "{message}"
         );
         assert!(message.contains("/api/v1/jobs"), "{message}");
-        let e = status(&StatusArgs {
-            server: server_args(&server.url, Some("wrong")),
-            job: None,
-        })
-        .unwrap_err();
+        let e = status(&server_args(&server.url, Some("wrong")), None).unwrap_err();
         assert!(matches!(e, ClientError::Refused { status: 401, .. }), "{e}");
         assert!(e.to_string().contains("--token"), "{e}");
     }
@@ -962,7 +968,7 @@ mod tests {
     fn a_dead_server_is_named_with_a_hint() {
         let url = dead_url();
         let scene = scene_file("dead", "Scene()");
-        let e = submit(&submit_args(&url, None, scene)).unwrap_err();
+        let e = submit_job(&url, None, scene).unwrap_err();
         let message = e.to_string();
         assert!(matches!(e, ClientError::Unreachable { .. }), "{message}");
         assert!(
@@ -972,11 +978,14 @@ mod tests {
         assert!(!message.contains('\n'));
 
         let start = Instant::now();
-        let job = JobArgs {
-            server: server_args(&url, None),
-            job: 1,
-        };
-        let e = wait_with(&job, Duration::from_millis(20), Duration::from_millis(300)).unwrap_err();
+        let job = (server_args(&url, None), 1);
+        let e = wait_with(
+            &job.0,
+            job.1,
+            Duration::from_millis(20),
+            Duration::from_millis(300),
+        )
+        .unwrap_err();
         assert!(matches!(e, ClientError::Unreachable { .. }), "{e}");
         let took = start.elapsed();
         assert!(
@@ -995,16 +1004,9 @@ mod tests {
             ..Farm::default()
         });
         farm.submit(JobSpec {
-            scene: String::new(),
-            scene_name: None,
+            request: hypertexture::RenderRequest::new("", "scene.ron"),
             out: "/tmp/x.png".into(),
-            frames: None,
             priority: 0,
-            width: None,
-            height: None,
-            spp: None,
-            quality: None,
-            knobs: BTreeMap::new(),
             require_tags: Vec::new(),
         })
         .unwrap();
@@ -1028,11 +1030,14 @@ mod tests {
                 });
             })
         };
-        let job = JobArgs {
-            server: server_args(&format!("http://{addr}"), None),
-            job: 1,
-        };
-        let done = wait_with(&job, Duration::from_millis(20), Duration::from_secs(5)).unwrap();
+        let job = (server_args(&format!("http://{addr}"), None), 1);
+        let done = wait_with(
+            &job.0,
+            job.1,
+            Duration::from_millis(20),
+            Duration::from_secs(5),
+        )
+        .unwrap();
         assert_eq!(done.state, JobState::Done);
         drop(starter);
     }
@@ -1041,7 +1046,7 @@ mod tests {
     fn local_failures_name_the_file() {
         let url = dead_url();
         let missing = std::env::temp_dir().join("coordinator-client-no-such-scene.ron");
-        let e = submit(&submit_args(&url, None, missing.clone())).unwrap_err();
+        let e = submit_job(&url, None, missing.clone()).unwrap_err();
         assert!(matches!(e, ClientError::Scene(_)), "{e}");
         assert!(
             e.to_string().contains(&missing.display().to_string()),
@@ -1049,18 +1054,18 @@ mod tests {
         );
 
         let big = scene_file("big", &"x".repeat(hypertexture::scene::MAX_SCENE_BYTES + 1));
-        let e = submit(&submit_args(&url, None, big)).unwrap_err();
+        let e = submit_job(&url, None, big).unwrap_err();
         assert!(matches!(e, ClientError::Scene(_)), "{e}");
 
         let not_pem = scene_file("ca", "not a certificate");
-        let e = status(&StatusArgs {
-            server: ServerArgs {
-                server: "https://127.0.0.1:1".into(),
+        let e = status(
+            &Endpoint {
+                url: "https://127.0.0.1:1".into(),
                 token: None,
                 ca: Some(not_pem.clone()),
             },
-            job: None,
-        })
+            None,
+        )
         .unwrap_err();
         assert!(matches!(e, ClientError::LocalFile { .. }), "{e}");
         assert!(
@@ -1069,11 +1074,7 @@ mod tests {
         );
 
         for bad in ["127.0.0.1:47000", "ftp://x", "http://"] {
-            let e = status(&StatusArgs {
-                server: server_args(bad, None),
-                job: None,
-            })
-            .unwrap_err();
+            let e = status(&server_args(bad, None), None).unwrap_err();
             assert!(matches!(e, ClientError::BadServer { .. }), "{bad}: {e}");
         }
     }
@@ -1097,11 +1098,7 @@ mod tests {
                 body.len()
             );
         });
-        let e = cancel(&JobArgs {
-            server: server_args(&url, None),
-            job: 1,
-        })
-        .unwrap_err();
+        let e = cancel(&server_args(&url, None), 1).unwrap_err();
         assert!(matches!(e, ClientError::BadAnswer { .. }), "{e}");
         assert!(e.to_string().contains("is not a job"), "{e}");
         server.join().unwrap();
@@ -1173,22 +1170,16 @@ mod tests {
         let (addr, stop, thread) =
             serve_with_tonic(farm.clone(), Some((cert.pem(), key.serialize_pem())));
         let url = format!("https://localhost:{}", addr.port());
-        let with_ca = ServerArgs {
-            server: url.clone(),
+        let with_ca = Endpoint {
+            url: url.clone(),
             token: None,
             ca: Some(ca_file),
         };
         let scene = scene_file("tls-scene", "Scene()");
-        let mut args = submit_args(&url, None, scene);
-        args.server = ServerArgs { ..with_ca };
-        assert_eq!(submit(&args).unwrap(), 1);
+        assert_eq!(submit(&with_ca, &job(&scene).unwrap()).unwrap(), 1);
         assert_eq!(farm.jobs.lock().unwrap().len(), 1);
         // Without the CA the server's certificate is not trusted.
-        let e = status(&StatusArgs {
-            server: server_args(&url, None),
-            job: None,
-        })
-        .unwrap_err();
+        let e = status(&server_args(&url, None), None).unwrap_err();
         assert!(matches!(e, ClientError::Unreachable { .. }), "{e}");
         let _ = stop.send(());
         thread.join().unwrap();
@@ -1196,17 +1187,9 @@ mod tests {
         // Plain HTTP/1.1 through tonic's server, and an unknown path's JSON 404.
         let (addr, stop, thread) = serve_with_tonic(farm, None);
         let url = format!("http://{addr}");
-        let table = status(&StatusArgs {
-            server: server_args(&url, None),
-            job: None,
-        })
-        .unwrap();
+        let table = status(&server_args(&url, None), None).unwrap();
         assert!(table.contains("jobs: 1"), "{table}");
-        let e = status(&StatusArgs {
-            server: server_args(&format!("{url}/prefix"), None),
-            job: None,
-        })
-        .unwrap_err();
+        let e = status(&server_args(&format!("{url}/prefix"), None), None).unwrap_err();
         assert!(matches!(e, ClientError::Refused { status: 404, .. }), "{e}");
         let _ = stop.send(());
         thread.join().unwrap();

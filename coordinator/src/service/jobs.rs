@@ -1,4 +1,5 @@
-//! The service's vocabulary: what a client submits (a [`JobSpec`]), what it is
+//! The service's vocabulary: what a client submits (a [`JobSpec`], as JSON a
+//! [`JobJson`]), what it is
 //! shown ([`JobView`], [`WorkerView`]), and the [`Control`] interface through
 //! which the HTTP API (`api.rs`) reaches the running farm.
 //!
@@ -7,51 +8,149 @@
 
 use std::collections::BTreeMap;
 
+use hypertexture::{FrameRange, Overrides, RenderRequest};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-/// A job as submitted: a scene and how to render it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
+/// A job as submitted: what to render, where its images go, and how it is
+/// queued. Its JSON is [`JobJson`]'s (the API's `JobSpec`), and so is its
+/// stored form.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(from = "JobJson", into = "JobJson")]
 pub struct JobSpec {
-    /// The scene's RON text (at most 64 KiB).
-    pub scene: String,
-    /// The scene's name for messages (its file path); default `scene.ron`.
-    #[serde(default)]
-    pub scene_name: Option<String>,
-    /// The output path pattern, on the coordinator's machine. `#` runs are the
-    /// frame number padded to their length (`out/fur.####.exr` →
-    /// `out/fur.0007.exr`); without `#` the job has one frame. The extension
-    /// (`.png`, `.exr`) chooses the format.
+    /// The scene (at most 64 KiB), its overrides, frames and pixel format
+    /// (what the output's extension needs).
+    pub request: RenderRequest,
+    /// The output path pattern ([`JobJson::out`]).
     pub out: String,
-    /// The first and last frame (inclusive); default: frame 0 only.
-    #[serde(default)]
-    pub frames: Option<[u32; 2]>,
-    /// Higher runs first; ties run oldest first. Default 0.
-    #[serde(default)]
+    /// Higher runs first; ties run oldest first.
     pub priority: i32,
-    /// Image width (the scene's when absent).
-    #[serde(default)]
-    pub width: Option<u32>,
-    /// Image height (the scene's when absent).
-    #[serde(default)]
-    pub height: Option<u32>,
-    /// Samples per pixel (the scene's when absent).
-    #[serde(default)]
-    pub spp: Option<u32>,
-    /// `interactive` or `high` (the scene's step when absent).
-    #[serde(default)]
-    pub quality: Option<QualitySpec>,
-    /// Knob overrides, applied in name order.
-    #[serde(default)]
-    pub knobs: BTreeMap<String, f64>,
     /// Only workers carrying every one of these tags render the job.
-    #[serde(default)]
     pub require_tags: Vec<String>,
 }
 
-/// The marching step preset.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+/// A job as submitted, as JSON (named `JobSpec` in the API's document and
+/// its messages).
+pub use json::JobSpec as JobJson;
+
+mod json {
+    use super::*;
+
+    /// A job as submitted, as JSON: `POST /api/v1/jobs`'s body and the store's
+    /// record (both read by [`super::JobSpec`]).
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct JobSpec {
+        /// The scene's RON text (at most 64 KiB).
+        pub scene: String,
+        /// The scene's name for messages (its file path); default `scene.ron`.
+        #[serde(default)]
+        pub scene_name: Option<String>,
+        /// The output path pattern, on the coordinator's machine. `#` runs are the
+        /// frame number padded to their length (`out/fur.####.exr` →
+        /// `out/fur.0007.exr`); without `#` the job has one frame. The extension
+        /// (`.png`, `.exr`) chooses the format.
+        pub out: String,
+        /// The first and last frame (inclusive); default: frame 0 only.
+        #[serde(default)]
+        pub frames: Option<[u32; 2]>,
+        /// Higher runs first; ties run oldest first. Default 0.
+        #[serde(default)]
+        pub priority: i32,
+        /// Image width (the scene's when absent).
+        #[serde(default)]
+        pub width: Option<u32>,
+        /// Image height (the scene's when absent).
+        #[serde(default)]
+        pub height: Option<u32>,
+        /// Samples per pixel (the scene's when absent).
+        #[serde(default)]
+        pub spp: Option<u32>,
+        /// `interactive` or `high` (the scene's step when absent).
+        #[serde(default)]
+        pub quality: Option<QualitySpec>,
+        /// Knob overrides, applied in name order.
+        #[serde(default)]
+        pub knobs: BTreeMap<String, f64>,
+        /// Only workers carrying every one of these tags render the job.
+        #[serde(default)]
+        pub require_tags: Vec<String>,
+    }
+}
+
+/// The longest scene name kept (in characters); the rest is cut.
+pub const MAX_SCENE_NAME_CHARS: usize = 256;
+
+impl From<JobJson> for JobSpec {
+    /// The job `json` asks for: its scene name made safe to log
+    /// ([`hypertexture_proto::convert::untrusted`]; `scene.ron` when absent),
+    /// its knobs in name order, frame 0 when no frames are given, and the
+    /// pixel format the output's extension needs. The frames and the output
+    /// are checked when the job is submitted.
+    fn from(json: JobJson) -> JobSpec {
+        let name = json
+            .scene_name
+            .filter(|n| !n.is_empty())
+            .unwrap_or_else(|| "scene.ron".into());
+        let frames = json
+            .frames
+            .map_or(FrameRange::one(0), |[first, last]| FrameRange {
+                first,
+                last,
+            });
+        let request = RenderRequest {
+            scene_text: json.scene,
+            scene_name: hypertexture_proto::convert::untrusted(&name, MAX_SCENE_NAME_CHARS),
+            overrides: Overrides {
+                width: json.width,
+                height: json.height,
+                spp: json.spp,
+                quality: json.quality.map(Into::into),
+                knobs: json.knobs.into_iter().collect(),
+            },
+            frames,
+            pixel_format: crate::pipeline::output::pixel_format_for([std::path::Path::new(
+                &json.out,
+            )]),
+            bake: None,
+        };
+        JobSpec {
+            request,
+            out: json.out,
+            priority: json.priority,
+            require_tags: json.require_tags,
+        }
+    }
+}
+
+impl From<JobSpec> for JobJson {
+    fn from(spec: JobSpec) -> JobJson {
+        let RenderRequest {
+            scene_text,
+            scene_name,
+            overrides,
+            frames,
+            ..
+        } = spec.request;
+        JobJson {
+            scene: scene_text,
+            scene_name: Some(scene_name),
+            out: spec.out,
+            frames: Some([frames.first, frames.last]),
+            priority: spec.priority,
+            width: overrides.width,
+            height: overrides.height,
+            spp: overrides.spp,
+            quality: overrides.quality.map(Into::into),
+            knobs: overrides.knobs.into_iter().collect(),
+            require_tags: spec.require_tags,
+        }
+    }
+}
+
+/// The marching step preset as the API, the studio and the command line
+/// spell it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum QualitySpec {
     /// The scene's interactive step.
@@ -65,6 +164,15 @@ impl From<QualitySpec> for hypertexture::Quality {
         match q {
             QualitySpec::Interactive => hypertexture::Quality::Interactive,
             QualitySpec::High => hypertexture::Quality::High,
+        }
+    }
+}
+
+impl From<hypertexture::Quality> for QualitySpec {
+    fn from(q: hypertexture::Quality) -> Self {
+        match q {
+            hypertexture::Quality::Interactive => QualitySpec::Interactive,
+            hypertexture::Quality::High => QualitySpec::High,
         }
     }
 }
@@ -246,5 +354,104 @@ pub trait Control: Send + Sync + 'static {
     /// store cannot write, it is shutting down).
     fn ready(&self) -> Result<(), String> {
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hypertexture::{PixelFormat, Quality};
+
+    #[test]
+    fn a_jobs_json_reads_into_one_request_and_back() {
+        let json = r#"{"scene":"Scene()","scene_name":"fur.ron","out":"out/f.####.exr",
+            "frames":[2,5],"priority":3,"width":64,"spp":4,"quality":"interactive",
+            "knobs":{"b":1.0,"a":0.5},"require_tags":["gpu"]}"#;
+        let spec: JobSpec = serde_json::from_str(json).unwrap();
+        let r = &spec.request;
+        assert_eq!(
+            (r.scene_text.as_str(), r.scene_name.as_str()),
+            ("Scene()", "fur.ron")
+        );
+        assert_eq!(r.frames, FrameRange { first: 2, last: 5 });
+        assert_eq!(
+            r.overrides,
+            Overrides {
+                width: Some(64),
+                height: None,
+                spp: Some(4),
+                quality: Some(Quality::Interactive),
+                knobs: vec![("a".into(), 0.5), ("b".into(), 1.0)],
+            }
+        );
+        assert_eq!(
+            r.pixel_format,
+            PixelFormat::Samples,
+            "an EXR needs every sample"
+        );
+        assert_eq!(r.bake, None);
+        assert_eq!(
+            (spec.priority, spec.require_tags.clone()),
+            (3, vec!["gpu".into()])
+        );
+        let again: JobSpec = serde_json::from_str(&serde_json::to_string(&spec).unwrap()).unwrap();
+        assert_eq!(again, spec);
+    }
+
+    #[test]
+    fn a_bare_job_takes_the_defaults() {
+        let spec: JobSpec = serde_json::from_str(r#"{"scene":"S","out":"a.png"}"#).unwrap();
+        assert_eq!(
+            spec.request,
+            RenderRequest {
+                pixel_format: PixelFormat::Srgb8,
+                ..RenderRequest::new("S", "scene.ron")
+            }
+        );
+        assert_eq!((spec.priority, spec.require_tags.len()), (0, 0));
+        let empty_name: JobSpec =
+            serde_json::from_str(r#"{"scene":"S","scene_name":"","out":"a.png"}"#).unwrap();
+        assert_eq!(empty_name.request.scene_name, "scene.ron");
+    }
+
+    #[test]
+    fn a_scene_name_is_made_safe_to_log() {
+        let json = format!(
+            r#"{{"scene":"S","scene_name":"a\nb\u202e{}","out":"a.png"}}"#,
+            "x".repeat(300)
+        );
+        let spec: JobSpec = serde_json::from_str(&json).unwrap();
+        let name = &spec.request.scene_name;
+        assert!(name.starts_with("a\\nb\\u{202e}x"), "{name}");
+        // Cut after 256 characters of the name (4 of them escaped), with `…`.
+        assert_eq!(name.matches('x').count(), MAX_SCENE_NAME_CHARS - 4);
+        assert!(name.ends_with('…'), "{name}");
+    }
+
+    #[test]
+    fn refusals_of_the_json_name_the_field() {
+        let e = serde_json::from_str::<JobSpec>(r#"{"scene":"S","out":"a.png","colour":1}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unknown field `colour`"), "{e}");
+        let e = serde_json::from_str::<JobSpec>(r#"{"scene":"S"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing field `out`"), "{e}");
+        let e = serde_json::from_str::<JobSpec>(r#"{"scene":"S","out":"a.png","quality":"best"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unknown variant `best`"), "{e}");
+        let e = serde_json::from_str::<JobSpec>("[]")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("struct JobSpec"), "{e}");
+    }
+
+    #[test]
+    fn qualities_convert_both_ways() {
+        for q in [QualitySpec::Interactive, QualitySpec::High] {
+            assert_eq!(QualitySpec::from(Quality::from(q)), q);
+        }
     }
 }

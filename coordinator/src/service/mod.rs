@@ -14,6 +14,7 @@
 
 pub mod api;
 pub mod client;
+pub mod config;
 pub mod health;
 pub mod jobs;
 pub mod limits;
@@ -22,18 +23,18 @@ pub mod params;
 pub mod store;
 pub mod studio;
 
+pub use config::{ServeConfig, StudioConfig};
+
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::num::NonZeroUsize;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use hypertexture::FrameRange;
 use hypertexture::render::interleave::farm_units;
-use hypertexture::{Overrides, PixelFormat, Scene};
 use serde::{Deserialize, Serialize};
 
-use crate::cli::{LogFormat, ServeArgs};
 use crate::farm::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
 use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
 use crate::pipeline::destination::{self, expand_pattern};
@@ -114,6 +115,9 @@ struct JobMeta {
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
     metadata: Option<Arc<crate::pipeline::output::ImageMetadata>>,
+    /// Its scene while it is in the farm: the farm's checks and in-process
+    /// workers render this one rather than build it again.
+    scene: Option<Arc<hypertexture::Scene>>,
     /// When it first ran in this process, and its units done then (for the ETA).
     running_since: Option<(Instant, u64)>,
     /// Its progress when it left the scheduler (ended jobs).
@@ -216,21 +220,21 @@ fn unix_ms() -> u64 {
 
 /// The frames of a job.
 fn frames_of(spec: &JobSpec) -> Result<Frames, String> {
-    match spec.frames {
-        None => Ok(Frames::one(0)),
-        Some([a, b]) if a <= b && b - a < 100_000 => Ok(Frames::new(a, b)),
-        Some([a, b]) => Err(format!(
-            "frames [{a}, {b}]: the first must not be after the last, and a job has at most 100000"
+    match spec.request.frames {
+        FrameRange { first, last } if first <= last && last - first < 100_000 => {
+            Ok(Frames::new(first, last))
+        }
+        FrameRange { first, last } => Err(format!(
+            "frames [{first}, {last}]: the first must not be after the last, and a job has at most 100000"
         )),
     }
 }
 
-/// A job's spec, checked: its scene built, its frames and tile format.
+/// A job's spec, checked: its scene built, its frames.
 struct Checked {
-    scene: Scene,
+    /// The scene, and the request as the farm sends it.
+    built: hypertexture_proto::request::Built,
     frames: Frames,
-    format: PixelFormat,
-    name: String,
     /// What its images record.
     metadata: Arc<crate::pipeline::output::ImageMetadata>,
 }
@@ -248,19 +252,14 @@ fn check_spec(
     base: &Path,
 ) -> Result<Checked, ApiError> {
     let bad = ApiError::BadRequest;
-    if spec.scene.len() > hypertexture::scene::MAX_SCENE_BYTES {
+    let request = &spec.request;
+    if request.scene_text.len() > hypertexture::scene::MAX_SCENE_BYTES {
         return Err(bad(format!(
             "the scene is {} bytes; a scene may be at most {} bytes",
-            spec.scene.len(),
+            request.scene_text.len(),
             hypertexture::scene::MAX_SCENE_BYTES
         )));
     }
-    let name = spec
-        .scene_name
-        .clone()
-        .filter(|n| !n.is_empty())
-        .unwrap_or_else(|| "scene.ron".into());
-    let name = hypertexture_proto::convert::untrusted(&name, 256);
     let frames = frames_of(spec).map_err(bad)?;
     destination::check_pattern(&spec.out, frames, base).map_err(|e| bad(e.to_string()))?;
     // Every frame's file has the first one's extension: a `#` run in it
@@ -271,34 +270,18 @@ fn check_spec(
         .resolve(&spec.out, &first, base)
         .map_err(|e| ApiError::Forbidden(e.to_string()))?;
     farm::tags_from_wire(&spec.require_tags).map_err(|e| bad(format!("require_tags: {e}")))?;
-    let overrides = Overrides {
-        width: spec.width,
-        height: spec.height,
-        spp: spec.spp,
-        quality: spec.quality.map(Into::into),
-        knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
-    };
     // A scene sent over HTTP brings no files (the service reads none on a
     // client's word): one that names a mesh is refused.
-    let scene = Scene::from_text_with(
-        &spec.scene,
-        &name,
-        overrides.clone(),
-        Some(&hypertexture::scene::Assets::none()),
-    )
-    .map_err(|e| bad(e.to_string()))?;
+    let built =
+        hypertexture_proto::request::build(request, Some(&hypertexture::scene::Assets::none()))
+            .map_err(|e| bad(e.to_string()))?;
     let metadata = Arc::new(crate::pipeline::output::ImageMetadata::new(
-        &scene,
-        &name,
-        &spec.scene,
-        &overrides,
+        &built.scene,
+        request,
     ));
-    let format = crate::pipeline::output::pixel_format_for([first.as_path()]);
     Ok(Checked {
-        scene,
+        built,
         frames,
-        format,
-        name,
         metadata,
     })
 }
@@ -319,11 +302,10 @@ impl Service {
         resume: Resume,
     ) -> Result<u64, String> {
         let spec = &stored.spec;
-        let (scene, frames, format, scene_name) = (
-            &checked.scene,
+        let (scene, frames, format) = (
+            &checked.built.scene,
             checked.frames,
-            checked.format,
-            &checked.name,
+            checked.built.request.pixel_format,
         );
         let units = farm_units(
             scene.width(),
@@ -333,22 +315,14 @@ impl Service {
         );
         let units_per_frame = units.len() as u64;
         let frame_job = farm::FrameJob {
-            scene_text: spec.scene.clone(),
-            scene_name: scene_name.clone(),
-            width: scene.width(),
-            height: scene.height(),
+            request: checked.built.request.clone(),
             // The wire form takes the first frame (each assignment sets its
             // own); the files are expanded as each frame is written.
             frames: vec![farm::FrameOut {
                 frame: frames.first(),
                 out: PathBuf::from(expand_pattern(&spec.out, frames.first())),
             }],
-            spp: spec.spp,
-            quality: spec.quality.map(Into::into),
-            knobs: spec.knobs.iter().map(|(k, v)| (k.clone(), *v)).collect(),
-            pixel_format: format,
             metadata: checked.metadata.clone(),
-            bake: None,
             assets: Vec::new(),
         };
         let plan = JobPlan {
@@ -475,6 +449,7 @@ impl Service {
             meta.final_blocklisted = blocklisted;
             shared.remove_job(id);
         }
+        meta.scene = None;
     }
 
     /// Records a job's final state in the store, then in its view.
@@ -704,104 +679,122 @@ impl Service {
         };
         let mut resumed = 0;
         for job in stored_jobs {
-            let bad = |message: String| ServiceError::StoredJob {
-                path: path.clone(),
-                id: job.id,
-                message,
-            };
-            let stored: StoredSpec = serde_json::from_str(&job.spec_json)
-                .map_err(|e| bad(format!("unreadable job: {e}")))?;
-            let frames = frames_of(&stored.spec).map_err(bad)?;
-            // By frame number: which frames were recorded, not how many.
-            let finished: std::collections::BTreeSet<u32> =
-                self.store().finished_frames(job.id)?.into_iter().collect();
-            let mut state = job.state;
-            if !state.is_final()
-                && frames.iter().all(|f| finished.contains(&f))
-                && job.redo.is_empty()
-            {
-                state = JobState::Done;
-                self.store().set_state(job.id, state, None)?;
+            if self.restore_job(&job, &path)? {
+                resumed += 1;
             }
-            let mut meta = JobMeta {
-                scene_name: stored
-                    .spec
-                    .scene_name
-                    .clone()
-                    .unwrap_or_else(|| "scene.ron".into()),
-                units_per_frame: 0,
-                metadata: None,
-                frames,
-                state,
-                error: job.error.clone(),
-                outputs: job.outputs.clone(),
-                running_since: None,
-                final_units: 0,
-                final_blocklisted: Vec::new(),
-                ended_unix_ms: job.submitted_unix_ms,
-                stored,
-            };
-            if state.is_final() {
-                if let Ok(checked) = check_spec(&meta.stored.spec, &self.roots, &self.base) {
-                    meta.units_per_frame = farm_units(
-                        checked.scene.width(),
-                        checked.scene.height(),
-                        meta.stored.interleave,
-                        meta.stored.expected_workers,
-                    )
-                    .len() as u64;
-                }
-                meta.final_units = meta.units_per_frame * u64::from(job.frames_done);
-                self.jobs_lock().insert(job.id, meta);
-                continue;
-            }
-            let checked = check_spec(&meta.stored.spec, &self.roots, &self.base);
-            let checked = match checked {
-                Ok(c) => c,
-                Err(e) => {
-                    // Checked when submitted: the machine changed (a deleted
-                    // output directory, say). The job fails; others go on.
-                    self.jobs_lock().insert(job.id, meta);
-                    self.end(job.id, JobState::Failed, Some(e.to_string()));
-                    continue;
-                }
-            };
-            // The frames render in order: the run of recorded frames from
-            // the first is skipped, and any recorded after a gap render again
-            // (to the same bytes).
-            let frames_done = checked
-                .frames
-                .iter()
-                .take_while(|f| finished.contains(f))
-                .count();
-            let tiles = match checked.frames.get(frames_done) {
-                Some(frame) => self.sound_tiles(job.id, frame)?,
-                None => Vec::new(),
-            };
-            let tile_count = tiles.len();
-            let units_per_frame = self
-                .enqueue(
-                    job.id,
-                    &meta.stored,
-                    &checked,
-                    Resume {
-                        frames_done,
-                        tiles,
-                        redo: job.redo.clone(),
-                    },
-                )
-                .map_err(bad)?;
-            meta.units_per_frame = units_per_frame;
-            meta.metadata = Some(checked.metadata.clone());
-            tracing::info!(
-                "job {} resumed: {frames_done} of {} frames written, {tile_count} units of the next stored",
-                job.id,
-                checked.frames.len()
-            );
-            self.jobs_lock().insert(job.id, meta);
-            resumed += 1;
         }
         Ok(resumed)
+    }
+
+    /// Restores one stored job (from the store's file `path`): an ended one
+    /// (or one whose every frame is recorded) as it is, one that no longer
+    /// passes its checks as failed, the others back into the farm. Returns
+    /// whether it went back into the farm.
+    fn restore_job(&self, job: &store::StoredJob, path: &Path) -> Result<bool, ServiceError> {
+        let bad = |message: String| ServiceError::StoredJob {
+            path: path.to_path_buf(),
+            id: job.id,
+            message,
+        };
+        let stored: StoredSpec = serde_json::from_str(&job.spec_json)
+            .map_err(|e| bad(format!("unreadable job: {e}")))?;
+        let frames = frames_of(&stored.spec).map_err(bad)?;
+        // By frame number: which frames were recorded, not how many.
+        let finished: std::collections::BTreeSet<u32> =
+            self.store().finished_frames(job.id)?.into_iter().collect();
+        let mut state = job.state;
+        if !state.is_final() && frames.iter().all(|f| finished.contains(&f)) && job.redo.is_empty()
+        {
+            state = JobState::Done;
+            self.store().set_state(job.id, state, None)?;
+        }
+        let mut meta = JobMeta {
+            scene_name: stored.spec.request.scene_name.clone(),
+            units_per_frame: 0,
+            metadata: None,
+            scene: None,
+            frames,
+            state,
+            error: job.error.clone(),
+            outputs: job.outputs.clone(),
+            running_since: None,
+            final_units: 0,
+            final_blocklisted: Vec::new(),
+            ended_unix_ms: job.submitted_unix_ms,
+            stored,
+        };
+        if state.is_final() {
+            if let Ok(checked) = check_spec(&meta.stored.spec, &self.roots, &self.base) {
+                meta.units_per_frame = farm_units(
+                    checked.built.scene.width(),
+                    checked.built.scene.height(),
+                    meta.stored.interleave,
+                    meta.stored.expected_workers,
+                )
+                .len() as u64;
+            }
+            meta.final_units = meta.units_per_frame * u64::from(job.frames_done);
+            self.jobs_lock().insert(job.id, meta);
+            return Ok(false);
+        }
+        match check_spec(&meta.stored.spec, &self.roots, &self.base) {
+            Ok(checked) => {
+                self.resume(job, meta, &checked, &finished, &bad)?;
+                Ok(true)
+            }
+            Err(e) => {
+                // Checked when submitted: the machine changed (a deleted
+                // output directory, say). The job fails; others go on.
+                self.jobs_lock().insert(job.id, meta);
+                self.end(job.id, JobState::Failed, Some(e.to_string()));
+                Ok(false)
+            }
+        }
+    }
+
+    /// Puts a stored job that has not ended back into the farm: the run of
+    /// `finished` frames from its first is skipped, and any recorded after
+    /// a gap render again (to the same bytes); the next frame starts from
+    /// its sound stored tiles. A stored tile that does not fit is `bad`.
+    fn resume(
+        &self,
+        job: &store::StoredJob,
+        mut meta: JobMeta,
+        checked: &Checked,
+        finished: &std::collections::BTreeSet<u32>,
+        bad: &dyn Fn(String) -> ServiceError,
+    ) -> Result<(), ServiceError> {
+        let frames_done = checked
+            .frames
+            .iter()
+            .take_while(|f| finished.contains(f))
+            .count();
+        let tiles = match checked.frames.get(frames_done) {
+            Some(frame) => self.sound_tiles(job.id, frame)?,
+            None => Vec::new(),
+        };
+        let tile_count = tiles.len();
+        meta.units_per_frame = self
+            .enqueue(
+                job.id,
+                &meta.stored,
+                checked,
+                Resume {
+                    frames_done,
+                    tiles,
+                    redo: job.redo.clone(),
+                },
+            )
+            .map_err(bad)?;
+        meta.metadata = Some(checked.metadata.clone());
+        meta.scene = Some(Arc::clone(&checked.built.scene));
+        tracing::info!(
+            "job {} resumed: {frames_done} of {} frames written, {tile_count} units of the next stored",
+            job.id,
+            checked.frames.len()
+        );
+        self.jobs_lock().insert(job.id, meta);
+        Ok(())
     }
 }
 
@@ -847,10 +840,10 @@ impl Control for Arc<Service> {
             .map_err(ApiError::Internal)?;
         let Checked {
             frames,
-            name,
             metadata,
-            ..
+            built,
         } = checked;
+        let name = stored.spec.request.scene_name.clone();
         tracing::info!(
             "job {id} queued: {name}, {} frame{}, priority {}",
             frames.len(),
@@ -866,6 +859,7 @@ impl Control for Arc<Service> {
             units_per_frame,
             scene_name: name,
             metadata: Some(metadata),
+            scene: Some(built.scene),
             running_since: None,
             final_units: 0,
             final_blocklisted: Vec::new(),
@@ -1014,100 +1008,22 @@ impl Control for Arc<Service> {
 
 /// `coordinator serve`: sets up logging and the runtime, and serves until
 /// SIGTERM or Ctrl-C.
-pub fn run(args: ServeArgs) -> Result<(), crate::CoordinatorError> {
-    crate::logging::init_with(args.quiet, args.log_format == LogFormat::Json);
-    let tls = match (&args.tls_cert, &args.tls_key) {
-        (Some(cert), Some(key)) => Some(crate::farm::cert::read_server_tls(cert, key)?),
-        _ => None,
-    };
-    let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
-    let cwd = std::env::current_dir().map_err(|e| {
-        crate::CoordinatorError::Service(Box::new(ServiceError::Roots(format!(
-            "cannot read the working directory: {e}"
-        ))))
-    })?;
-    let output_roots = destination::OutputRoots::for_serve(&args.output_root, &cwd)
-        .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
-    let config = ServiceConfig {
-        data: args.data,
-        farm: FarmConfig {
-            listen: args.listen,
-            token: args.token.filter(|t| !t.is_empty()),
-            lease: Duration::from_secs_f64(args.lease_timeout),
-            worker_timeout: Duration::MAX,
-            local_workers: args.local_workers.unwrap_or(cores),
-            local_threads: args.threads.get(),
-            preview_every: None,
-            tls,
-            interleave: args.interleave,
-            progress: false,
-            gate: Default::default(),
-            verify: args.verify,
-            allow_hosts: args.allow_host,
-        },
-        drain_timeout: Duration::from_secs_f64(args.drain_timeout),
-        studio_scene: None,
-        accept_older_store: args.accept_older_store,
-        output_roots,
-        max_queued: args.max_queued,
-        keep_ended: args.keep_ended,
-    };
-    // One thread serves the farm and the API: per unit it checks, stores and
-    // persists a tile, and any thread more competes with the local workers.
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .map_err(crate::CoordinatorError::Runtime)?;
-    runtime
-        .block_on(serve(config, worker::shutdown_signal()))
-        .map_err(|e| crate::CoordinatorError::Service(Box::new(e)))
+pub fn run(config: ServeConfig) -> Result<(), crate::CoordinatorError> {
+    crate::logging::init_with(config.quiet, config.json_logs);
+    serve_until_signal(config.service_config()?)
 }
 
 /// `coordinator studio SCENE`: the service with its local workers, the
 /// scene open at `/`; prints the page's URL and serves until SIGTERM or Ctrl-C.
-pub fn run_studio(args: crate::cli::StudioArgs) -> Result<(), crate::CoordinatorError> {
-    crate::logging::init_with(args.quiet, false);
-    let cores = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
-    let data = args.data.unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("hypertexture-studio-{}", std::process::id()))
-    });
-    // The studio writes its renders beside its scene, or where it was started.
-    let scene_dir = match args.scene.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let mut dirs = vec![scene_dir];
-    if let Ok(cwd) = std::env::current_dir()
-        && cwd.parent().is_some()
-    {
-        dirs.push(cwd);
-    }
-    let output_roots = destination::OutputRoots::new(&dirs)
-        .map_err(|e| crate::CoordinatorError::Service(Box::new(ServiceError::Roots(e))))?;
-    let config = ServiceConfig {
-        data,
-        farm: FarmConfig {
-            listen: args.listen,
-            token: args.token.filter(|t| !t.is_empty()),
-            lease: Duration::from_secs(10),
-            worker_timeout: Duration::MAX,
-            local_workers: args.local_workers.unwrap_or(cores),
-            local_threads: 1,
-            preview_every: None,
-            tls: None,
-            interleave: hypertexture::render::interleave::DEFAULT_INTERLEAVE,
-            progress: false,
-            gate: Default::default(),
-            verify: farm::DEFAULT_VERIFY,
-            allow_hosts: args.allow_host,
-        },
-        drain_timeout: Duration::from_secs(5),
-        studio_scene: Some(args.scene),
-        accept_older_store: false,
-        output_roots,
-        max_queued: limits::DEFAULT_MAX_QUEUED,
-        keep_ended: limits::KeepEnded::default(),
-    };
+pub fn run_studio(config: StudioConfig) -> Result<(), crate::CoordinatorError> {
+    crate::logging::init_with(config.quiet, false);
+    serve_until_signal(config.service_config()?)
+}
+
+/// Serves `config` on a runtime of one thread until SIGTERM or Ctrl-C.
+fn serve_until_signal(config: ServiceConfig) -> Result<(), crate::CoordinatorError> {
+    // One thread serves the farm and the API: per unit it checks, stores and
+    // persists a tile, and any thread more competes with the local workers.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -1122,32 +1038,7 @@ pub async fn serve(
     config: ServiceConfig,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), ServiceError> {
-    let store = Store::open_with(&config.data, config.accept_older_store)?;
-    tracing::info!("store {}", store.path().display());
-    let base = std::env::current_dir()
-        .map_err(|e| ServiceError::Roots(format!("cannot read the working directory: {e}")))?;
-    tracing::info!(
-        "outputs are written inside {}",
-        config
-            .output_roots
-            .roots()
-            .iter()
-            .map(|r| r.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    let service = Arc::new(Service {
-        store: Mutex::new(store),
-        jobs: Mutex::new(BTreeMap::new()),
-        farm: OnceLock::new(),
-        draining: std::sync::atomic::AtomicBool::new(false),
-        health: health::Health::default(),
-        pending: Mutex::new(Vec::new()),
-        roots: config.output_roots.clone(),
-        base,
-        max_queued: config.max_queued,
-        keep_ended: config.keep_ended,
-    });
+    let service = open_service(&config)?;
     let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
     let studio = Arc::new(
         studio::Studio::new(
@@ -1184,81 +1075,15 @@ pub async fn serve(
     let started = Instant::now();
     let resumed = service.restore()?;
     studio.attach(Arc::clone(farm.shared()));
-    if config.studio_scene.is_some() {
-        let mut at = farm.addr();
-        if at.ip().is_unspecified() {
-            at.set_ip(std::net::Ipv4Addr::LOCALHOST.into());
-        }
-        println!("studio: {}://{at}/", farm.scheme());
-        if let Some(error) = studio.error() {
-            // The studio opens all the same: the text is edited in the page.
-            eprintln!("studio: {error} (fix it in the page or in the file)");
-        }
-    }
+    announce(&farm, &config, &studio);
     tracing::info!(
         "serving on {}://{} (API at /api/v1, metrics at /metrics); {resumed} jobs resumed in {:.3} s",
         farm.scheme(),
         farm.addr(),
         started.elapsed().as_secs_f64()
     );
-    tokio::pin!(shutdown);
-    let mut pruned_at = Instant::now();
-    let mut drain_deadline: Option<Instant> = None;
-    let mut failed = None;
-    loop {
-        tokio::select! {
-            () = farm.wait(Duration::from_millis(100)) => {}
-            () = &mut shutdown, if drain_deadline.is_none() => {
-                tracing::info!(
-                    "draining: no new units; units in flight get {:.0} s to arrive",
-                    config.drain_timeout.as_secs_f64()
-                );
-                service.draining.store(true, std::sync::atomic::Ordering::Relaxed);
-                studio.stop();
-                farm.shared().drain();
-                drain_deadline = Some(Instant::now() + config.drain_timeout);
-            }
-        }
-        let now = Instant::now();
-        let tick = farm.tick(now);
-        if let Some(p) = tick.panicked {
-            failed = Some(FarmError::Panicked(p));
-            break;
-        }
-        for (id, why) in tick.gave_up {
-            if studio.owns(id) {
-                studio.leave(id, Some(why.to_string()));
-            } else {
-                service.end(id, JobState::Failed, Some(why.to_string()));
-            }
-        }
-        for done in tick.completed {
-            if studio.owns(done.job) {
-                studio.leave(done.job, None);
-            } else {
-                service.write_frame(done).await;
-            }
-        }
-        service.note_running(now);
-        service.watch_store(now);
-        if now.duration_since(pruned_at) >= limits::PRUNE_EVERY {
-            pruned_at = now;
-            service.prune_ended();
-        }
-        if let Some(deadline) = drain_deadline {
-            let in_flight = farm.shared().in_flight();
-            if in_flight == 0 {
-                tracing::info!("drained: every unit in flight has arrived");
-                break;
-            }
-            if now >= deadline {
-                tracing::warn!(
-                    "drain time-out: {in_flight} units in flight are left for the next start"
-                );
-                break;
-            }
-        }
-    }
+    let (failed, drain_deadline) =
+        supervise(&mut farm, &service, &studio, config.drain_timeout, shutdown).await;
     // Past the drain time the workers get no more: the process exits within
     // `--drain-timeout` and a moment, whatever they do.
     let grace = drain_deadline.map_or(Duration::from_secs(5), |d| {
@@ -1274,6 +1099,137 @@ pub async fn serve(
         Some(e) => Err(e.into()),
         None => Ok(()),
     }
+}
+
+/// The service's state over the store opened under `config.data`, with
+/// nothing queued yet.
+fn open_service(config: &ServiceConfig) -> Result<Arc<Service>, ServiceError> {
+    let store = Store::open_with(&config.data, config.accept_older_store)?;
+    tracing::info!("store {}", store.path().display());
+    let base = std::env::current_dir()
+        .map_err(|e| ServiceError::Roots(format!("cannot read the working directory: {e}")))?;
+    tracing::info!(
+        "outputs are written inside {}",
+        config
+            .output_roots
+            .roots()
+            .iter()
+            .map(|r| r.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(Arc::new(Service {
+        store: Mutex::new(store),
+        jobs: Mutex::new(BTreeMap::new()),
+        farm: OnceLock::new(),
+        draining: std::sync::atomic::AtomicBool::new(false),
+        health: health::Health::default(),
+        pending: Mutex::new(Vec::new()),
+        roots: config.output_roots.clone(),
+        base,
+        max_queued: config.max_queued,
+        keep_ended: config.keep_ended,
+    }))
+}
+
+/// Prints the studio's URL (and its scene's error) when the service is a
+/// studio.
+fn announce(farm: &Farm, config: &ServiceConfig, studio: &studio::Studio) {
+    if config.studio_scene.is_none() {
+        return;
+    }
+    let mut at = farm.addr();
+    if at.ip().is_unspecified() {
+        at.set_ip(std::net::Ipv4Addr::LOCALHOST.into());
+    }
+    println!("studio: {}://{at}/", farm.scheme());
+    if let Some(error) = studio.error() {
+        // The studio opens all the same: the text is edited in the page.
+        eprintln!("studio: {error} (fix it in the page or in the file)");
+    }
+}
+
+/// The supervisor loop: hands finished frames and failed jobs to the
+/// service or the studio, keeps the store and the queue in shape, and on
+/// `shutdown` drains (nothing more handed out; units in flight get
+/// `drain_timeout`). Returns the farm's failure, if any, and the drain's
+/// deadline once draining began.
+async fn supervise(
+    farm: &mut Farm,
+    service: &Arc<Service>,
+    studio: &studio::Studio,
+    drain_timeout: Duration,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> (Option<FarmError>, Option<Instant>) {
+    tokio::pin!(shutdown);
+    let mut pruned_at = Instant::now();
+    let mut drain_deadline: Option<Instant> = None;
+    loop {
+        tokio::select! {
+            () = farm.wait(Duration::from_millis(100)) => {}
+            () = &mut shutdown, if drain_deadline.is_none() => {
+                tracing::info!(
+                    "draining: no new units; units in flight get {:.0} s to arrive",
+                    drain_timeout.as_secs_f64()
+                );
+                service.draining.store(true, std::sync::atomic::Ordering::Relaxed);
+                studio.stop();
+                farm.shared().drain();
+                drain_deadline = Some(Instant::now() + drain_timeout);
+            }
+        }
+        let now = Instant::now();
+        let tick = farm.tick(now);
+        if let Some(p) = tick.panicked {
+            return (Some(FarmError::Panicked(p)), drain_deadline);
+        }
+        hand_over(tick, service, studio).await;
+        service.note_running(now);
+        service.watch_store(now);
+        if now.duration_since(pruned_at) >= limits::PRUNE_EVERY {
+            pruned_at = now;
+            service.prune_ended();
+        }
+        if let Some(deadline) = drain_deadline
+            && drained(farm, now, deadline)
+        {
+            return (None, drain_deadline);
+        }
+    }
+}
+
+/// Ends the jobs a tick gave up and writes the frames it completed (the
+/// studio's live frames go back to the studio).
+async fn hand_over(tick: farm::Tick, service: &Arc<Service>, studio: &studio::Studio) {
+    for (id, why) in tick.gave_up {
+        if studio.owns(id) {
+            studio.leave(id, Some(why.to_string()));
+        } else {
+            service.end(id, JobState::Failed, Some(why.to_string()));
+        }
+    }
+    for done in tick.completed {
+        if studio.owns(done.job) {
+            studio.leave(done.job, None);
+        } else {
+            service.write_frame(done).await;
+        }
+    }
+}
+
+/// Whether a drain is over: every unit in flight has arrived, or
+/// `deadline` has passed (the rest are left for the next start).
+fn drained(farm: &Farm, now: Instant, deadline: Instant) -> bool {
+    let in_flight = farm.shared().in_flight();
+    if in_flight == 0 {
+        tracing::info!("drained: every unit in flight has arrived");
+        return true;
+    }
+    if now >= deadline {
+        tracing::warn!("drain time-out: {in_flight} units in flight are left for the next start");
+        return true;
+    }
+    false
 }
 
 /// A job as the store keeps it (its JSON), for tools that fill a store
@@ -1293,4 +1249,138 @@ pub fn stored_spec_json(
 /// The address a service listens on by default.
 pub fn default_listen() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], 47000))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hypertexture::{Overrides, PixelFormat, Quality, RenderRequest};
+
+    const SCENE: &str = include_str!("../../../scenes/noisy_sphere.ron");
+
+    /// A stored job as the store has kept it: every field of the spec
+    /// written, absent ones as null.
+    const STORED: &str = r#"{"spec":{"scene":"Scene()","scene_name":null,"out":"/tmp/r/f_##.png",
+        "frames":null,"priority":2,"width":null,"height":48,"spp":null,"quality":"high",
+        "knobs":{"curliness":0.5},"require_tags":[]},"interleave":8,"expected_workers":64}"#;
+
+    #[test]
+    fn stored_jobs_are_read_in_the_form_the_store_keeps() {
+        let stored: StoredSpec = serde_json::from_str(STORED).unwrap();
+        let spec = &stored.spec;
+        assert_eq!(
+            spec.request,
+            RenderRequest {
+                overrides: Overrides {
+                    height: Some(48),
+                    quality: Some(Quality::High),
+                    knobs: vec![("curliness".into(), 0.5)],
+                    ..Overrides::default()
+                },
+                pixel_format: PixelFormat::Srgb8,
+                ..RenderRequest::new("Scene()", "scene.ron")
+            }
+        );
+        assert_eq!((spec.out.as_str(), spec.priority), ("/tmp/r/f_##.png", 2));
+        assert_eq!((stored.interleave, stored.expected_workers), (8, 64));
+        assert_eq!(frames_of(spec), Ok(Frames::one(0)));
+        // Written again and read back: the same job.
+        let json = stored_spec_json(spec, 8, 64).unwrap();
+        let again: StoredSpec = serde_json::from_str(&json).unwrap();
+        assert_eq!(again.spec, stored.spec);
+    }
+
+    /// A job writing `out` (relative to `dir`), its request from `json`'s
+    /// fields over the scene.
+    fn spec(out: &str, request: RenderRequest) -> JobSpec {
+        JobSpec {
+            request,
+            out: out.into(),
+            priority: 0,
+            require_tags: Vec::new(),
+        }
+    }
+
+    fn check(spec: &JobSpec) -> Result<Checked, ApiError> {
+        let dir = std::env::temp_dir();
+        let roots =
+            crate::pipeline::destination::OutputRoots::new(std::slice::from_ref(&dir)).unwrap();
+        check_spec(spec, &roots, &dir)
+    }
+
+    #[test]
+    fn a_checked_job_is_built_once_and_sized_for_the_farm() {
+        let request = RenderRequest {
+            overrides: Overrides {
+                width: Some(40),
+                spp: Some(2),
+                ..Overrides::default()
+            },
+            frames: FrameRange { first: 3, last: 4 },
+            ..RenderRequest::new(SCENE, "noisy_sphere.ron")
+        };
+        let checked = check(&spec("service-test-##.png", request.clone())).unwrap();
+        let built = &checked.built;
+        assert_eq!((built.scene.width(), built.scene.spp()), (40, 2));
+        assert_eq!(built.request.overrides.width, Some(40));
+        assert_eq!(built.request.overrides.height, Some(built.scene.height()));
+        assert_eq!(checked.frames, Frames::new(3, 4));
+        assert_eq!(checked.metadata.spp_override, Some(2));
+        let shared = hypertexture::render::request::shared_scene(built.hash).unwrap();
+        assert!(
+            Arc::ptr_eq(&shared, &built.scene),
+            "workers in this process take it"
+        );
+    }
+
+    #[test]
+    fn refusals_name_what_is_wrong() {
+        let good = RenderRequest::new(SCENE, "noisy_sphere.ron");
+        let refused = |spec: JobSpec| match check(&spec) {
+            Err(e) => e,
+            Ok(_) => panic!("{:?} was accepted", spec.out),
+        };
+        let e = refused(spec(
+            "a.png",
+            RenderRequest {
+                frames: FrameRange { first: 5, last: 2 },
+                ..good.clone()
+            },
+        ));
+        assert!(
+            matches!(&e, ApiError::BadRequest(m) if m.contains("frames [5, 2]")),
+            "{e}"
+        );
+        let e = refused(spec(
+            "a.png",
+            RenderRequest {
+                scene_text: "x".repeat(hypertexture::scene::MAX_SCENE_BYTES + 1),
+                ..good.clone()
+            },
+        ));
+        assert!(e.to_string().contains("a scene may be at most"), "{e}");
+        let e = refused(spec(
+            "a.png",
+            RenderRequest {
+                overrides: Overrides {
+                    knobs: vec![("nope".into(), 1.0)],
+                    ..Overrides::default()
+                },
+                ..good.clone()
+            },
+        ));
+        assert!(e.to_string().contains("--set nope"), "{e}");
+        let e = refused(spec("a.jpg", good.clone()));
+        assert!(
+            matches!(e, ApiError::BadRequest(_)) && e.to_string().contains("a.jpg"),
+            "{e}"
+        );
+        let e = refused(spec("/a.png", good.clone()));
+        assert!(matches!(e, ApiError::Forbidden(_)), "{e}");
+        let e = refused(JobSpec {
+            require_tags: vec!["no spaces".into()],
+            ..spec("a.png", good)
+        });
+        assert!(e.to_string().contains("require_tags"), "{e}");
+    }
 }

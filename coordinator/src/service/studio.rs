@@ -54,7 +54,7 @@ use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
 use hypertexture::desc::KnobDesc;
 use hypertexture::render::interleave::{WorkUnit, farm_units};
-use hypertexture::{Overrides, PixelFormat, Scene};
+use hypertexture::{Overrides, PixelFormat, RenderRequest};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
@@ -109,6 +109,9 @@ struct LiveFrame {
     /// A high-quality frame's tile events not sent yet, and when they go.
     batch: Vec<serde_json::Value>,
     flush_at: Option<Instant>,
+    /// Its scene, held while the frame is in the farm: the farm's checks
+    /// and in-process workers render this one rather than build it again.
+    _scene: Arc<hypertexture::Scene>,
 }
 
 /// What the studio shows.
@@ -264,8 +267,8 @@ struct Checked {
     knobs: BTreeMap<String, f64>,
     declared: BTreeMap<String, KnobDesc>,
     shown: String,
-    width: u32,
-    height: u32,
+    /// The scene, and the request the farm's workers get.
+    built: hypertexture_proto::request::Built,
 }
 
 /// Parses and builds `text` at `quality` with `knobs` (clamped to their
@@ -290,26 +293,27 @@ fn check(
             (k.clone(), v)
         })
         .collect();
-    // A scene sent over HTTP brings no files: one that names a mesh is refused.
-    let scene = Scene::from_text_with(
-        text,
-        name,
-        Overrides {
+    let request = RenderRequest {
+        overrides: Overrides {
             quality: Some(quality.into()),
             knobs: overrides(&values, &desc.knobs),
             ..Overrides::default()
         },
-        Some(&hypertexture::scene::Assets::none()),
-    )
-    .map_err(|e| e.to_string())?;
+        // A live frame is drawn in the page: 8-bit colour is all it needs.
+        pixel_format: PixelFormat::Srgb8,
+        ..RenderRequest::new(text, name)
+    };
+    // A scene sent over HTTP brings no files: one that names a mesh is refused.
+    let built =
+        hypertexture_proto::request::build(&request, Some(&hypertexture::scene::Assets::none()))
+            .map_err(|e| e.to_string())?;
     let shown = with_knob_values(text, &values).unwrap_or_else(|| text.to_string());
     Ok(Checked {
         text: text.to_string(),
         knobs: values,
         declared: desc.knobs,
         shown,
-        width: scene.width(),
-        height: scene.height(),
+        built,
     })
 }
 
@@ -557,16 +561,7 @@ impl Studio {
             .get()
             .ok_or_else(|| "the farm is starting".to_string())?;
         let mut live = self.live();
-        let (text, knobs) = match change.text {
-            Some(text) => (text, BTreeMap::new()),
-            None => (live.text.clone(), change.knobs),
-        };
-        let text = if change.params.is_empty() {
-            Ok(text)
-        } else {
-            params::with_values(&text, &change.params)
-        };
-        let checked = match text.and_then(|text| check(&text, &self.name, &knobs, change.quality)) {
+        let checked = match self.check_change(&live, &change) {
             Ok(c) => c,
             Err(e) => {
                 live.error = Some(e.clone());
@@ -579,74 +574,7 @@ impl Studio {
             && live.quality == change.quality;
         live.error = None;
         if !same {
-            if let Some(old) = live.frame.take() {
-                shared.remove_job(old.job);
-            }
-            live.generation += 1;
-            let job = self.next_job.fetch_add(1, Ordering::Relaxed);
-            let (interleave, expected) = shared.unit_layout();
-            let units = farm_units(checked.width, checked.height, interleave, expected);
-            let knob_overrides = overrides(&checked.knobs, &checked.declared);
-            let frame_job = farm::FrameJob {
-                scene_text: checked.text.clone(),
-                scene_name: self.name.clone(),
-                width: checked.width,
-                height: checked.height,
-                frames: vec![farm::FrameOut {
-                    frame: 0,
-                    out: PathBuf::new(),
-                }],
-                spp: None,
-                quality: Some(change.quality.into()),
-                knobs: knob_overrides,
-                pixel_format: PixelFormat::Srgb8,
-                // A live frame is drawn in the page, never written to a file.
-                metadata: std::sync::Arc::new(
-                    crate::pipeline::output::ImageMetadata::without_scene(
-                        checked.width,
-                        checked.height,
-                        None,
-                        None,
-                    ),
-                ),
-                bake: None,
-                assets: Vec::new(),
-            };
-            let frame_units = units.clone();
-            let data = serde_json::json!({
-                "generation": live.generation,
-                "width": checked.width,
-                "height": checked.height,
-                "interleave": interleave,
-                "units": units.len(),
-                "quality": change.quality,
-            });
-            let event = self.send(Event {
-                name: "frame",
-                data: data.to_string(),
-            });
-            live.frame = Some(LiveFrame {
-                job,
-                generation: live.generation,
-                recorded: vec![false; units.len()],
-                remaining: units.len(),
-                units,
-                started: Instant::now(),
-                quality: change.quality,
-                events: vec![event],
-                pixels: Vec::new(),
-                batch: Vec::new(),
-                flush_at: None,
-            });
-            shared
-                .add_live_frame(
-                    job,
-                    frame_units,
-                    (checked.width, checked.height),
-                    PixelFormat::Srgb8,
-                    WireJob::of(&frame_job),
-                )
-                .map_err(|e| e.to_string())?;
+            self.start_frame(shared, &mut live, &checked, change.quality)?;
         }
         live.text = checked.text;
         live.knobs = checked.knobs;
@@ -662,6 +590,89 @@ impl Studio {
         } = &mut *live;
         (*params, *curves) = params::controls(text, ranges);
         Ok(self.view(&live))
+    }
+
+    /// The scene `change` asks for, built: its new text (knobs at their
+    /// defaults) or the live text with its knobs, with its parameters
+    /// written in.
+    fn check_change(&self, live: &Live, change: &Change) -> Result<Checked, String> {
+        let (text, knobs) = match &change.text {
+            Some(text) => (text.clone(), BTreeMap::new()),
+            None => (live.text.clone(), change.knobs.clone()),
+        };
+        let text = if change.params.is_empty() {
+            text
+        } else {
+            params::with_values(&text, &change.params)?
+        };
+        check(&text, &self.name, &knobs, change.quality)
+    }
+
+    /// Takes the frame in flight off the farm and puts the frame of
+    /// `checked` on it, telling the page its size and units.
+    fn start_frame(
+        &self,
+        shared: &Arc<Shared>,
+        live: &mut Live,
+        checked: &Checked,
+        quality: QualitySpec,
+    ) -> Result<(), String> {
+        if let Some(old) = live.frame.take() {
+            shared.remove_job(old.job);
+        }
+        live.generation += 1;
+        let job = self.next_job.fetch_add(1, Ordering::Relaxed);
+        let (interleave, expected) = shared.unit_layout();
+        let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
+        let units = farm_units(width, height, interleave, expected);
+        let frame_job = farm::FrameJob {
+            request: checked.built.request.clone(),
+            frames: vec![farm::FrameOut {
+                frame: 0,
+                out: PathBuf::new(),
+            }],
+            // A live frame is drawn in the page, never written to a file.
+            metadata: Arc::new(crate::pipeline::output::ImageMetadata::without_scene(
+                width, height, None, None,
+            )),
+            assets: Vec::new(),
+        };
+        let frame_units = units.clone();
+        let data = serde_json::json!({
+            "generation": live.generation,
+            "width": width,
+            "height": height,
+            "interleave": interleave,
+            "units": units.len(),
+            "quality": quality,
+        });
+        let event = self.send(Event {
+            name: "frame",
+            data: data.to_string(),
+        });
+        live.frame = Some(LiveFrame {
+            job,
+            generation: live.generation,
+            recorded: vec![false; units.len()],
+            remaining: units.len(),
+            units,
+            started: Instant::now(),
+            quality,
+            events: vec![event],
+            pixels: Vec::new(),
+            batch: Vec::new(),
+            flush_at: None,
+            _scene: Arc::clone(&checked.built.scene),
+        });
+        shared
+            .add_live_frame(
+                job,
+                frame_units,
+                (width, height),
+                PixelFormat::Srgb8,
+                WireJob::of(&frame_job),
+            )
+            .map_err(|e| e.to_string())
     }
 
     fn view(&self, live: &Live) -> SceneView {
@@ -684,16 +695,9 @@ impl Studio {
             curves: live.curves.clone(),
             error: live.error.clone(),
             final_job: JobSpec {
-                scene: live.shown.clone(),
-                scene_name: Some(self.name.clone()),
+                request: RenderRequest::new(live.shown.clone(), self.name.clone()),
                 out: self.final_out.clone(),
-                frames: None,
                 priority: 0,
-                width: None,
-                height: None,
-                spp: None,
-                quality: None,
-                knobs: BTreeMap::new(),
                 require_tags: Vec::new(),
             },
             generation: live.generation,
@@ -1067,6 +1071,14 @@ mod tests {
             ],
             batch: Vec::new(),
             flush_at: None,
+            _scene: Arc::new(
+                hypertexture::RenderRequest::new(
+                    include_str!("../../../scenes/noisy_sphere.ron"),
+                    "noisy_sphere.ron",
+                )
+                .build(None)
+                .unwrap(),
+            ),
         });
         let range = |generation, from, to| TileRange {
             generation,

@@ -9,8 +9,9 @@
 //! The top layer, above [`crate::scene`]: [`march`] walks the rays of the
 //! scene's camera ([`crate::scene::camera`]) through the density, [`lighting`] shades, [`sampling`] jitters and
 //! filters, [`film`] records, [`interleave`] cuts images into the farm's
-//! units, [`bake`] samples H(x) on a lattice and [`probe`] digests this
-//! build's arithmetic.
+//! units, [`bake`] samples H(x) on a lattice, [`probe`] digests this
+//! build's arithmetic and [`request`] says what to render (a scene, its
+//! overrides, frames and pixel format).
 
 pub mod bake;
 pub mod film;
@@ -18,6 +19,7 @@ pub mod interleave;
 pub mod lighting;
 pub mod march;
 pub mod probe;
+pub mod request;
 pub mod sampling;
 
 use rayon::prelude::*;
