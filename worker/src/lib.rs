@@ -210,14 +210,7 @@ impl UnitRenderer {
         stop: &AtomicBool,
     ) -> Result<Option<Vec<u8>>, (FailureKind, String)> {
         let scene = self.build(job, files)?;
-        let format = convert::pixel_format_from_wire(job.pixel_format)
-            .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
-        let bake = job
-            .bake
-            .as_ref()
-            .map(|l| convert::lattice_from_wire(l, scene.width(), scene.height()))
-            .transpose()
-            .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+        let (format, bake) = render::tile_form(job, &scene)?;
         let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
         Ok(
             render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop)

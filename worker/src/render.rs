@@ -5,8 +5,9 @@
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
-use hypertexture::Scene;
+use hypertexture::render::bake::Lattice;
 use hypertexture::render::interleave::WorkUnit;
+use hypertexture::{PixelFormat, Scene};
 use hypertexture_proto::{FailureKind, convert, pb};
 use tokio::sync::oneshot;
 
@@ -53,9 +54,9 @@ struct UnitWork {
     scene: Arc<Scene>,
     unit: WorkUnit,
     frame: u32,
-    format: hypertexture::PixelFormat,
+    format: PixelFormat,
     /// A bake's lattice: the unit's pixels are its voxels.
-    bake: Option<hypertexture::render::bake::Lattice>,
+    bake: Option<Lattice>,
 }
 
 /// Starts rendering an assignment on the pool (the async thread goes on with
@@ -124,15 +125,7 @@ fn unit_work(
         .ok_or(convert::WireError::Missing("unit"))
         .and_then(|u| convert::unit_from_wire(u, scene.width(), scene.height()))
         .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
-    let format = convert::pixel_format_from_wire(job.pixel_format)
-        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
-    // A bake's pixels are the voxels of its lattice (`hypertexture::render::bake`).
-    let bake = job
-        .bake
-        .as_ref()
-        .map(|l| convert::lattice_from_wire(l, scene.width(), scene.height()))
-        .transpose()
-        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+    let (format, bake) = tile_form(job, &scene)?;
     Ok(UnitWork {
         scene,
         unit,
@@ -140,6 +133,23 @@ fn unit_work(
         format,
         bake,
     })
+}
+
+/// How a job's tiles are made: their pixel format, and a bake's lattice (a
+/// bake's pixels are the voxels of its lattice, `hypertexture::render::bake`).
+pub(crate) fn tile_form(
+    job: &pb::Job,
+    scene: &Scene,
+) -> Result<(PixelFormat, Option<Lattice>), (FailureKind, String)> {
+    let format = convert::pixel_format_from_wire(job.pixel_format)
+        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+    let bake = job
+        .bake
+        .as_ref()
+        .map(|l| convert::lattice_from_wire(l, scene.width(), scene.height()))
+        .transpose()
+        .map_err(|e| (FailureKind::Assignment, e.to_string()))?;
+    Ok((format, bake))
 }
 
 /// How a unit's render CPU is read. With one render thread, that thread's
@@ -206,8 +216,8 @@ pub(crate) fn render_tile(
     scene: &Scene,
     pixels: &[(u32, u32)],
     frame: u32,
-    format: hypertexture::PixelFormat,
-    bake: Option<&hypertexture::render::bake::Lattice>,
+    format: PixelFormat,
+    bake: Option<&Lattice>,
     stop: &AtomicBool,
 ) -> Option<hypertexture_proto::Bytes> {
     let samples = match bake {
@@ -220,10 +230,10 @@ pub(crate) fn render_tile(
 }
 
 /// `tile` with every byte replaced by garbage of the same size ([`Fault::Garbage`]).
-fn garbage(tile: &[u8], format: hypertexture::PixelFormat) -> Vec<u8> {
+fn garbage(tile: &[u8], format: PixelFormat) -> Vec<u8> {
     let pattern: [u8; 4] = match format {
-        hypertexture::PixelFormat::Srgb8 => [255, 0, 255, 255],
-        hypertexture::PixelFormat::Samples => 1e38f32.to_le_bytes(),
+        PixelFormat::Srgb8 => [255, 0, 255, 255],
+        PixelFormat::Samples => 1e38f32.to_le_bytes(),
     };
     pattern.iter().copied().cycle().take(tile.len()).collect()
 }
@@ -235,4 +245,189 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
         .copied()
         .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
         .unwrap_or("(no message)")
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicBool;
+
+    use hypertexture::render::interleave::work_units;
+
+    use super::*;
+    use crate::UnitRenderer;
+
+    /// A job of scenes/noisy_sphere.ron at 8 × 8, as a coordinator sends it.
+    fn job(pixel_format: pb::PixelFormat) -> pb::Job {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenes/noisy_sphere.ron"
+        ))
+        .unwrap();
+        pb::Job {
+            scene_hash: convert::scene_hash(&text, 8, 8, 0, 0, &[]),
+            scene_text: text,
+            scene_name: "noisy_sphere.ron".into(),
+            width: 8,
+            height: 8,
+            pixel_format: pixel_format as i32,
+            ..Default::default()
+        }
+    }
+
+    /// The unit of all 64 pixels.
+    fn whole_image() -> WorkUnit {
+        let units = work_units(8, 8, 1, 4096);
+        assert_eq!(units.len(), 1);
+        units[0]
+    }
+
+    fn assignment(assignment_id: u64, job: pb::Job) -> pb::Assignment {
+        pb::Assignment {
+            assignment_id,
+            job: Some(job),
+            unit: Some(convert::unit_to_wire(&whole_image())),
+        }
+    }
+
+    /// Starts `assignment` on a pool of one thread and waits for its result.
+    fn rendered(
+        assignment: &pb::Assignment,
+        withdrawn: &Arc<Withdrawn>,
+        fault: Option<Fault>,
+    ) -> Result<Result<Option<Tile>, String>, (FailureKind, String)> {
+        let pool = RenderPool::new(1).unwrap();
+        let mut scenes = SceneCache::new(1 << 20);
+        let started = start_render(
+            assignment,
+            (&pool, withdrawn),
+            (&mut scenes, &Fetched::new()),
+            fault,
+        )?;
+        Ok(started.blocking_recv().unwrap())
+    }
+
+    #[test]
+    fn a_unit_on_the_pool_renders_as_the_unit_renderer_does() {
+        let job = job(pb::PixelFormat::Samples);
+        let withdrawn = Arc::new(Withdrawn::default());
+        let (unit, tile, _cpu) = rendered(&assignment(1, job.clone()), &withdrawn, None)
+            .unwrap()
+            .unwrap()
+            .unwrap();
+        assert_eq!(unit, whole_image());
+        assert_eq!(tile.len(), 64 * PixelFormat::Samples.bytes_per_pixel());
+        let expected = UnitRenderer::default()
+            .render(&job, &unit, &|_| None, &AtomicBool::new(false))
+            .unwrap()
+            .unwrap();
+        assert_eq!(tile.to_vec(), expected);
+        assert!(
+            withdrawn.start(1).is_some(),
+            "a finished unit is no longer rendering"
+        );
+    }
+
+    #[test]
+    fn a_unit_withdrawn_before_it_starts_never_renders() {
+        let withdrawn = Arc::new(Withdrawn::default());
+        withdrawn.withdraw(&[7]);
+        let result = rendered(
+            &assignment(7, job(pb::PixelFormat::Samples)),
+            &withdrawn,
+            None,
+        );
+        assert_eq!(result, Ok(Ok(None)));
+    }
+
+    #[test]
+    fn a_lying_worker_sends_garbage_of_the_right_size() {
+        let withdrawn = Arc::new(Withdrawn::default());
+        for format in [pb::PixelFormat::Samples, pb::PixelFormat::Srgb8] {
+            let a = assignment(1, job(format));
+            let truthful = rendered(&a, &withdrawn, None).unwrap().unwrap().unwrap();
+            let lying = rendered(&a, &withdrawn, Some(Fault::Garbage))
+                .unwrap()
+                .unwrap()
+                .unwrap();
+            assert_eq!(lying.1.len(), truthful.1.len());
+            assert_ne!(lying.1, truthful.1);
+            // From frame 1 on: frame 0 is true.
+            let from_next = rendered(&a, &withdrawn, Some(Fault::GarbageFrom(1)))
+                .unwrap()
+                .unwrap()
+                .unwrap();
+            assert_eq!(from_next.1, truthful.1);
+        }
+    }
+
+    #[test]
+    fn a_render_that_panics_comes_back_as_its_message() {
+        let withdrawn = Arc::new(Withdrawn::default());
+        let a = assignment(3, job(pb::PixelFormat::Samples));
+        let message = rendered(&a, &withdrawn, Some(Fault::Panic))
+            .unwrap()
+            .unwrap_err();
+        assert_eq!(
+            message,
+            "the render panicked: the render panics on purpose (fault injection)"
+        );
+        assert!(
+            withdrawn.start(3).is_some(),
+            "a panicked unit is no longer rendering"
+        );
+    }
+
+    #[test]
+    fn an_assignment_that_cannot_start_says_why() {
+        let withdrawn = Arc::new(Withdrawn::default());
+        let good = assignment(1, job(pb::PixelFormat::Samples));
+        let kind = |a: &pb::Assignment, fault| match rendered(a, &withdrawn, fault) {
+            Err((kind, message)) => {
+                assert!(!message.is_empty());
+                kind
+            }
+            Ok(r) => panic!("started: {r:?}"),
+        };
+        assert_eq!(kind(&good, Some(Fault::Scene)), FailureKind::Scene);
+        assert_eq!(kind(&good, Some(Fault::RenderClaim)), FailureKind::Render);
+        let no_job = pb::Assignment {
+            job: None,
+            ..good.clone()
+        };
+        assert_eq!(kind(&no_job, None), FailureKind::Assignment);
+        let no_unit = pb::Assignment {
+            unit: None,
+            ..good.clone()
+        };
+        assert_eq!(kind(&no_unit, None), FailureKind::Assignment);
+        let unspecified = assignment(1, job(pb::PixelFormat::Unspecified));
+        assert_eq!(kind(&unspecified, None), FailureKind::Assignment);
+        let mut forged = job(pb::PixelFormat::Samples);
+        forged.scene_hash ^= 1;
+        assert_eq!(kind(&assignment(1, forged), None), FailureKind::Scene);
+    }
+
+    #[test]
+    fn garbage_is_opaque_magenta_or_huge_floats() {
+        assert_eq!(
+            garbage(&[0; 8], PixelFormat::Srgb8),
+            [255, 0, 255, 255, 255, 0, 255, 255]
+        );
+        let floats = garbage(&[0; 8], PixelFormat::Samples);
+        assert_eq!(floats.len(), 8);
+        for f in floats.chunks(4) {
+            assert_eq!(f32::from_le_bytes(f.try_into().unwrap()), 1e38);
+        }
+        assert!(garbage(&[], PixelFormat::Samples).is_empty());
+    }
+
+    #[test]
+    fn a_panics_message_is_its_text() {
+        let text: Box<dyn std::any::Any + Send> = Box::new("static");
+        assert_eq!(panic_message(&*text), "static");
+        let formatted: Box<dyn std::any::Any + Send> = Box::new(format!("n = {}", 3));
+        assert_eq!(panic_message(&*formatted), "n = 3");
+        let other: Box<dyn std::any::Any + Send> = Box::new(42u32);
+        assert_eq!(panic_message(&*other), "(no message)");
+    }
 }
