@@ -156,3 +156,136 @@ pub(crate) fn is_refusal(status: &Status) -> bool {
         Code::Unauthenticated | Code::PermissionDenied | Code::FailedPrecondition
     )
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(coordinator: &str, ca: Option<&[u8]>, token: Option<&str>) -> WorkerConfig {
+        WorkerConfig {
+            token: token.map(str::to_string),
+            ca: ca.map(<[u8]>::to_vec),
+            ..crate::testing::config(coordinator)
+        }
+    }
+
+    /// The message of the address error `endpoint` gives for `config`.
+    fn refused(config: &WorkerConfig) -> String {
+        match endpoint(config) {
+            Err(WorkerError::Address { url, message }) => {
+                assert_eq!(url, config.coordinator);
+                message
+            }
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("{} was accepted", config.coordinator),
+        }
+    }
+
+    #[test]
+    fn an_address_needs_a_scheme_a_host_and_tls_with_its_ca() {
+        assert!(endpoint(&config("http://127.0.0.1:50051", None, None)).is_ok());
+        assert_eq!(
+            refused(&config("ftp://127.0.0.1:50051", None, None)),
+            "expected http://HOST:PORT or https://HOST:PORT"
+        );
+        assert_eq!(
+            refused(&config("http://127.0.0.1:50051", Some(b"PEM"), None)),
+            "--ca needs an https:// address"
+        );
+        assert_eq!(
+            refused(&config("https://127.0.0.1:50051", None, None)),
+            "https:// needs --ca FILE to verify the coordinator"
+        );
+        assert!(!refused(&config("not a url", None, None)).is_empty());
+    }
+
+    #[test]
+    fn a_token_is_sent_as_a_bearer_and_must_be_printable_ascii() {
+        let Auth(none) = Auth::bearer(&config("http://h:1", None, None)).unwrap();
+        assert!(none.is_none());
+        let Auth(value) = Auth::bearer(&config("http://h:1", None, Some("s3cret"))).unwrap();
+        assert_eq!(value.unwrap().to_str().unwrap(), "Bearer s3cret");
+        match Auth::bearer(&config("http://h:1", None, Some("line\nbreak"))) {
+            Err(WorkerError::Address { message, .. }) => {
+                assert_eq!(message, "the token must be printable ASCII")
+            }
+            other => panic!("expected an address error, got {:?}", other.err()),
+        }
+    }
+
+    #[test]
+    fn the_backoff_doubles_to_five_seconds_and_starts_again() {
+        let mut backoff = Backoff::new();
+        let waits: Vec<u128> = (0..9).map(|_| backoff.next().as_millis()).collect();
+        assert_eq!(waits, [100, 200, 400, 800, 1600, 3200, 5000, 5000, 5000]);
+        backoff.reset();
+        assert_eq!(backoff.next(), Duration::from_millis(100));
+    }
+
+    #[test]
+    fn only_refusals_of_the_worker_are_for_good() {
+        for code in [
+            Code::Unauthenticated,
+            Code::PermissionDenied,
+            Code::FailedPrecondition,
+        ] {
+            assert!(is_refusal(&Status::new(code, "no")), "{code:?}");
+        }
+        for code in [
+            Code::Unavailable,
+            Code::NotFound,
+            Code::InvalidArgument,
+            Code::Internal,
+        ] {
+            assert!(!is_refusal(&Status::new(code, "no")), "{code:?}");
+        }
+    }
+
+    #[test]
+    fn what_the_coordinator_says_is_escaped_and_capped() {
+        assert_eq!(said(&Status::internal("two\nlines")), "two\\nlines");
+        let long = "x".repeat(convert::MAX_REASON_CHARS + 10);
+        assert_eq!(
+            shown(&long).chars().count(),
+            convert::MAX_REASON_CHARS + 1,
+            "capped, with an ellipsis"
+        );
+    }
+
+    #[test]
+    fn an_error_chain_is_one_line_of_causes() {
+        #[derive(Debug)]
+        struct Outer(std::io::Error);
+        impl std::fmt::Display for Outer {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("cannot connect")
+            }
+        }
+        impl std::error::Error for Outer {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let e = Outer(std::io::Error::other("connection refused"));
+        assert_eq!(error_chain(&e), "cannot connect: connection refused");
+    }
+
+    #[tokio::test]
+    async fn a_sleep_ends_early_when_asked_to_stop() {
+        let (tell, mut stop) = watch::channel(false);
+        assert!(!sleep_or_stop(Duration::from_millis(1), &mut stop).await);
+        let started = std::time::Instant::now();
+        let told = tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            tell.send(true).unwrap();
+            tell
+        });
+        assert!(sleep_or_stop(Duration::from_secs(600), &mut stop).await);
+        assert!(started.elapsed() < Duration::from_secs(60));
+        assert!(
+            sleep_or_stop(Duration::from_secs(600), &mut stop).await,
+            "already stopped"
+        );
+        drop(told.await.unwrap());
+    }
+}

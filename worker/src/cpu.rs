@@ -91,3 +91,32 @@ pub fn process_cpu_micros() -> u64 {
         0
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Spins until this thread has used some CPU.
+    fn burn(clock: CpuClock) {
+        let start = clock.micros();
+        let mut x = 1u64;
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while clock.micros() <= start && std::time::Instant::now() < deadline {
+            for i in 0..100_000u64 {
+                x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(i));
+            }
+        }
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_threads_clock_counts_its_own_cpu() {
+        let clock = CpuClock::of_this_thread();
+        let mut calls = CallsCpu::new(clock);
+        let before = clock.micros();
+        burn(clock);
+        assert!(clock.micros() > before);
+        assert!(calls.since_last() > 0);
+        assert!(process_cpu_micros() >= clock.micros());
+    }
+}

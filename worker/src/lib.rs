@@ -30,6 +30,9 @@ mod signal;
 mod tiles;
 mod withdrawals;
 
+#[cfg(test)]
+mod testing;
+
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;

@@ -97,3 +97,26 @@ pub(crate) async fn goodbye(client: &mut Client, config: &WorkerConfig, worker_i
         })
         .await;
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn the_digest_is_the_probes_and_an_arithmetic_fault_flips_one_bit() {
+        let pool = RenderPool::new(1).unwrap();
+        let digest = arithmetic_digest(&pool, None).await.unwrap();
+        assert_eq!(
+            digest,
+            hypertexture::render::probe::arithmetic_digest().unwrap()
+        );
+        let faulty = arithmetic_digest(&pool, Some(Fault::Arithmetic))
+            .await
+            .unwrap();
+        assert_eq!(faulty, digest ^ 1);
+        assert_eq!(
+            arithmetic_digest(&pool, Some(Fault::Panic)).await.unwrap(),
+            digest
+        );
+    }
+}

@@ -264,17 +264,9 @@ mod tests {
 
     fn config(exit_when_done: bool, lease: Duration) -> WorkerConfig {
         WorkerConfig {
-            coordinator: "http://127.0.0.1:1".into(),
-            threads: 1,
-            token: None,
-            name: "test".into(),
-            ca: None,
             exit_when_done,
             lease,
-            fault: None,
-            shares_process: false,
-            tags: Vec::new(),
-            asset_cache_bytes: 0,
+            ..crate::testing::config("http://127.0.0.1:1")
         }
     }
 

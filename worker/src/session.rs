@@ -444,3 +444,113 @@ fn lost(config: &WorkerConfig, status: Status) -> Result<Leave, WorkerError> {
     }
     Ok(Leave::Reconnect)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config() -> WorkerConfig {
+        crate::testing::config("http://127.0.0.1:1")
+    }
+
+    fn work(outcome: Option<Outcome>) -> Asked {
+        Asked::from(GetWorkResult { outcome })
+    }
+
+    fn wait_of(asked: Asked) -> Duration {
+        match asked {
+            Asked::Wait(d) => d,
+            _ => panic!("expected a wait"),
+        }
+    }
+
+    #[test]
+    fn a_wait_asked_for_is_kept_between_10_ms_and_5_s() {
+        let after = |ms| wait_of(work(Some(Outcome::RetryAfterMs(ms))));
+        assert_eq!(after(0), Duration::from_millis(10));
+        assert_eq!(after(250), Duration::from_millis(250));
+        assert_eq!(after(u32::MAX), Duration::from_secs(5));
+        assert_eq!(wait_of(work(None)), Duration::from_millis(500));
+        assert!(matches!(
+            work(Some(Outcome::Finished(Default::default()))),
+            Asked::Finished
+        ));
+        let a = pb::Assignment {
+            assignment_id: 9,
+            ..Default::default()
+        };
+        assert!(matches!(
+            work(Some(Outcome::Assignment(a))),
+            Asked::Assignment(pb::Assignment {
+                assignment_id: 9,
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn a_lost_call_reconnects_unless_the_worker_is_refused() {
+        let config = config();
+        for code in [Code::Unavailable, Code::NotFound, Code::Internal] {
+            assert!(
+                matches!(lost(&config, Status::new(code, "")), Ok(Leave::Reconnect)),
+                "{code:?}"
+            );
+        }
+        match lost(&config, Status::unauthenticated("bad\ntoken")) {
+            Err(WorkerError::Refused(message)) => assert_eq!(message, "bad\\ntoken"),
+            _ => panic!("expected a refusal"),
+        }
+    }
+
+    /// A tile in flight whose reply is `reply`.
+    fn sending(reply: Result<pb::SubmitTileResult, Status>) -> Option<Sending> {
+        Some(tokio::spawn(async move { (None, reply) }))
+    }
+
+    #[tokio::test]
+    async fn a_delivered_tile_is_counted_and_brings_the_next_unit() {
+        let config = config();
+        let mut report = WorkerReport::default();
+        let mut stream = None;
+        let none = delivered(&config, None, &mut report, &mut stream).await;
+        assert!(matches!(none, Ok(Delivered::Nothing)));
+
+        let next = pb::SubmitTileResult {
+            accepted: true,
+            next: Some(GetWorkResult {
+                outcome: Some(Outcome::Finished(Default::default())),
+            }),
+        };
+        let got = delivered(&config, sending(Ok(next)), &mut report, &mut stream).await;
+        assert!(matches!(got, Ok(Delivered::Next(Asked::Finished))));
+        assert_eq!(report.units, 1);
+
+        let duplicate = pb::SubmitTileResult {
+            accepted: false,
+            next: None,
+        };
+        let got = delivered(&config, sending(Ok(duplicate)), &mut report, &mut stream).await;
+        assert!(matches!(got, Ok(Delivered::Nothing)));
+        assert_eq!(report.units, 1, "a duplicate is not counted");
+    }
+
+    #[tokio::test]
+    async fn a_refused_tile_is_not_fatal_but_a_refused_worker_is() {
+        let config = config();
+        let mut report = WorkerReport::default();
+        let mut stream = None;
+        let refused = sending(Err(Status::invalid_argument("not this worker's unit")));
+        let got = delivered(&config, refused, &mut report, &mut stream).await;
+        assert!(matches!(got, Ok(Delivered::Nothing)));
+
+        let gone = sending(Err(Status::unavailable("connection reset")));
+        let got = delivered(&config, gone, &mut report, &mut stream).await;
+        assert!(matches!(got, Ok(Delivered::Lost(s)) if s.code() == Code::Unavailable));
+
+        let denied = sending(Err(Status::permission_denied("wrong token")));
+        let got = delivered(&config, denied, &mut report, &mut stream).await;
+        assert!(matches!(got, Err(WorkerError::Refused(m)) if m == "wrong token"));
+        assert_eq!(report.units, 0);
+    }
+}

@@ -83,3 +83,41 @@ pub(crate) async fn listen_for_withdrawals(
         withdrawn.withdraw(&w.assignment_ids);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_unit_withdrawn_while_it_renders_is_told_to_stop() {
+        let withdrawn = Withdrawn::default();
+        let flag = withdrawn.start(1).unwrap();
+        let other = withdrawn.start(2).unwrap();
+        withdrawn.withdraw(&[1]);
+        assert!(flag.load(Ordering::Relaxed));
+        assert!(!other.load(Ordering::Relaxed));
+        withdrawn.finish(1);
+        withdrawn.finish(2);
+        assert!(withdrawn.lock().rendering.is_empty());
+    }
+
+    #[test]
+    fn a_unit_withdrawn_before_it_starts_never_starts() {
+        let withdrawn = Withdrawn::default();
+        withdrawn.withdraw(&[5, 6]);
+        assert!(withdrawn.start(5).is_none());
+        assert!(withdrawn.start(6).is_none());
+        assert!(withdrawn.start(7).is_some());
+    }
+
+    #[test]
+    fn only_the_newest_withdrawals_before_start_are_remembered() {
+        let withdrawn = Withdrawn::default();
+        let ids: Vec<u64> = (0..WITHDRAWN_REMEMBERED as u64 + 1).collect();
+        withdrawn.withdraw(&ids);
+        assert_eq!(withdrawn.lock().before_start.len(), WITHDRAWN_REMEMBERED);
+        assert!(withdrawn.start(0).is_some(), "the oldest is forgotten");
+        assert!(withdrawn.start(1).is_none());
+        assert!(withdrawn.start(WITHDRAWN_REMEMBERED as u64).is_none());
+    }
+}
