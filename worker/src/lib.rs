@@ -13,6 +13,16 @@
 //! task heartbeats so the coordinator knows it is alive. When the coordinator
 //! goes away the worker reconnects with exponential backoff; when asked to stop
 //! (SIGTERM) it finishes the current unit, says goodbye and returns.
+//!
+//! The modules, from the outside in: [`run`] (`run.rs`) connects, registers
+//! and reconnects; `connection` holds the coordinator's address, TLS, token
+//! and backoff; `register` the known-answer probe, registration, heartbeat
+//! and goodbye; `session` the work loop over one registration, one unit
+//! ahead; `tiles` the SubmitTiles stream; `withdrawals` the units taken
+//! back; `assets` the meshes fetched; `render` a unit's render on the pool;
+//! `cpu` the CPU clocks; `signal` the stop signals. This file holds the
+//! configuration, the error, the built scenes ([`UnitRenderer`] and the
+//! scene cache, by content hash).
 
 pub mod body;
 pub mod cache;
