@@ -40,9 +40,6 @@ mod signal;
 mod tiles;
 mod withdrawals;
 
-#[cfg(test)]
-mod testing;
-
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -424,6 +421,9 @@ impl SceneCache {
         self.last = hash;
     }
 }
+
+#[cfg(test)]
+mod testing;
 
 #[cfg(test)]
 mod tests {
