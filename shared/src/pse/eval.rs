@@ -207,6 +207,31 @@ impl Program {
     #[inline]
     fn run<const N: usize>(&self, inputs: Inputs, field: &Field) -> [f32; 3] {
         let mut r = [0.0f32; N];
+        self.load_registers(&mut r, inputs, field);
+        let ops = &self.ops[..];
+        let mut pc = 0;
+        while pc < ops.len() {
+            let op = ops[pc];
+            pc += 1;
+            match op {
+                Op::Jump(target) => pc = usize::from(target),
+                Op::JumpIfZero(c, target) => {
+                    if r[c as usize] == 0.0 {
+                        pc = usize::from(target);
+                    }
+                }
+                _ => self.exec(op, &mut r, field),
+            }
+        }
+        match self.result {
+            Result3::Scalar(a) => [r[a as usize]; 3],
+            Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
+        }
+    }
+
+    /// Loads the register file for a run: the template, then the inputs.
+    #[inline(always)]
+    fn load_registers<const N: usize>(&self, r: &mut [f32; N], inputs: Inputs, field: &Field) {
         r[..self.template.len()].copy_from_slice(&self.template);
         r[REG_X as usize] = inputs.x.x;
         r[REG_X as usize + 1] = inputs.x.y;
@@ -214,96 +239,71 @@ impl Program {
         r[REG_T as usize] = field.time / field.frame_rate;
         r[REG_FRAME as usize] = field.frame as f32;
         r[REG_D as usize] = inputs.d;
-        let ops = &self.ops[..];
-        let mut pc = 0;
-        while pc < ops.len() {
-            let op = ops[pc];
-            pc += 1;
-            macro_rules! r {
-                ($i:expr) => {
-                    r[$i as usize]
-                };
-            }
-            let v = |r: &[f32; N], p: V| {
-                Vec3::new(r[p[0] as usize], r[p[1] as usize], r[p[2] as usize])
+    }
+
+    /// Runs one operation other than a jump.
+    #[inline(always)]
+    fn exec<const N: usize>(&self, op: Op, r: &mut [f32; N], field: &Field) {
+        macro_rules! r {
+            ($i:expr) => {
+                r[$i as usize]
             };
-            let set = |r: &mut [f32; N], p: V, value: Vec3| {
-                r[p[0] as usize] = value.x;
-                r[p[1] as usize] = value.y;
-                r[p[2] as usize] = value.z;
-            };
-            match op {
-                Op::Copy(d, a) => r!(d) = r!(a),
-                Op::Add(d, a, b) => r!(d) = r!(a) + r!(b),
-                Op::Sub(d, a, b) => r!(d) = r!(a) - r!(b),
-                Op::Mul(d, a, b) => r!(d) = r!(a) * r!(b),
-                Op::Div(d, a, b) => r!(d) = r!(a) / r!(b),
-                Op::Rem(d, a, b) => r!(d) = libm::fmodf(r!(a), r!(b)),
-                Op::Neg(d, a) => r!(d) = -r!(a),
-                Op::Lt(d, a, b) => r!(d) = truth(r!(a) < r!(b)),
-                Op::Le(d, a, b) => r!(d) = truth(r!(a) <= r!(b)),
-                Op::Eq(d, a, b) => r!(d) = truth(r!(a) == r!(b)),
-                Op::Ne(d, a, b) => r!(d) = truth(r!(a) != r!(b)),
-                Op::And(d, a, b) => r!(d) = truth(r!(a) != 0.0 && r!(b) != 0.0),
-                Op::Or(d, a, b) => r!(d) = truth(r!(a) != 0.0 || r!(b) != 0.0),
-                Op::Not(d, a) => r!(d) = truth(r!(a) == 0.0),
-                Op::F1(f, d, a) => r!(d) = fn1(f, r!(a)),
-                Op::F2(f, d, a, b) => r!(d) = fn2(f, r!(a), r!(b)),
-                Op::BiasK(d, a, b) => r!(d) = b.apply(r!(a)),
-                Op::GainK(d, a, g) => r!(d) = g.apply(r!(a)),
-                Op::Clamp(d, a, lo, hi) => r!(d) = clamp(r!(a), r!(lo), r!(hi)),
-                Op::Smoothstep(d, e0, e1, a) => r!(d) = smoothstep(r!(e0), r!(e1), r!(a)),
-                Op::Noise(d, p) => r!(d) = field.noise.noise(v(&r, p)),
-                Op::VNoise(d, p) => {
-                    let n = field.noise.vnoise(v(&r, p));
-                    set(&mut r, d, n);
-                }
-                Op::DNoise(d, p) => {
-                    let n = dnoise(field, v(&r, p));
-                    set(&mut r, d, n);
-                }
-                Op::Turbulence(d, p, o) => {
-                    r!(d) = field.noise.turbulence(v(&r, p), octaves(r!(o)));
-                }
-                Op::Fbm(d, p, o) => r!(d) = fbm(field, v(&r, p), octaves(r!(o))),
-                Op::Improved(d, p) => {
-                    let p = v(&r, p);
-                    r!(d) = crate::field::noise::improved(
-                        f64::from(p.x),
-                        f64::from(p.y),
-                        f64::from(p.z),
-                    ) as f32;
-                }
-                Op::Density(d, i, p) => {
-                    let p = v(&r, p);
-                    r!(d) = self
-                        .objects
-                        .get(usize::from(i))
-                        .map_or(0.0, |o| o.eval(p, field));
-                }
-                Op::Project(d, p) => {
-                    let p = v(&r, p);
-                    let q = self.surface.as_ref().map_or(p, |s| s.project(p));
-                    set(&mut r, d, q);
-                }
-                Op::ColourMap(d, s) => {
-                    let c = self
-                        .colour_map
-                        .as_ref()
-                        .map_or([r!(s); 3], |m| m.eval(r!(s)));
-                    set(&mut r, d, Vec3::from_array(c));
-                }
-                Op::Jump(target) => pc = usize::from(target),
-                Op::JumpIfZero(c, target) => {
-                    if r!(c) == 0.0 {
-                        pc = usize::from(target);
-                    }
-                }
-            }
         }
-        match self.result {
-            Result3::Scalar(a) => [r[a as usize]; 3],
-            Result3::Vector(p) => [r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]],
+        let v =
+            |r: &[f32; N], p: V| Vec3::new(r[p[0] as usize], r[p[1] as usize], r[p[2] as usize]);
+        let set = |r: &mut [f32; N], p: V, value: Vec3| {
+            r[p[0] as usize] = value.x;
+            r[p[1] as usize] = value.y;
+            r[p[2] as usize] = value.z;
+        };
+        match op {
+            Op::Copy(d, a) => r!(d) = r!(a),
+            Op::Add(d, a, b) => r!(d) = r!(a) + r!(b),
+            Op::Sub(d, a, b) => r!(d) = r!(a) - r!(b),
+            Op::Mul(d, a, b) => r!(d) = r!(a) * r!(b),
+            Op::Div(d, a, b) => r!(d) = r!(a) / r!(b),
+            Op::Rem(d, a, b) => r!(d) = libm::fmodf(r!(a), r!(b)),
+            Op::Neg(d, a) => r!(d) = -r!(a),
+            Op::Lt(d, a, b) => r!(d) = truth(r!(a) < r!(b)),
+            Op::Le(d, a, b) => r!(d) = truth(r!(a) <= r!(b)),
+            Op::Eq(d, a, b) => r!(d) = truth(r!(a) == r!(b)),
+            Op::Ne(d, a, b) => r!(d) = truth(r!(a) != r!(b)),
+            Op::And(d, a, b) => r!(d) = truth(r!(a) != 0.0 && r!(b) != 0.0),
+            Op::Or(d, a, b) => r!(d) = truth(r!(a) != 0.0 || r!(b) != 0.0),
+            Op::Not(d, a) => r!(d) = truth(r!(a) == 0.0),
+            Op::F1(f, d, a) => r!(d) = fn1(f, r!(a)),
+            Op::F2(f, d, a, b) => r!(d) = fn2(f, r!(a), r!(b)),
+            Op::BiasK(d, a, b) => r!(d) = b.apply(r!(a)),
+            Op::GainK(d, a, g) => r!(d) = g.apply(r!(a)),
+            Op::Clamp(d, a, lo, hi) => r!(d) = clamp(r!(a), r!(lo), r!(hi)),
+            Op::Smoothstep(d, e0, e1, a) => r!(d) = smoothstep(r!(e0), r!(e1), r!(a)),
+            Op::Noise(d, p) => r!(d) = field.noise.noise(v(r, p)),
+            Op::VNoise(d, p) => set(r, d, field.noise.vnoise(v(r, p))),
+            Op::DNoise(d, p) => set(r, d, dnoise(field, v(r, p))),
+            Op::Turbulence(d, p, o) => {
+                r!(d) = field.noise.turbulence(v(r, p), octaves(r!(o)));
+            }
+            Op::Fbm(d, p, o) => r!(d) = fbm(field, v(r, p), octaves(r!(o))),
+            Op::Improved(d, p) => r!(d) = improved_at(v(r, p)),
+            Op::Density(d, i, p) => {
+                let p = v(r, p);
+                r!(d) = self
+                    .objects
+                    .get(usize::from(i))
+                    .map_or(0.0, |o| o.eval(p, field));
+            }
+            Op::Project(d, p) => {
+                let p = v(r, p);
+                set(r, d, self.surface.as_ref().map_or(p, |s| s.project(p)));
+            }
+            Op::ColourMap(d, s) => {
+                let c = self
+                    .colour_map
+                    .as_ref()
+                    .map_or([r!(s); 3], |m| m.eval(r!(s)));
+                set(r, d, Vec3::from_array(c));
+            }
+            Op::Jump(_) | Op::JumpIfZero(..) => unreachable!("control flow is handled by run"),
         }
     }
 }
@@ -637,6 +637,12 @@ impl Op {
             Op::Jump(_) | Op::JumpIfZero(..) => [None; 3],
         }
     }
+}
+
+/// Perlin's improved noise at `p` (in double precision, rounded to f32).
+#[inline(always)]
+fn improved_at(p: Vec3) -> f32 {
+    crate::field::noise::improved(f64::from(p.x), f64::from(p.y), f64::from(p.z)) as f32
 }
 
 #[inline(always)]

@@ -227,108 +227,46 @@ impl Program {
 
     /// The effect of one straight-line operation on what is known.
     fn step(&self, s: &mut State, op: Op) {
-        let sup = |r: u8| s.support[usize::from(r)];
-        let konst = |r: u8| s.constant[usize::from(r)];
-        let mag = |r: u8| s.magnitude[usize::from(r)];
-        let mags = |p: [u8; 3]| Some(mag(p[0])?.max(mag(p[1])?).max(mag(p[2])?));
-        let nonzero_constant = |r: u8| konst(r).is_some_and(|k| k != 0.0 && k.is_finite());
+        if let Op::Copy(d, a) = op {
+            let d = usize::from(d);
+            s.support[d] = meet(s.sup(a), s.reach);
+            s.point[d] = s.point[usize::from(a)];
+            s.constant[d] = s.konst(a);
+            s.magnitude[d] = s.mag(a);
+            return;
+        }
+        let (dests, support, magnitude) = match op {
+            Op::F1(..) | Op::F2(..) => function_effect(s, op),
+            Op::Density(..)
+            | Op::Noise(..)
+            | Op::Improved(..)
+            | Op::Turbulence(..)
+            | Op::Fbm(..)
+            | Op::VNoise(..)
+            | Op::DNoise(..)
+            | Op::Project(..)
+            | Op::Smoothstep(..)
+            | Op::ColourMap(..) => self.field_effect(s, op),
+            _ => arithmetic_effect(s, op),
+        };
+        // Only points inside `reach` run this operation: whatever it writes is 0
+        // outside `reach` as far as any later reader on this path can tell.
+        let support = meet(support, s.reach);
+        for d in dests {
+            let d = usize::from(d);
+            s.support[d] = support;
+            s.point[d] = None;
+            s.constant[d] = None;
+            s.magnitude[d] = magnitude;
+        }
+    }
+
+    /// What the field's built-ins write: an object's density at the sample
+    /// point keeps the object's support; noise, the projection and the rest
+    /// may be non-zero anywhere.
+    fn field_effect(&self, s: &State, op: Op) -> Effect {
         let unit = Some(1.0);
-        // (written registers, their support, their magnitude bound)
-        let (dests, support, magnitude): (Vec<u8>, Support, Option<f64>) = match op {
-            Op::Copy(d, a) => {
-                let d = usize::from(d);
-                s.support[d] = meet(sup(a), s.reach);
-                s.point[d] = s.point[usize::from(a)];
-                s.constant[d] = konst(a);
-                s.magnitude[d] = mag(a);
-                return;
-            }
-            Op::Add(d, a, b) | Op::Sub(d, a, b) => (
-                vec![d],
-                union(sup(a), sup(b)),
-                finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a + b)),
-            ),
-            // 0 · b = 0 only for a finite b.
-            Op::Mul(d, a, b) => (
-                vec![d],
-                meet(
-                    if mag(b).is_some() { sup(a) } else { None },
-                    if mag(a).is_some() { sup(b) } else { None },
-                ),
-                finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a * b)),
-            ),
-            Op::Div(d, a, b) | Op::Rem(d, a, b) => {
-                if nonzero_constant(b) {
-                    let k = f64::from(konst(b).unwrap_or(1.0).abs());
-                    let m = match op {
-                        Op::Div(..) => mag(a).and_then(|m| finite(m / k)),
-                        _ => mag(a),
-                    };
-                    (vec![d], sup(a), m)
-                } else {
-                    (vec![d], None, None)
-                }
-            }
-            Op::Neg(d, a) => (vec![d], sup(a), mag(a)),
-            // 0 < 0, 0 != 0, 0 && b and 0 || 0 are false; 0 <= 0, 0 == 0, !0 true.
-            Op::Lt(d, a, b) | Op::Ne(d, a, b) | Op::Or(d, a, b) => {
-                (vec![d], union(sup(a), sup(b)), unit)
-            }
-            Op::And(d, a, b) => (vec![d], meet(sup(a), sup(b)), unit),
-            Op::Le(d, ..) | Op::Eq(d, ..) | Op::Not(d, _) => (vec![d], None, unit),
-            Op::F1(f, d, a) => match f {
-                Fn1::Abs => (vec![d], sup(a), mag(a)),
-                Fn1::Floor => (vec![d], sup(a), mag(a).map(|m| m + 1.0)),
-                Fn1::Fract | Fn1::Sin => (vec![d], sup(a), mag(a).and(unit)),
-                Fn1::Sign => (vec![d], sup(a), unit),
-                Fn1::Tan | Fn1::Sqrt => (vec![d], sup(a), None),
-                Fn1::Cos => (vec![d], None, mag(a).and(unit)),
-                Fn1::Exp | Fn1::Log => (vec![d], None, None),
-            },
-            Op::F2(f, d, a, b) => match f {
-                Fn2::Min | Fn2::Max => (
-                    vec![d],
-                    union(sup(a), sup(b)),
-                    mag(a).zip(mag(b)).map(|(a, b)| a.max(b)),
-                ),
-                // bias_b(0) = gain_g(0) = 0: the second argument is t.
-                Fn2::Bias | Fn2::Gain => {
-                    let unit_b = konst(a).is_some_and(|b| b > 0.0 && b < 1.0);
-                    (
-                        vec![d],
-                        sup(b),
-                        if unit_b { mag(b).and(unit) } else { None },
-                    )
-                }
-                Fn2::Step => (vec![d], None, unit),
-                Fn2::Atan2 => (vec![d], None, mag(a).and(mag(b)).and(Some(4.0))),
-                Fn2::Pow => (vec![d], None, None),
-            },
-            Op::BiasK(d, a, bias) => {
-                let m = if bias.keeps_unit_interval() {
-                    mag(a).and(unit)
-                } else {
-                    None
-                };
-                (vec![d], sup(a), m)
-            }
-            Op::GainK(d, a, gain) => {
-                let m = if gain.keeps_unit_interval() {
-                    mag(a).and(unit)
-                } else {
-                    None
-                };
-                (vec![d], sup(a), m)
-            }
-            Op::Clamp(d, v, lo, hi) => {
-                let keeps_zero =
-                    konst(lo).is_some_and(|l| l <= 0.0) && konst(hi).is_some_and(|h| h >= 0.0);
-                (
-                    vec![d],
-                    if keeps_zero { sup(v) } else { None },
-                    mag(lo).zip(mag(hi)).map(|(a, b)| a.max(b)),
-                )
-            }
+        match op {
             Op::Density(d, object, p) => {
                 let at_x = (0..3u8).all(|i| s.point[usize::from(p[usize::from(i)])] == Some(i));
                 let object = self.objects.get(usize::from(object));
@@ -342,13 +280,15 @@ impl Program {
                 } else {
                     None
                 };
-                (vec![d], support, mags(p).and(unit))
+                (vec![d], support, s.mags(p).and(unit))
             }
-            Op::Noise(d, p) | Op::Improved(d, p) => (vec![d], None, mags(p).and(Some(2.0))),
-            Op::Turbulence(d, p, _) | Op::Fbm(d, p, _) => (vec![d], None, mags(p).and(Some(64.0))),
-            Op::VNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(2.0))),
+            Op::Noise(d, p) | Op::Improved(d, p) => (vec![d], None, s.mags(p).and(Some(2.0))),
+            Op::Turbulence(d, p, _) | Op::Fbm(d, p, _) => {
+                (vec![d], None, s.mags(p).and(Some(64.0)))
+            }
+            Op::VNoise(d, p) => (d.to_vec(), None, s.mags(p).and(Some(2.0))),
             // Central differences of noise over 2⁻⁹.
-            Op::DNoise(d, p) => (d.to_vec(), None, mags(p).and(Some(4096.0))),
+            Op::DNoise(d, p) => (d.to_vec(), None, s.mags(p).and(Some(4096.0))),
             Op::Project(d, p) => {
                 // Onto the inner surface: inside the surface's support.
                 let reach = self
@@ -357,27 +297,140 @@ impl Program {
                     .and_then(Density::support)
                     .map(|(lo, hi)| f64::from(lo.abs().max(hi.abs()).max_element()));
                 let m = match &self.surface {
-                    None => mags(p),
-                    Some(_) => mags(p).and(reach),
+                    None => s.mags(p),
+                    Some(_) => s.mags(p).and(reach),
                 };
                 (d.to_vec(), None, m)
             }
             Op::Smoothstep(d, ..) => (vec![d], None, None),
             Op::ColourMap(d, _) => (d.to_vec(), None, None),
-            Op::Jump(_) | Op::JumpIfZero(..) => {
-                unreachable!("control flow is followed by the caller")
-            }
-        };
-        // Only points inside `reach` run this operation: whatever it writes is 0
-        // outside `reach` as far as any later reader on this path can tell.
-        let support = meet(support, s.reach);
-        for d in dests {
-            let d = usize::from(d);
-            s.support[d] = support;
-            s.point[d] = None;
-            s.constant[d] = None;
-            s.magnitude[d] = magnitude;
+            _ => unreachable!("{op:?} is not a built-in of the field"),
         }
+    }
+}
+
+/// What an operation writes: the registers, their support and their
+/// magnitude bound.
+type Effect = (Vec<u8>, Support, Option<f64>);
+
+impl State {
+    /// The support of register `r`.
+    fn sup(&self, r: u8) -> Support {
+        self.support[usize::from(r)]
+    }
+
+    /// The constant register `r` holds, if any.
+    fn konst(&self, r: u8) -> Option<f32> {
+        self.constant[usize::from(r)]
+    }
+
+    /// The magnitude bound of register `r`.
+    fn mag(&self, r: u8) -> Option<f64> {
+        self.magnitude[usize::from(r)]
+    }
+
+    /// The magnitude bound of the vector in registers `p`.
+    fn mags(&self, p: [u8; 3]) -> Option<f64> {
+        Some(self.mag(p[0])?.max(self.mag(p[1])?).max(self.mag(p[2])?))
+    }
+}
+
+/// What arithmetic, comparisons, bias, gain and clamp write.
+fn arithmetic_effect(s: &State, op: Op) -> Effect {
+    let (sup, konst, mag) = (|r| s.sup(r), |r| s.konst(r), |r| s.mag(r));
+    let nonzero_constant = |r: u8| konst(r).is_some_and(|k| k != 0.0 && k.is_finite());
+    let unit = Some(1.0);
+    // Bias and gain keep 0 at 0, and [0, 1] within [0, 1] when `keeps_unit`.
+    let shaped = |d: u8, a: u8, keeps_unit: bool| -> Effect {
+        (
+            vec![d],
+            sup(a),
+            if keeps_unit { mag(a).and(unit) } else { None },
+        )
+    };
+    match op {
+        Op::Add(d, a, b) | Op::Sub(d, a, b) => (
+            vec![d],
+            union(sup(a), sup(b)),
+            finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a + b)),
+        ),
+        // 0 · b = 0 only for a finite b.
+        Op::Mul(d, a, b) => (
+            vec![d],
+            meet(
+                if mag(b).is_some() { sup(a) } else { None },
+                if mag(a).is_some() { sup(b) } else { None },
+            ),
+            finite(mag(a).zip(mag(b)).map_or(f64::INFINITY, |(a, b)| a * b)),
+        ),
+        Op::Div(d, a, b) | Op::Rem(d, a, b) => {
+            if nonzero_constant(b) {
+                let k = f64::from(konst(b).unwrap_or(1.0).abs());
+                let m = match op {
+                    Op::Div(..) => mag(a).and_then(|m| finite(m / k)),
+                    _ => mag(a),
+                };
+                (vec![d], sup(a), m)
+            } else {
+                (vec![d], None, None)
+            }
+        }
+        Op::Neg(d, a) => (vec![d], sup(a), mag(a)),
+        // 0 < 0, 0 != 0, 0 && b and 0 || 0 are false; 0 <= 0, 0 == 0, !0 true.
+        Op::Lt(d, a, b) | Op::Ne(d, a, b) | Op::Or(d, a, b) => {
+            (vec![d], union(sup(a), sup(b)), unit)
+        }
+        Op::And(d, a, b) => (vec![d], meet(sup(a), sup(b)), unit),
+        Op::Le(d, ..) | Op::Eq(d, ..) | Op::Not(d, _) => (vec![d], None, unit),
+        Op::BiasK(d, a, bias) => shaped(d, a, bias.keeps_unit_interval()),
+        Op::GainK(d, a, gain) => shaped(d, a, gain.keeps_unit_interval()),
+        Op::Clamp(d, v, lo, hi) => {
+            let keeps_zero =
+                konst(lo).is_some_and(|l| l <= 0.0) && konst(hi).is_some_and(|h| h >= 0.0);
+            (
+                vec![d],
+                if keeps_zero { sup(v) } else { None },
+                mag(lo).zip(mag(hi)).map(|(a, b)| a.max(b)),
+            )
+        }
+        _ => unreachable!("{op:?} is not arithmetic"),
+    }
+}
+
+/// What the scalar functions of one and two arguments write.
+fn function_effect(s: &State, op: Op) -> Effect {
+    let (sup, konst, mag) = (|r| s.sup(r), |r| s.konst(r), |r| s.mag(r));
+    let unit = Some(1.0);
+    match op {
+        Op::F1(f, d, a) => match f {
+            Fn1::Abs => (vec![d], sup(a), mag(a)),
+            Fn1::Floor => (vec![d], sup(a), mag(a).map(|m| m + 1.0)),
+            Fn1::Fract | Fn1::Sin => (vec![d], sup(a), mag(a).and(unit)),
+            Fn1::Sign => (vec![d], sup(a), unit),
+            Fn1::Tan | Fn1::Sqrt => (vec![d], sup(a), None),
+            Fn1::Cos => (vec![d], None, mag(a).and(unit)),
+            Fn1::Exp | Fn1::Log => (vec![d], None, None),
+        },
+        Op::F2(f, d, a, b) => match f {
+            Fn2::Min | Fn2::Max => (
+                vec![d],
+                union(sup(a), sup(b)),
+                mag(a).zip(mag(b)).map(|(a, b)| a.max(b)),
+            ),
+            // bias_b(0) = gain_g(0) = 0: the second argument is t.
+            Fn2::Bias | Fn2::Gain => {
+                let unit_b = konst(a).is_some_and(|b| b > 0.0 && b < 1.0);
+                (
+                    vec![d],
+                    sup(b),
+                    if unit_b { mag(b).and(unit) } else { None },
+                )
+            }
+            Fn2::Step => (vec![d], None, unit),
+            Fn2::Atan2 => (vec![d], None, mag(a).and(mag(b)).and(Some(4.0))),
+            Fn2::Pow => (vec![d], None, None),
+        },
+        _ => unreachable!("{op:?} is not a scalar function"),
     }
 }
 
