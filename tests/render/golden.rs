@@ -2,9 +2,7 @@
 //! with the PNGs in tests/golden/. They change only on purpose:
 //! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden` rewrites them.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 const SCENES: [&str; 5] = ["fur", "tribble", "fire_ball", "blue_glass", "eroded_cube"];
 
