@@ -1,6 +1,6 @@
 //! Known-answer images: 64×64 renders of gallery scenes compared pixel for pixel
 //! with the PNGs in tests/golden/. They change only on purpose:
-//! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden` rewrites them.
+//! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test render golden::` rewrites them.
 
 use crate::support::*;
 
@@ -36,7 +36,7 @@ fn gallery_matches_golden_images() {
         }
         assert!(
             golden.exists(),
-            "{} is missing: run HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden",
+            "{} is missing: run HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test render golden::",
             golden.display()
         );
         let (got, want) = (decode_png(&out_path), decode_png(&golden));

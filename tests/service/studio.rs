@@ -363,7 +363,7 @@ const SLIDER: &str = "param-modulation[0].Fur.frequency";
 /// step gives an interactive frame then a high-quality one, each drawn first
 /// coarse and then whole, and that dragging shows frames; the figures at the
 /// scene's own 512² come from
-/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test studio -- --nocapture latency`.
+/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test service -- --nocapture studio::latency`.
 #[test]
 fn latency() {
     let Some(chromium) = chromium_or_skip() else {
