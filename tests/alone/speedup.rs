@@ -63,7 +63,7 @@ fn serial(common: &[&str], dir: &std::path::Path) -> f64 {
         })
         .collect();
     for render in renders {
-        let o = render.wait_with_output().unwrap();
+        let o = collect_within(render, RUN_SECS);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     (children_cpu() - before) / 2.0

@@ -128,7 +128,7 @@ fn a_closed_stderr_or_stdout_loses_nothing() {
             .unwrap();
         drop(child.stderr.take());
         drop(child.stdout.take());
-        let status = child.wait().unwrap();
+        let status = wait_within(&mut child, RUN_SECS);
         assert!(status.success(), "{extra:?}: {status}");
         assert_eq!(
             std::fs::read(&out).unwrap(),
@@ -150,7 +150,7 @@ fn a_closed_stderr_or_stdout_loses_nothing() {
             .unwrap();
         drop(child.stderr.take());
         drop(child.stdout.take());
-        let status = child.wait().unwrap();
+        let status = wait_within(&mut child, RUN_SECS);
         assert_eq!(status.success(), ok, "{args:?}: {status}");
         assert_ne!(status.code(), Some(101), "{args:?} panicked");
     }

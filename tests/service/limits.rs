@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 
 use crate::support::http::{answer, get, poll, post_job};
 use crate::support::service::serve_without_workers;
-use crate::support::{RUN_SECS, coordinator, free_port, output_within, rss_kib, scene, scratch};
+use crate::support::{
+    RUN_SECS, collect_within, coordinator, free_port, output_within, rss_kib, scene, scratch,
+};
 
 /// A job of a tiny image of the noisy sphere, writing `out`.
 fn spec(out: &str) -> serde_json::Value {
@@ -336,7 +338,7 @@ fn metrics_pass_promtool_and_hold_no_series_for_jobs_not_running() {
         .unwrap()
         .write_all(text.as_bytes())
         .unwrap();
-    let o = promtool.wait_with_output().unwrap();
+    let o = collect_within(promtool, 60);
     assert!(
         o.status.success() && o.stdout.is_empty() && o.stderr.is_empty(),
         "promtool: {}{}",

@@ -78,36 +78,51 @@ pub fn coordinator(args: &[&str]) -> Output {
 /// Runs `cmd` to completion, killing it after `secs` seconds. Its output is
 /// read by threads of its own, so that a full pipe never stalls it.
 pub fn output_within(cmd: &mut Command, secs: u64) -> Output {
-    let mut child = cmd
+    let child = cmd
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("the command starts");
-    let drain = |mut r: Box<dyn std::io::Read + Send>| {
+        .unwrap_or_else(|e| panic!("{cmd:?} does not start: {e}"));
+    collect_within(child, secs)
+}
+
+/// Waits (at most `secs`, then kills it and fails the test) for `child`;
+/// returns its output (what it wrote to the pipes it was started with),
+/// read by threads of its own so that a full pipe never stalls it.
+pub fn collect_within(mut child: std::process::Child, secs: u64) -> Output {
+    fn drain(r: Option<impl std::io::Read + Send + 'static>) -> std::thread::JoinHandle<Vec<u8>> {
         std::thread::spawn(move || {
             let mut bytes = Vec::new();
-            let _ = r.read_to_end(&mut bytes);
+            if let Some(mut r) = r {
+                let _ = r.read_to_end(&mut bytes);
+            }
             bytes
         })
-    };
-    let stdout = drain(Box::new(child.stdout.take().expect("piped")));
-    let stderr = drain(Box::new(child.stderr.take().expect("piped")));
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    let status = loop {
-        if let Some(status) = child.try_wait().expect("the command can be waited for") {
-            break status;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{cmd:?} did not finish within {secs} s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    }
+    let stdout = drain(child.stdout.take());
+    let stderr = drain(child.stderr.take());
+    let status = wait_within(&mut child, secs);
     Output {
         status,
         stdout: stdout.join().expect("stdout is read"),
         stderr: stderr.join().expect("stderr is read"),
+    }
+}
+
+/// Waits (at most `secs`) for `child` to exit; kills it and fails the test
+/// after that.
+pub fn wait_within(child: &mut std::process::Child, secs: u64) -> std::process::ExitStatus {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Some(status) = child.try_wait().expect("the child can be waited for") {
+            return status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("process {} did not finish within {secs} s", child.id());
+        }
+        std::thread::sleep(Duration::from_millis(20));
     }
 }
 
