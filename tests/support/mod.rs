@@ -75,10 +75,12 @@ pub fn coordinator(args: &[&str]) -> Output {
     )
 }
 
-/// Runs `cmd` to completion, killing it after `secs` seconds. Its output is
-/// read by threads of its own, so that a full pipe never stalls it.
+/// Runs `cmd` to completion, its stdin empty (as [`Command::output`] runs
+/// it), killing it after `secs` seconds. Its output is read by threads of
+/// its own, so that a full pipe never stalls it.
 pub fn output_within(cmd: &mut Command, secs: u64) -> Output {
     let child = cmd
+        .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
