@@ -1,5 +1,5 @@
 #!/bin/sh
-# Installs Debian's Chromium for the studio's browser test (tests/studio.rs),
+# Installs Debian's Chromium for the studio's browser test (tests/service/studio.rs),
 # which drives it headless over the DevTools pipe. Does nothing when
 # /usr/bin/chromium exists. Needs root (apt-get) when it installs.
 set -eu

@@ -1,6 +1,6 @@
 #!/bin/sh
 # Installs Debian's python3-openvdb, the independent reader the bake's round
-# trip (tests/vdb.rs) reads OpenVDB files back with, under the system Python
+# trip (tests/render/vdb.rs) reads OpenVDB files back with, under the system Python
 # (/usr/bin/python3). Does nothing when it imports already. Needs root
 # (apt-get) when it installs.
 set -eu

@@ -1,5 +1,5 @@
 #!/bin/sh
-# Installs Debian's Prometheus for the metrics tests (tests/limits.rs): its
+# Installs Debian's Prometheus for the metrics tests (tests/service/limits.rs): its
 # `promtool check metrics` lints the service's `/metrics`, and its server
 # scrapes the service on loopback. Does nothing when both are on PATH.
 # Needs root (apt-get) when it installs.

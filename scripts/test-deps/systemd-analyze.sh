@@ -1,6 +1,6 @@
 #!/bin/sh
 # Installs systemd-analyze, which scores the systemd units' hardening
-# (`systemd-analyze security --offline=true`, tests/deploy.rs). Debian ships it
+# (`systemd-analyze security --offline=true`, tests/service/deploy.rs). Debian ships it
 # in the `systemd` package; it runs without a running systemd. Does nothing
 # when it is on PATH. Needs root (apt-get) when it installs.
 #

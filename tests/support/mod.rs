@@ -1,10 +1,26 @@
-//! Helpers shared by the tests that run the real binaries.
+//! The one support module of the tests that run the real binaries (each
+//! test binary's `main.rs` declares it): it starts coordinators, services,
+//! workers and browsers, each wait bounded by a deadline and each child
+//! killed when its handle drops, and holds the helpers the tests share.
+//!
+//! Tests of one binary run in parallel, so everything a test makes is its
+//! own: [`scratch`] directories are unique per call, ports come from the
+//! kernel (`127.0.0.1:0`, or [`free_port`]), and a test that must run beside
+//! no other holds [`alone`].
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Command, Output, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
 
+pub mod browser;
+pub mod http;
 pub mod service;
+
+/// How long a coordinator run by [`coordinator`] may take before it is
+/// killed and the test fails.
+pub const RUN_SECS: u64 = 600;
 
 /// The repository root.
 pub fn root() -> PathBuf {
@@ -16,9 +32,13 @@ pub fn scene(name: &str) -> PathBuf {
     root().join("scenes").join(format!("{name}.ron"))
 }
 
-/// A fresh, empty scratch directory for one test.
+/// A fresh, empty scratch directory for one test, unique to this call (the
+/// tests of one binary share its process id).
 pub fn scratch(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hypertexture-{test}-{}", std::process::id()));
+    static CALLS: AtomicU32 = AtomicU32::new(0);
+    let call = CALLS.fetch_add(1, Ordering::Relaxed);
+    let dir =
+        std::env::temp_dir().join(format!("hypertexture-{test}-{}-{call}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("scratch directory");
     dir
@@ -33,13 +53,152 @@ pub fn free_port() -> u16 {
         .port()
 }
 
-/// Runs the coordinator binary with `args`.
+/// Held by a test that must run beside no other test of its binary (one
+/// that counts its process's children's CPU, or stops a worker past its
+/// lease); released when the guard drops.
+pub fn alone() -> std::sync::MutexGuard<'static, ()> {
+    static ALONE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    // A test that failed holding it leaves nothing to repair.
+    ALONE
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// Runs the coordinator binary with `args` (killed, and the test failed,
+/// after [`RUN_SECS`]).
 pub fn coordinator(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("the coordinator binary runs")
+    output_within(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(args)
+            .env_remove("RUST_LOG"),
+        RUN_SECS,
+    )
+}
+
+/// Runs `cmd` to completion, its stdin empty (as [`Command::output`] runs
+/// it), killing it after `secs` seconds. Its output is read by threads of
+/// its own, so that a full pipe never stalls it.
+pub fn output_within(cmd: &mut Command, secs: u64) -> Output {
+    let child = cmd
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{cmd:?} does not start: {e}"));
+    collect_within(child, secs)
+}
+
+/// Waits (at most `secs`, then kills it and fails the test) for `child`;
+/// returns its output (what it wrote to the pipes it was started with),
+/// read by threads of its own so that a full pipe never stalls it.
+pub fn collect_within(mut child: std::process::Child, secs: u64) -> Output {
+    fn drain(r: Option<impl std::io::Read + Send + 'static>) -> std::thread::JoinHandle<Vec<u8>> {
+        std::thread::spawn(move || {
+            let mut bytes = Vec::new();
+            if let Some(mut r) = r {
+                let _ = r.read_to_end(&mut bytes);
+            }
+            bytes
+        })
+    }
+    let stdout = drain(child.stdout.take());
+    let stderr = drain(child.stderr.take());
+    let status = wait_within(&mut child, secs);
+    Output {
+        status,
+        stdout: stdout.join().expect("stdout is read"),
+        stderr: stderr.join().expect("stderr is read"),
+    }
+}
+
+/// Waits (at most `secs`) for `child` to exit; kills it and fails the test
+/// after that.
+pub fn wait_within(child: &mut std::process::Child, secs: u64) -> std::process::ExitStatus {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Some(status) = child.try_wait().expect("the child can be waited for") {
+            return status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("process {} did not finish within {secs} s", child.id());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Renders the gallery scene `scene_name` in-process to `out` (PNG or EXR
+/// by extension) with `extra` flags, which must succeed.
+pub fn in_process(scene_name: &str, out: &Path, extra: &[&str]) {
+    let scene = scene(scene_name);
+    let args = [
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let o = coordinator(&[&args[..], extra, &["--in-process", "--quiet"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Renders the gallery scene `scene_name` at `size`² in-process to `out`.
+pub fn in_process_at(scene_name: &str, size: u32, out: &Path) {
+    let size = size.to_string();
+    in_process(scene_name, out, &["--width", &size, "--height", &size]);
+}
+
+/// A coordinator rendering `scene_name` at `size`² to `out` that starts no
+/// workers of its own (the test brings them), with `extra` flags; and its
+/// URL once it listens.
+pub fn remote_only(scene_name: &str, size: u32, out: &Path, extra: &[&str]) -> (Running, String) {
+    let size = size.to_string();
+    let scene = scene(scene_name);
+    let args = [
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        &size,
+        "--height",
+        &size,
+        "--local-workers",
+        "0",
+    ];
+    let mut coord = Running::coordinator(&[&args[..], extra].concat());
+    let url = format!("http://127.0.0.1:{}", coord.port());
+    (coord, url)
+}
+
+/// Two files hold the same bytes.
+pub fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+/// Polls `f` every 50 ms for at most `secs`; panics with `what` if it never holds.
+pub fn until(secs: u64, what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    while !f() {
+        assert!(Instant::now() < deadline, "{what}: not within {secs} s");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// A process's resident set size in KiB, from /proc (`None` once it is gone).
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()?
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// The middle value.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Decodes a PNG to 8-bit RGBA.

@@ -5,11 +5,17 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use super::{Running, coordinator, scene};
+use super::{Running, coordinator, in_process, scene};
 
 /// A service on a free loopback port, writing outputs inside the directory
 /// that holds `data`; returns it and its URL.
 pub fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
+    serve_in(data, data.parent().unwrap(), extra)
+}
+
+/// A service on a free loopback port, writing outputs inside `root`;
+/// returns it and its URL once it serves.
+pub fn serve_in(data: &Path, root: &Path, extra: &[&str]) -> (Running, String) {
     let mut args = vec![
         "serve",
         "--data",
@@ -17,13 +23,23 @@ pub fn serve(data: &Path, extra: &[&str]) -> (Running, String) {
         "--listen",
         "127.0.0.1:0",
         "--output-root",
-        data.parent().unwrap().to_str().unwrap(),
+        root.to_str().unwrap(),
     ];
     args.extend_from_slice(extra);
     let mut s = Running::coordinator(&args);
     let port = s.port();
     s.wait_for("serving on", 30);
     (s, format!("http://127.0.0.1:{port}"))
+}
+
+/// [`serve_in`] with no local workers unless `extra` says otherwise.
+pub fn serve_without_workers(data: &Path, root: &Path, extra: &[&str]) -> (Running, String) {
+    let mut args = Vec::new();
+    if !extra.contains(&"--local-workers") {
+        args.extend(["--local-workers", "0"]);
+    }
+    args.extend_from_slice(extra);
+    serve_in(data, root, &args)
 }
 
 /// `coordinator <args>` as a client; returns (success, stdout, stderr).
@@ -98,24 +114,8 @@ pub fn wait(url: &str, id: u64) -> (bool, String) {
 /// The in-process render of a scene, as the reference bytes.
 pub fn reference(scene_name: &str, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     let out = dir.join(name);
-    let scene = scene(scene_name);
-    let mut args = vec![
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--in-process",
-        "--quiet",
-    ];
-    args.extend_from_slice(extra);
-    let o = coordinator(&args);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    in_process(scene_name, &out, extra);
     out
-}
-
-pub fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
 }
 
 /// A metric's value from the exposition.

@@ -5,7 +5,7 @@
 //! Series labelled by job exist only for running jobs (a unit handed out,
 //! not ended): the number of series is bounded by the jobs being rendered,
 //! never by the queue's length or its history. `promtool check metrics`
-//! passes on the text (`tests/limits.rs`).
+//! passes on the text (`tests/service/limits.rs`).
 
 use std::fmt::Write;
 

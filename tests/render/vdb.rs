@@ -4,15 +4,12 @@
 //! colour) at the voxel's world point. Under CI (`CI=true`) a missing module
 //! fails the test; elsewhere the test says why it skips.
 
-mod support;
-
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Output};
 
+use crate::support::*;
 use coordinator::pipeline::bake::Lattice;
 use hypertexture::{Overrides, Scene};
-use support::*;
 
 /// Prints each VDB file named on the command line as one JSON object per
 /// line: the file's metadata and, per grid, its name, value type, class,
@@ -85,44 +82,8 @@ fn reader_present() -> bool {
     false
 }
 
-/// Runs `cmd` to completion, killing it after `secs` seconds. Its output is
-/// read by threads of its own, so that a full pipe never stalls it.
-fn run(cmd: &mut Command, secs: u64) -> Output {
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("the command starts");
-    let drain = |mut r: Box<dyn std::io::Read + Send>| {
-        std::thread::spawn(move || {
-            let mut bytes = Vec::new();
-            let _ = r.read_to_end(&mut bytes);
-            bytes
-        })
-    };
-    let stdout = drain(Box::new(child.stdout.take().expect("piped")));
-    let stderr = drain(Box::new(child.stderr.take().expect("piped")));
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    let status = loop {
-        if let Some(status) = child.try_wait().expect("the command can be waited for") {
-            break status;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{cmd:?} did not finish within {secs} s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    Output {
-        status,
-        stdout: stdout.join().expect("stdout is read"),
-        stderr: stderr.join().expect("stderr is read"),
-    }
-}
-
 fn bake(args: &[&str]) -> Output {
-    run(
+    output_within(
         Command::new(env!("CARGO_BIN_EXE_coordinator"))
             .arg("bake")
             .args(args)
@@ -153,7 +114,7 @@ fn dump(files: &[PathBuf]) -> Vec<serde_json::Value> {
     let dir = files[0].parent().expect("a directory");
     let script = dir.join("dump.py");
     std::fs::write(&script, DUMP).expect("the script is written");
-    let out = run(Command::new(python()).arg(&script).args(files), 120);
+    let out = output_within(Command::new(python()).arg(&script).args(files), 120);
     assert!(
         out.status.success(),
         "pyopenvdb could not read the files: {}",

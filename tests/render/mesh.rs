@@ -3,11 +3,9 @@
 //! killed mid-frame; a worker joining mid-frame fetches the mesh by its hash;
 //! a changed mesh is a new scene; bad meshes are clear errors naming the file.
 
-mod support;
-
 use std::path::Path;
 
-use support::*;
+use crate::support::*;
 
 fn render(scene: &Path, out: &Path, size: u32, extra: &[&str]) -> std::process::Output {
     let size = size.to_string();
@@ -23,11 +21,6 @@ fn render(scene: &Path, out: &Path, size: u32, extra: &[&str]) -> std::process::
         "--quiet",
     ];
     coordinator(&[&args[..], extra].concat())
-}
-
-fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
 }
 
 #[test]

@@ -1,10 +1,8 @@
 //! Known-answer images: 64×64 renders of gallery scenes compared pixel for pixel
 //! with the PNGs in tests/golden/. They change only on purpose:
-//! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden` rewrites them.
+//! `HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test render golden::` rewrites them.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 const SCENES: [&str; 5] = ["fur", "tribble", "fire_ball", "blue_glass", "eroded_cube"];
 
@@ -38,7 +36,7 @@ fn gallery_matches_golden_images() {
         }
         assert!(
             golden.exists(),
-            "{} is missing: run HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test golden",
+            "{} is missing: run HYPERTEXTURE_BLESS=1 cargo test -p coordinator --test render golden::",
             golden.display()
         );
         let (got, want) = (decode_png(&out_path), decode_png(&golden));

@@ -2,30 +2,11 @@
 //! environment: forged log lines, files that never end, closed pipes,
 //! absurd flags, a coordinator that vanishes.
 
-mod support;
-
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use support::*;
-
-/// Renders `noisy_sphere` at 32² in-process to `out`.
-fn reference(out: &Path) {
-    let o = coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--in-process",
-        "--quiet",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
+use crate::support::*;
 
 /// A worker name and a failure reason that carry a forged log line and a
 /// right-to-left override reach the coordinator's log escaped: no line starts
@@ -122,7 +103,7 @@ fn network_strings_cannot_forge_log_lines() {
 fn a_closed_stderr_or_stdout_loses_nothing() {
     let dir = scratch("adversarial-epipe");
     let expected = dir.join("reference.png");
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     for (i, extra) in [&["--in-process"][..], &["--local-workers", "1"][..]]
         .iter()
         .enumerate()
@@ -147,7 +128,7 @@ fn a_closed_stderr_or_stdout_loses_nothing() {
             .unwrap();
         drop(child.stderr.take());
         drop(child.stdout.take());
-        let status = child.wait().unwrap();
+        let status = wait_within(&mut child, RUN_SECS);
         assert!(status.success(), "{extra:?}: {status}");
         assert_eq!(
             std::fs::read(&out).unwrap(),
@@ -169,7 +150,7 @@ fn a_closed_stderr_or_stdout_loses_nothing() {
             .unwrap();
         drop(child.stderr.take());
         drop(child.stdout.take());
-        let status = child.wait().unwrap();
+        let status = wait_within(&mut child, RUN_SECS);
         assert_eq!(status.success(), ok, "{args:?}: {status}");
         assert_ne!(status.code(), Some(101), "{args:?} panicked");
     }
@@ -287,16 +268,26 @@ fn bad_inputs_fail_at_once_with_the_cause() {
         ],
         &["10000 threads is too many: at most"],
     );
-    let o = Command::new(worker_bin())
-        .args(["--coordinator", "http://127.0.0.1:1", "--threads", "10000"])
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new(worker_bin()).args([
+            "--coordinator",
+            "http://127.0.0.1:1",
+            "--threads",
+            "10000",
+        ]),
+        RUN_SECS,
+    );
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("10000 threads is too many: at most"));
-    let o = Command::new(worker_bin())
-        .args(["--coordinator", "https://localhost:1", "--ca", "/dev/zero"])
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new(worker_bin()).args([
+            "--coordinator",
+            "https://localhost:1",
+            "--ca",
+            "/dev/zero",
+        ]),
+        RUN_SECS,
+    );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -338,8 +329,8 @@ fn a_scene_with_a_byte_order_mark_renders() {
     }
     // The pixels are the same; the files differ only in the scene name they record.
     assert_eq!(
-        support::decode_png(&a).into_raw(),
-        support::decode_png(&b).into_raw()
+        crate::support::decode_png(&a).into_raw(),
+        crate::support::decode_png(&b).into_raw()
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -469,22 +460,23 @@ fn failing_local_workers_are_reported_with_their_real_cause() {
     .unwrap();
     std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
     let expected = dir.join("reference.png");
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     let out = dir.join("farm.png");
-    let o = Command::new(&exe)
-        .args(["--scene", &scene_file("noisy_sphere")])
-        .args([
-            "--out",
-            out.to_str().unwrap(),
-            "--width",
-            "32",
-            "--height",
-            "32",
-        ])
-        .args(["--local-workers", "2"])
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new(&exe)
+            .args(["--scene", &scene_file("noisy_sphere")])
+            .args([
+                "--out",
+                out.to_str().unwrap(),
+                "--width",
+                "32",
+                "--height",
+                "32",
+            ])
+            .args(["--local-workers", "2"])
+            .env_remove("RUST_LOG"),
+        RUN_SECS,
+    );
     let log = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{log}");
     assert!(log.contains("every local worker process"), "{log}");
@@ -581,16 +573,6 @@ fn tls_refuses_plaintext_a_wrong_ca_and_a_wrong_name() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The coordinator's resident set size in bytes, from /proc.
-fn rss(pid: u32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        .map_or(0, |kb| kb * 1024)
-}
-
 /// How many of the flood's calls, and how large (`HYPERTEXTURE_FLOOD=128x15`
 /// gives the 128 calls of 15 MiB of BENCHMARKS.md; the default fits CI).
 fn flood_size() -> (usize, usize) {
@@ -616,7 +598,7 @@ fn unauthenticated_floods_are_refused_before_their_bodies() {
 
     let dir = scratch("adversarial-flood");
     let (out, expected) = (dir.join("farm.png"), dir.join("in-process.png"));
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     let scene = scene("noisy_sphere");
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_coordinator"));
     cmd.args([
@@ -654,7 +636,7 @@ fn unauthenticated_floods_are_refused_before_their_bodies() {
     let pid = coord.child.id();
     let url = format!("http://127.0.0.1:{port}");
     std::thread::sleep(Duration::from_millis(300));
-    let idle = rss(pid);
+    let idle = rss_kib(pid).map_or(0, |kb| kb * 1024);
 
     // Concurrent calls with large bodies and no token, each on its own
     // connection, sampled for the coordinator's RSS meanwhile.
@@ -665,7 +647,7 @@ fn unauthenticated_floods_are_refused_before_their_bodies() {
         std::thread::spawn(move || {
             let mut peak = 0;
             while sampling.load(std::sync::atomic::Ordering::Relaxed) {
-                peak = peak.max(rss(pid));
+                peak = peak.max(rss_kib(pid).map_or(0, |kb| kb * 1024));
                 std::thread::sleep(Duration::from_millis(5));
             }
             peak
@@ -919,23 +901,8 @@ fn render_with_a_liar(
     fault: worker::Fault,
     extra: &[&str],
 ) -> (std::process::ExitStatus, String) {
-    let scene = scene("noisy_sphere");
-    let args = [
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--local-workers",
-        "0",
-        "--lease-timeout",
-        "60",
-    ];
-    let mut coord = Running::coordinator(&[&args[..], extra].concat());
-    let url = format!("http://127.0.0.1:{}", coord.port());
+    let lease = ["--lease-timeout", "60"];
+    let (mut coord, url) = remote_only("noisy_sphere", 32, out, &[&lease[..], extra].concat());
     let (runtime, stop, task) = in_process_worker(&url, LIAR, Some(fault));
     // The liar is caught before the good worker joins: its lie is in.
     coord.wait_for("lied about job 1", 60);
@@ -975,19 +942,7 @@ fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
     let dir = scratch("adversarial-garbage");
     for ext in ["png", "exr"] {
         let reference = dir.join(format!("reference.{ext}"));
-        let o = coordinator(&[
-            "--scene",
-            scene("noisy_sphere").to_str().unwrap(),
-            "--out",
-            reference.to_str().unwrap(),
-            "--width",
-            "32",
-            "--height",
-            "32",
-            "--in-process",
-            "--quiet",
-        ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        in_process_at("noisy_sphere", 32, &reference);
         let out = dir.join(format!("farm.{ext}"));
         // Every unit rendered twice: the liar's first tile is checked.
         let (status, log) = render_with_a_liar(&out, worker::Fault::Garbage, &["--verify", "1"]);
@@ -1013,24 +968,9 @@ fn a_worker_sending_garbage_tiles_is_caught_and_the_image_stays_exact() {
 #[test]
 fn frames_written_before_a_liar_is_caught_are_rendered_again() {
     let dir = scratch("adversarial-earlier-frames");
-    let scene = scene("noisy_sphere");
-    let size = ["--width", "32", "--height", "32"];
     let reference = dir.join("reference.png");
-    let o = coordinator(
-        &[
-            &["--scene", scene.to_str().unwrap(), "--out"][..],
-            &[
-                reference.to_str().unwrap(),
-                "--frames",
-                "0..3",
-                "--in-process",
-                "--quiet",
-            ],
-            &size,
-        ]
-        .concat(),
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let flags = ["--frames", "0..3", "--width", "32", "--height", "32"];
+    in_process("noisy_sphere", &reference, &flags);
     let out = dir.join("farm.png");
     // Alone, the liar renders frame 0 truly (the coordinator checks it) and
     // is caught in frame 1; then the good worker joins.
@@ -1051,7 +991,7 @@ fn frames_written_before_a_liar_is_caught_are_rendered_again() {
     );
     for frame in 0..3 {
         let name = |stem: &str| dir.join(format!("{stem}_{frame:04}.png"));
-        same_file(&name("reference"), &name("farm"));
+        same_bytes(&name("reference"), &name("farm"));
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -1064,7 +1004,7 @@ fn frames_written_before_a_liar_is_caught_are_rendered_again() {
 fn a_false_cannot_build_the_scene_fails_nothing() {
     let dir = scratch("adversarial-false-scene");
     let expected = dir.join("reference.png");
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     let out = dir.join("farm.png");
     let (status, log) = render_with_a_liar(&out, worker::Fault::Scene, &["--verify", "0"]);
     assert!(status.success(), "{log}");
@@ -1073,7 +1013,7 @@ fn a_false_cannot_build_the_scene_fails_nothing() {
         log.contains("it said it cannot build the scene of unit"),
         "{log}"
     );
-    same_file(&expected, &out);
+    same_bytes(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -1083,13 +1023,13 @@ fn a_false_cannot_build_the_scene_fails_nothing() {
 fn a_false_cannot_render_this_unit_fails_nothing() {
     let dir = scratch("adversarial-false-render");
     let expected = dir.join("reference.png");
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     let out = dir.join("farm.png");
     let (status, log) = render_with_a_liar(&out, worker::Fault::RenderClaim, &[]);
     assert!(status.success(), "{log}");
     liar_named(&log);
     assert!(log.contains("it said it cannot render unit"), "{log}");
-    same_file(&expected, &out);
+    same_bytes(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -1106,7 +1046,7 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
 
     let dir = scratch("adversarial-made-up-ids");
     let expected = dir.join("reference.png");
-    reference(&expected);
+    in_process_at("noisy_sphere", 32, &expected);
     let out = dir.join("farm.png");
     let scene = scene("noisy_sphere");
     let mut coord = Running::coordinator(&[
@@ -1207,11 +1147,6 @@ fn made_up_ids_and_three_false_failures_of_one_unit_fail_nothing() {
     let log = log.join("\n");
     assert!(status.success(), "{log}");
     assert!(!log.contains("giving up"), "{log}");
-    same_file(&expected, &out);
+    same_bytes(&expected, &out);
     std::fs::remove_dir_all(&dir).unwrap();
-}
-
-fn same_file(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
 }

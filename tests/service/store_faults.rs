@@ -5,17 +5,15 @@
 //! done and byte-identical to the in-process render. Loopback only; every
 //! wait is bounded.
 
-mod support;
-
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use support::service::{
-    children, client, job, metric, poll_job, reference, same_bytes, serve, submit, wait,
+use crate::support::service::{
+    children, client, job, metric, poll_job, reference, serve, submit, wait,
 };
-use support::{Running, coordinator, scene, scratch};
+use crate::support::{Running, coordinator, http, same_bytes, scene, scratch, until};
 
 /// A tmpfs of `size` mounted on `dir`; unmounted on drop, also when the test
 /// fails.
@@ -84,36 +82,13 @@ fn post_job(url: &str, scene_name: &str, out: &Path) -> (u16, serde_json::Value)
         "width": 32,
         "height": 32,
     });
-    let response = ureq::post(&format!("{url}/api/v1/jobs"))
-        .config()
-        .http_status_as_error(false)
-        .build()
-        .send_json(&body)
-        .unwrap();
-    let status = response.status().as_u16();
-    let text = response.into_body().read_to_string().unwrap();
-    (status, serde_json::from_str(&text).unwrap())
+    let answer = http::post_job(url, &body);
+    (answer.status, answer.json())
 }
 
 /// GET `/readyz`: the status.
 fn readyz(url: &str) -> u16 {
-    ureq::get(&format!("{url}/readyz"))
-        .config()
-        .http_status_as_error(false)
-        .build()
-        .call()
-        .unwrap()
-        .status()
-        .as_u16()
-}
-
-/// Polls `f` every 50 ms for at most `secs`; panics with `what` if it never holds.
-fn until(secs: u64, what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    while !f() {
-        assert!(Instant::now() < deadline, "{what}: not within {secs} s");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    http::get(url, "/readyz").status
 }
 
 const SMALL: [&str; 4] = ["--width", "32", "--height", "32"];

@@ -8,240 +8,25 @@
 //! A screenshot taken while a frame refines is written to docs/studio.png.
 //!
 //! Without Chromium (`/usr/bin/chromium`, or `$CHROMIUM`) the test is
-//! skipped with a message, except in CI (`CI=true`), where it fails:
+//! skipped with a message, except in CI (`CI` set), where it fails:
 //! `scripts/test-deps/chromium.sh` installs it.
 
-mod support;
-
-use std::io::{BufRead, BufReader, Read, Write};
-use std::os::fd::AsRawFd;
-use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::io::Read;
+use std::path::Path;
+use std::process::Command;
 use std::time::{Duration, Instant};
 
+use crate::support::browser::{Browser, chromium_or_skip};
+use crate::support::{
+    RUN_SECS, Running, coordinator, decode_png, median, output_within, root, scratch,
+};
 use serde_json::{Value, json};
-use support::{Running, coordinator, decode_png, root, scratch};
-
-/// Chromium, if installed.
-fn chromium() -> Option<PathBuf> {
-    let path = std::env::var_os("CHROMIUM")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from("/usr/bin/chromium"));
-    path.is_file().then_some(path)
-}
-
-/// A headless Chromium and one page, spoken to over the DevTools pipe.
-struct Browser {
-    child: Child,
-    to: std::io::PipeWriter,
-    replies: mpsc::Receiver<Value>,
-    next_id: u64,
-    session: String,
-}
-
-impl Browser {
-    fn start(binary: &Path, profile: &Path) -> Browser {
-        // Chromium reads commands from fd 3 and writes replies to fd 4.
-        let (commands_r, commands_w) = std::io::pipe().expect("pipe");
-        let (replies_r, replies_w) = std::io::pipe().expect("pipe");
-        let (cr, rw) = (commands_r.as_raw_fd(), replies_w.as_raw_fd());
-        let mut command = Command::new(binary);
-        command
-            .args([
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--disable-dev-shm-usage",
-                "--remote-debugging-pipe",
-                "--window-size=1400,900",
-            ])
-            .arg(format!("--user-data-dir={}", profile.display()))
-            .arg("about:blank")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
-        // SAFETY: only async-signal-safe calls (fcntl, dup2) between fork and exec.
-        unsafe {
-            command.pre_exec(move || {
-                // Out of the way of 3 and 4 first, then onto them (dup2
-                // clears close-on-exec).
-                let a = libc::fcntl(cr, libc::F_DUPFD, 10);
-                let b = libc::fcntl(rw, libc::F_DUPFD, 10);
-                if a < 0 || b < 0 || libc::dup2(a, 3) < 0 || libc::dup2(b, 4) < 0 {
-                    return Err(std::io::Error::last_os_error());
-                }
-                Ok(())
-            });
-        }
-        let child = command.spawn().expect("chromium starts");
-        drop((commands_r, replies_w));
-        let (tx, replies) = mpsc::channel();
-        std::thread::spawn(move || {
-            let mut reader = BufReader::new(replies_r);
-            let mut message = Vec::new();
-            while reader.read_until(0, &mut message).is_ok_and(|n| n > 0) {
-                if message.last() == Some(&0) {
-                    message.pop();
-                }
-                if let Ok(v) = serde_json::from_slice::<Value>(&message)
-                    && tx.send(v).is_err()
-                {
-                    break;
-                }
-                message.clear();
-            }
-        });
-        let mut browser = Browser {
-            child,
-            to: commands_w,
-            replies,
-            next_id: 1,
-            session: String::new(),
-        };
-        let target = browser.call("Target.createTarget", json!({ "url": "about:blank" }));
-        let attached = browser.call(
-            "Target.attachToTarget",
-            json!({ "targetId": target["targetId"], "flatten": true }),
-        );
-        browser.session = attached["sessionId"].as_str().expect("a session").into();
-        browser.call("Page.enable", json!({}));
-        browser.call("Runtime.enable", json!({}));
-        browser.call(
-            "Emulation.setDeviceMetricsOverride",
-            json!({ "width": 1400, "height": 900, "deviceScaleFactor": 1, "mobile": false }),
-        );
-        browser
-    }
-
-    /// Sends a command (to the page once attached) and waits for its answer.
-    fn call(&mut self, method: &str, params: Value) -> Value {
-        match self.try_call(method, params) {
-            Ok(result) => result,
-            Err(reply) => panic!("{method}: {reply}"),
-        }
-    }
-
-    /// [`Browser::call`], its error answer as `Err`.
-    fn try_call(&mut self, method: &str, params: Value) -> Result<Value, Value> {
-        let id = self.next_id;
-        self.next_id += 1;
-        let mut message = json!({ "id": id, "method": method, "params": params });
-        if !self.session.is_empty() {
-            message["sessionId"] = json!(self.session);
-        }
-        let mut bytes = serde_json::to_vec(&message).expect("json");
-        bytes.push(0);
-        self.to.write_all(&bytes).expect("chromium reads commands");
-        let deadline = Instant::now() + Duration::from_secs(60);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let reply = self
-                .replies
-                .recv_timeout(left)
-                .unwrap_or_else(|_| panic!("no answer to {method} within 60 s"));
-            if reply["id"] == json!(id) {
-                return match reply.get("error") {
-                    Some(error) => Err(error.clone()),
-                    None => Ok(reply["result"].clone()),
-                };
-            }
-        }
-    }
-
-    /// The value of a JavaScript expression in the page.
-    fn eval(&mut self, expression: &str) -> Value {
-        let r = self.call(
-            "Runtime.evaluate",
-            json!({ "expression": expression, "returnByValue": true, "awaitPromise": true }),
-        );
-        assert!(
-            r.get("exceptionDetails").is_none(),
-            "{expression}: {}",
-            r["exceptionDetails"]
-        );
-        r["result"]["value"].clone()
-    }
-
-    /// Waits (at most `secs`) until `expression` is true (once the page's
-    /// script has run).
-    fn wait_until(&mut self, expression: &str, secs: u64) {
-        let deadline = Instant::now() + Duration::from_secs(secs);
-        let guarded = format!("typeof studio !== 'undefined' && ({expression})");
-        // Checked in the page every 20 ms for up to a second per call (no
-        // round trip through the protocol per check: the browser shares the
-        // cores with the workers being measured).
-        let waiting = format!(
-            "new Promise((done) => {{ const end = performance.now() + 1000; \
-             const check = () => {{ let ok = false; try {{ ok = {guarded}; }} catch (e) {{}} \
-             if (ok || performance.now() > end) done(ok === true); else setTimeout(check, 20); }}; check(); }})"
-        );
-        // A page replaced while the promise waits answers with an error: not yet.
-        let holds = |b: &mut Browser| {
-            b.try_call(
-                "Runtime.evaluate",
-                json!({ "expression": waiting, "returnByValue": true, "awaitPromise": true }),
-            )
-            .is_ok_and(|r| r["result"]["value"] == json!(true))
-        };
-        while !holds(self) {
-            assert!(
-                Instant::now() < deadline,
-                "not true within {secs} s: {expression}; studio: {}",
-                self.eval("JSON.stringify({...studio, view: null})")
-            );
-        }
-    }
-
-    /// The canvas's RGBA bytes.
-    fn canvas(&mut self) -> Vec<u8> {
-        let b64 = self.eval(
-            "(() => { const c = document.getElementById('image'); \
-             const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
-             let s = ''; for (let i = 0; i < d.length; i++) s += String.fromCharCode(d[i]); \
-             return btoa(s); })()",
-        );
-        use base64::Engine as _;
-        base64::engine::general_purpose::STANDARD
-            .decode(b64.as_str().expect("a string"))
-            .expect("base64")
-    }
-
-    fn key(&mut self, key: &str, code: u32) {
-        for kind in ["keyDown", "keyUp"] {
-            self.call(
-                "Input.dispatchKeyEvent",
-                json!({ "type": kind, "key": key, "code": key, "windowsVirtualKeyCode": code }),
-            );
-        }
-    }
-}
-
-impl Drop for Browser {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 const COMPLETE_HIGH: &str = "studio.drawn && studio.quality === 'high'";
 
 #[test]
 fn the_studio_refines_live_and_matches_the_in_process_render() {
-    let Some(chromium) = chromium() else {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "CI: Chromium is missing (scripts/test-deps/chromium.sh installs it)"
-        );
-        eprintln!(
-            "skipped: no Chromium at /usr/bin/chromium (or $CHROMIUM); run scripts/test-deps/chromium.sh"
-        );
+    let Some(chromium) = chromium_or_skip() else {
         return;
     };
     let dir = scratch("studio");
@@ -471,14 +256,15 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
 /// The one-shot farm's frame time (its "rendered … in X s" line: first unit
 /// out to last tile in) with 2 local workers.
 fn one_shot_seconds(scene: &Path, out: &Path) -> f64 {
-    let run = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["--scene", scene.to_str().unwrap(), "--out"])
-        .arg(out)
-        .args(["--local-workers", "2"])
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .output()
-        .expect("the coordinator runs");
+    let run = output_within(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["--scene", scene.to_str().unwrap(), "--out"])
+            .arg(out)
+            .args(["--local-workers", "2"])
+            .env("RUST_LOG", "info")
+            .env("NO_COLOR", "1"),
+        RUN_SECS,
+    );
     let log = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{log}");
     log.lines()
@@ -531,11 +317,6 @@ fn cpu_seconds(root: u32, descendants: bool) -> f64 {
         .sum()
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 /// `coordinator studio SCENE` on a free loopback port with `workers` local
 /// workers and its store under `data`.
 fn studio(scene: &std::path::Path, data: &std::path::Path, workers: u32) -> Running {
@@ -582,15 +363,10 @@ const SLIDER: &str = "param-modulation[0].Fur.frequency";
 /// step gives an interactive frame then a high-quality one, each drawn first
 /// coarse and then whole, and that dragging shows frames; the figures at the
 /// scene's own 512² come from
-/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test studio -- --nocapture latency`.
+/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test service -- --nocapture studio::latency`.
 #[test]
 fn latency() {
-    let Some(chromium) = chromium() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI needs Chromium: scripts/test-deps/chromium.sh installs it"
-        );
-        eprintln!("skipped: no Chromium (scripts/test-deps/chromium.sh installs it)");
+    let Some(chromium) = chromium_or_skip() else {
         return;
     };
     let dir = scratch("studio-latency");

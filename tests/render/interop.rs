@@ -2,9 +2,7 @@
 //! `OpenEXR` module, which `scripts/test` installs). Under CI (`CI=true`) a
 //! missing module fails the test; elsewhere the test says why it skips.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 /// Prints every header attribute of the EXR named by argv[1] as one JSON object:
 /// strings as text, matrices as 16 numbers row by row, others as text.

@@ -14,21 +14,14 @@
 //! 0.93–1.27 around a median near 1.06: about three rounds in ten land over
 //! 1.10, so the median needs more than a handful of them.)
 //!
-//! Its own test binary: `RUSAGE_CHILDREN` counts every child this process has
-//! waited for, so no other test may run children beside it.
+//! It holds [`alone`] in a binary of its own: `RUSAGE_CHILDREN` counts every
+//! child this process has waited for, so no other test may run children
+//! beside it.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 /// Rounds of a serial and a farm render.
 const ROUNDS: usize = 11;
-
-/// The middle value.
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// CPU seconds (user + system) of all waited-for children so far.
 fn children_cpu() -> f64 {
@@ -70,7 +63,7 @@ fn serial(common: &[&str], dir: &std::path::Path) -> f64 {
         })
         .collect();
     for render in renders {
-        let o = render.wait_with_output().unwrap();
+        let o = collect_within(render, RUN_SECS);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     (children_cpu() - before) / 2.0
@@ -80,25 +73,26 @@ fn serial(common: &[&str], dir: &std::path::Path) -> f64 {
 /// report it, the CPU of the coordinator and its workers together).
 fn farm(common: &[&str], out: &std::path::Path) -> (f64, f64) {
     let before = children_cpu();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(
-            [
-                common,
-                &[
-                    "--out",
-                    out.to_str().unwrap(),
-                    "--local-workers",
-                    "2",
-                    "--threads",
-                    "1",
-                ],
-            ]
-            .concat(),
-        )
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap();
+    let o = output_within(
+        std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(
+                [
+                    common,
+                    &[
+                        "--out",
+                        out.to_str().unwrap(),
+                        "--local-workers",
+                        "2",
+                        "--threads",
+                        "1",
+                    ],
+                ]
+                .concat(),
+            )
+            .env("RUST_LOG", "info")
+            .env("NO_COLOR", "1"),
+        RUN_SECS,
+    );
     let total = children_cpu() - before;
     let log = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{log}");
@@ -126,6 +120,7 @@ fn farm(common: &[&str], out: &std::path::Path) -> (f64, f64) {
 
 #[test]
 fn the_farm_costs_no_more_cpu_than_the_serial_render() {
+    let _alone = alone();
     let dir = scratch("speedup");
     let fur = scene("fur");
     let common = [

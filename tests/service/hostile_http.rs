@@ -6,23 +6,20 @@
 //! Every request is seeded (the same on every run), bounded in count and
 //! each answered or closed within 10 s.
 
-mod support;
-
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
-use support::*;
+use crate::support::*;
 
 const TOKEN: &str = "s3cret";
 
 /// A service on a free loopback port without local workers, with `extra`
-/// flags (`support::service::serve`); returns it, its port and its scratch
+/// flags (`crate::support::service::serve_without_workers`); returns it, its port and its scratch
 /// directory once it serves.
 fn serve(name: &str, extra: &[&str]) -> (Running, u16, std::path::PathBuf) {
     let dir = scratch(name);
-    let mut args = vec!["--local-workers", "0"];
-    args.extend_from_slice(extra);
-    let (serve, url) = support::service::serve(&dir.join("data"), &args);
+    let (serve, url) =
+        crate::support::service::serve_without_workers(&dir.join("data"), &dir, extra);
     let port = url
         .rsplit(':')
         .next()

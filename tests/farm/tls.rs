@@ -4,13 +4,11 @@
 //! the local workers' CA file lives in a private directory that goes with
 //! the coordinator, on success and on failure.
 
-mod support;
-
 use std::os::unix::fs::PermissionsExt as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use support::*;
+use crate::support::*;
 
 /// The local workers' CA directories in the temporary directory `tmp`.
 fn ca_dirs(tmp: &Path) -> Vec<PathBuf> {

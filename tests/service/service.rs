@@ -5,16 +5,13 @@
 //! coordinator. Every image is compared with the in-process render, byte for
 //! byte. Loopback only; every wait is bounded.
 
-mod support;
-
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use support::service::{
-    alive, children, client, get_json, job, metric, poll_job, reference, same_bytes, serve, submit,
-    wait,
+use crate::support::service::{
+    alive, children, client, get_json, job, metric, poll_job, reference, serve, submit, wait,
 };
-use support::{Running, in_process_worker, scene, scratch};
+use crate::support::{Running, in_process_worker, same_bytes, scene, scratch};
 
 /// SIGKILL mid-frame, restart: every stored unit counts, none is rendered
 /// again, and the frames come out byte-identical to the in-process render.

@@ -1,9 +1,7 @@
 //! The Pixel Stream Editor from the command line: `eval`, `--set`, `--frames`,
 //! `recolor`, and knob overrides on the farm.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 fn ok(out: &std::process::Output) -> String {
     assert!(

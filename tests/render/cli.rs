@@ -1,8 +1,6 @@
 //! The coordinator binary as a user meets it: renders, errors, exit codes.
 
-mod support;
-
-use support::*;
+use crate::support::*;
 
 #[test]
 fn renders_a_scene_to_png_and_exr() {

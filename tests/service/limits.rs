@@ -5,36 +5,15 @@
 //! scraping it, no series for ended jobs) and the studio's status events,
 //! which carry changes only. Loopback only; every wait is bounded.
 
-mod support;
-
 use std::io::{Read as _, Write as _};
-use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use support::{Running, coordinator, free_port, scene, scratch};
-
-/// A service on a free loopback port with no local workers unless `extra`
-/// says otherwise, writing inside `root`; returns it and its URL.
-fn serve(data: &Path, root: &Path, extra: &[&str]) -> (Running, String) {
-    let mut args = vec![
-        "serve",
-        "--data",
-        data.to_str().unwrap(),
-        "--listen",
-        "127.0.0.1:0",
-        "--output-root",
-        root.to_str().unwrap(),
-    ];
-    if !extra.contains(&"--local-workers") {
-        args.extend(["--local-workers", "0"]);
-    }
-    args.extend_from_slice(extra);
-    let mut s = Running::coordinator(&args);
-    let port = s.port();
-    s.wait_for("serving on", 30);
-    (s, format!("http://127.0.0.1:{port}"))
-}
+use crate::support::http::{answer, get, poll, post_job};
+use crate::support::service::serve_without_workers;
+use crate::support::{
+    RUN_SECS, collect_within, coordinator, free_port, output_within, rss_kib, scene, scratch,
+};
 
 /// A job of a tiny image of the noisy sphere, writing `out`.
 fn spec(out: &str) -> serde_json::Value {
@@ -46,89 +25,12 @@ fn spec(out: &str) -> serde_json::Value {
     })
 }
 
-/// An HTTP answer: status, headers, body.
-struct Answer {
-    status: u16,
-    headers: ureq::http::HeaderMap,
-    body: String,
-}
-
-impl Answer {
-    fn json(&self) -> serde_json::Value {
-        serde_json::from_str(&self.body).unwrap_or_else(|e| panic!("{e}: {}", self.body))
-    }
-
-    fn error(&self) -> String {
-        self.json()["error"]
-            .as_str()
-            .unwrap_or_default()
-            .to_string()
-    }
-}
-
-fn answer(result: Result<ureq::http::Response<ureq::Body>, ureq::Error>) -> Answer {
-    let mut response = result.expect("the service answers");
-    Answer {
-        status: response.status().as_u16(),
-        headers: response.headers().clone(),
-        body: response.body_mut().read_to_string().unwrap_or_default(),
-    }
-}
-
-fn post(url: &str, body: &serde_json::Value) -> Answer {
-    answer(
-        ureq::post(&format!("{url}/api/v1/jobs"))
-            .config()
-            .http_status_as_error(false)
-            .build()
-            .send_json(body),
-    )
-}
-
-fn get(url: &str, path: &str) -> Answer {
-    answer(
-        ureq::get(&format!("{url}{path}"))
-            .config()
-            .http_status_as_error(false)
-            .build()
-            .call(),
-    )
-}
-
-/// The resident set of a process, in KiB.
-fn rss_kib(pid: u32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .expect("VmRSS")
-}
-
-/// Polls `GET path` (at most `secs`) until `until` holds of its answer.
-fn poll(url: &str, path: &str, secs: u64, until: impl Fn(&Answer) -> bool) -> Answer {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    loop {
-        let a = get(url, path);
-        if until(&a) {
-            return a;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{path} after {secs} s: {} {}",
-            a.status,
-            a.body
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 /// Patterns that cannot be written are refused at submission with a 400
 /// naming the limit, and the service goes on answering.
 #[test]
 fn output_patterns_over_the_limits_are_400_naming_them() {
     let dir = scratch("limits-patterns");
-    let (_s, url) = serve(&dir.join("data"), &dir, &[]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &[]);
     let root = dir.display().to_string();
     let cases = [
         (
@@ -146,7 +48,7 @@ fn output_patterns_over_the_limits_are_400_naming_them() {
         ),
     ];
     for (out, limit) in &cases {
-        let a = post(&url, &spec(out));
+        let a = post_job(&url, &spec(out));
         assert_eq!(a.status, 400, "{}", a.body);
         assert!(a.error().contains(limit), "{limit}: {}", a.error());
     }
@@ -154,11 +56,11 @@ fn output_patterns_over_the_limits_are_400_naming_them() {
     // frame 10 makes the name one byte too long.
     let mut job = spec(&format!("{root}/{}#.png", "n".repeat(250)));
     job["frames"] = serde_json::json!([0, 10]);
-    let a = post(&url, &job);
+    let a = post_job(&url, &job);
     assert_eq!(a.status, 400, "{}", a.body);
     assert!(a.error().contains("frame 10"), "{}", a.error());
     job["frames"] = serde_json::json!([0, 9]);
-    assert_eq!(post(&url, &job).status, 201);
+    assert_eq!(post_job(&url, &job).status, 201);
     assert_eq!(get(&url, "/api/v1/jobs").status, 200);
 }
 
@@ -169,21 +71,21 @@ fn output_patterns_over_the_limits_are_400_naming_them() {
 fn a_job_of_100000_frames_is_accepted_and_restored_without_growing() {
     let dir = scratch("limits-frames");
     let data = dir.join("data");
-    let (s, url) = serve(&data, &dir, &[]);
+    let (s, url) = serve_without_workers(&data, &dir, &[]);
     // Long names make each expanded path ~300 bytes.
     let out = format!("{}/{}.#########.png", dir.display(), "f".repeat(200));
     let mut job = spec(&out);
     job["frames"] = serde_json::json!([0, 99_999]);
-    assert_eq!(post(&url, &job).status, 201);
-    let before = rss_kib(s.child.id());
+    assert_eq!(post_job(&url, &job).status, 201);
+    let before = rss_kib(s.child.id()).expect("VmRSS");
     let start = Instant::now();
     for _ in 0..4 {
-        let a = post(&url, &job);
+        let a = post_job(&url, &job);
         assert_eq!(a.status, 201, "{}", a.body);
         assert_eq!(a.json()["frames_total"], 100_000);
     }
     let took = start.elapsed();
-    let grown = rss_kib(s.child.id()).saturating_sub(before);
+    let grown = rss_kib(s.child.id()).expect("VmRSS").saturating_sub(before);
     assert!(
         took < Duration::from_millis(400),
         "4 jobs of 100,000 frames took {took:?} to accept"
@@ -195,7 +97,7 @@ fn a_job_of_100000_frames_is_accepted_and_restored_without_growing() {
     s.signal(15);
     let (status, _) = s.finish(30);
     assert!(status.success());
-    let (s, url) = serve(&data, &dir, &[]);
+    let (s, url) = serve_without_workers(&data, &dir, &[]);
     let line = s
         .log
         .iter()
@@ -211,7 +113,7 @@ fn a_job_of_100000_frames_is_accepted_and_restored_without_growing() {
     assert!(line.contains("5 jobs resumed"), "{line}");
     assert!(secs < 0.5, "5 jobs of 100,000 frames restored in {secs} s");
     assert_eq!(get(&url, "/api/v1/jobs/5").json()["frames_total"], 100_000);
-    let rss = rss_kib(s.child.id());
+    let rss = rss_kib(s.child.id()).expect("VmRSS");
     assert!(rss < 200 * 1024, "{rss} KiB after restoring");
 }
 
@@ -227,7 +129,7 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
     std::fs::create_dir_all(&root).unwrap();
     std::fs::create_dir_all(&elsewhere).unwrap();
     std::os::unix::fs::symlink(&elsewhere, root.join("link")).unwrap();
-    let (_s, url) = serve(&dir.join("data"), &root, &["--local-workers", "1"]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &root, &["--local-workers", "1"]);
     let r = root.display().to_string();
     let mut messages = Vec::new();
     for out in [
@@ -239,7 +141,7 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
         "/no/such/directory/x.png".to_string(),
         "x.png".to_string(),
     ] {
-        let a = post(&url, &spec(&out));
+        let a = post_job(&url, &spec(&out));
         assert_eq!(a.status, 403, "{out}: {}", a.body);
         let message = a.error();
         assert!(message.contains(&r), "{out}: {message}");
@@ -248,7 +150,7 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
     messages.dedup();
     assert_eq!(messages.len(), 1, "one message for all: {messages:?}");
     let inside = root.join("new/deeper/x.png");
-    let a = post(&url, &spec(inside.to_str().unwrap()));
+    let a = post_job(&url, &spec(inside.to_str().unwrap()));
     assert_eq!(a.status, 201, "{}", a.body);
     let id = a.json()["id"].as_u64().unwrap();
     poll(&url, &format!("/api/v1/jobs/{id}"), 60, |a| {
@@ -257,7 +159,7 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
     assert!(inside.is_file());
     // A target that is a symlink is refused when the frame is written.
     std::os::unix::fs::symlink(elsewhere.join("victim.png"), root.join("trap.png")).unwrap();
-    let a = post(&url, &spec(root.join("trap.png").to_str().unwrap()));
+    let a = post_job(&url, &spec(root.join("trap.png").to_str().unwrap()));
     assert_eq!(a.status, 201, "{}", a.body);
     let id = a.json()["id"].as_u64().unwrap();
     let failed = poll(&url, &format!("/api/v1/jobs/{id}"), 60, |a| {
@@ -273,13 +175,14 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
     );
     assert!(!elsewhere.join("victim.png").exists());
 
-    let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["serve", "--data"])
-        .arg(dir.join("data-slash"))
-        .args(["--listen", "127.0.0.1:0", "--local-workers", "0"])
-        .current_dir("/")
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["serve", "--data"])
+            .arg(dir.join("data-slash"))
+            .args(["--listen", "127.0.0.1:0", "--local-workers", "0"])
+            .current_dir("/"),
+        RUN_SECS,
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success() && stderr.contains("--output-root"),
@@ -291,12 +194,12 @@ fn outputs_resolve_inside_the_roots_or_are_403() {
 #[test]
 fn a_full_queue_answers_429_with_retry_after() {
     let dir = scratch("limits-queue");
-    let (_s, url) = serve(&dir.join("data"), &dir, &["--max-queued", "2"]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &["--max-queued", "2"]);
     let out = dir.join("q.png");
     for _ in 0..2 {
-        assert_eq!(post(&url, &spec(out.to_str().unwrap())).status, 201);
+        assert_eq!(post_job(&url, &spec(out.to_str().unwrap())).status, 201);
     }
-    let a = post(&url, &spec(out.to_str().unwrap()));
+    let a = post_job(&url, &spec(out.to_str().unwrap()));
     assert_eq!(a.status, 429, "{}", a.body);
     assert!(a.error().contains("--max-queued 2"), "{}", a.error());
     let retry: u64 = a.headers["retry-after"].to_str().unwrap().parse().unwrap();
@@ -304,7 +207,7 @@ fn a_full_queue_answers_429_with_retry_after() {
     // A cancelled job frees its place.
     let cancel = ureq::post(&format!("{url}/api/v1/jobs/1/cancel")).send_empty();
     assert_eq!(answer(cancel).status, 200);
-    assert_eq!(post(&url, &spec(out.to_str().unwrap())).status, 201);
+    assert_eq!(post_job(&url, &spec(out.to_str().unwrap())).status, 201);
 }
 
 /// Ended jobs beyond `--keep-ended` leave the list and the store; their
@@ -313,11 +216,12 @@ fn a_full_queue_answers_429_with_retry_after() {
 fn ended_jobs_are_pruned_from_the_list_and_the_store_and_their_files_kept() {
     let dir = scratch("limits-prune");
     let data = dir.join("data");
-    let (s, url) = serve(&data, &dir, &["--local-workers", "1", "--keep-ended", "1"]);
+    let (s, url) =
+        serve_without_workers(&data, &dir, &["--local-workers", "1", "--keep-ended", "1"]);
     let mut files = Vec::new();
     for i in 0..3 {
         let out = dir.join(format!("p{i}.png"));
-        let a = post(&url, &spec(out.to_str().unwrap()));
+        let a = post_job(&url, &spec(out.to_str().unwrap()));
         let id = a.json()["id"].as_u64().unwrap();
         poll(&url, &format!("/api/v1/jobs/{id}"), 60, |a| {
             a.json()["state"] == "done"
@@ -332,7 +236,7 @@ fn ended_jobs_are_pruned_from_the_list_and_the_store_and_their_files_kept() {
     assert!(files.iter().all(|f| f.is_file()), "files are kept");
     s.signal(15);
     assert!(s.finish(30).0.success());
-    let (_s, url) = serve(&data, &dir, &["--keep-ended", "1"]);
+    let (_s, url) = serve_without_workers(&data, &dir, &["--keep-ended", "1"]);
     let jobs = get(&url, "/api/v1/jobs").json();
     assert_eq!(jobs.as_array().unwrap().len(), 1, "{jobs}");
     assert_eq!(jobs[0]["id"], 3);
@@ -344,12 +248,12 @@ fn ended_jobs_are_pruned_from_the_list_and_the_store_and_their_files_kept() {
 #[test]
 fn the_job_list_is_paged_and_status_reads_every_page() {
     let dir = scratch("limits-pages");
-    let (_s, url) = serve(&dir.join("data"), &dir, &[]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &[]);
     let out = dir.join("l.png");
     let body = spec(out.to_str().unwrap());
     let total = 1003;
     for _ in 0..total {
-        assert_eq!(post(&url, &body).status, 201);
+        assert_eq!(post_job(&url, &body).status, 201);
     }
     let first = get(&url, "/api/v1/jobs");
     assert_eq!(
@@ -401,7 +305,7 @@ fn the_job_list_is_paged_and_status_reads_every_page() {
 #[test]
 fn metrics_pass_promtool_and_hold_no_series_for_jobs_not_running() {
     let dir = scratch("limits-metrics");
-    let (_s, url) = serve(&dir.join("data"), &dir, &[]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &[]);
     let out = dir.join("m.png");
     let series = |url: &str| {
         let text = get(url, "/metrics").body;
@@ -410,7 +314,7 @@ fn metrics_pass_promtool_and_hold_no_series_for_jobs_not_running() {
     };
     let (_, empty) = series(&url);
     for _ in 0..50 {
-        assert_eq!(post(&url, &spec(out.to_str().unwrap())).status, 201);
+        assert_eq!(post_job(&url, &spec(out.to_str().unwrap())).status, 201);
     }
     for id in 1..=25 {
         let cancel = ureq::post(&format!("{url}/api/v1/jobs/{id}/cancel")).send_empty();
@@ -434,7 +338,7 @@ fn metrics_pass_promtool_and_hold_no_series_for_jobs_not_running() {
         .unwrap()
         .write_all(text.as_bytes())
         .unwrap();
-    let o = promtool.wait_with_output().unwrap();
+    let o = collect_within(promtool, 60);
     assert!(
         o.status.success() && o.stdout.is_empty() && o.stderr.is_empty(),
         "promtool: {}{}",
@@ -447,7 +351,7 @@ fn metrics_pass_promtool_and_hold_no_series_for_jobs_not_running() {
 #[test]
 fn a_prometheus_server_scrapes_the_service() {
     let dir = scratch("limits-prometheus");
-    let (_s, url) = serve(&dir.join("data"), &dir, &[]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &[]);
     let target = url.trim_start_matches("http://");
     let config = dir.join("prometheus.yml");
     std::fs::write(
@@ -543,10 +447,10 @@ fn status_events(url: &str, duration: Duration) -> Vec<serde_json::Value> {
 #[test]
 fn studio_status_events_carry_changes_not_the_queue() {
     let dir = scratch("limits-events");
-    let (_s, url) = serve(&dir.join("data"), &dir, &[]);
+    let (_s, url) = serve_without_workers(&dir.join("data"), &dir, &[]);
     let out = dir.join("e.png");
     for _ in 0..20 {
-        assert_eq!(post(&url, &spec(out.to_str().unwrap())).status, 201);
+        assert_eq!(post_job(&url, &spec(out.to_str().unwrap())).status, 201);
     }
     let events = status_events(&url, Duration::from_millis(1800));
     assert!(!events.is_empty(), "no status event");

@@ -7,13 +7,11 @@
 //! They need root (`ip netns add`). CI and this machine run as root; elsewhere
 //! each test prints why it skips.
 
-mod support;
-
 use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use support::*;
+use crate::support::*;
 
 /// Runs `ip` with `args`; panics with its stderr when it fails.
 fn ip(args: &[&str]) {
@@ -145,31 +143,13 @@ fn in_ns(ns: &str, program: &Path, args: &[&str]) -> Command {
     cmd
 }
 
-/// Renders `noisy_sphere` at `size`² in-process to `out`.
-fn in_process(size: &str, out: &Path) {
-    let o = coordinator(&[
-        "--scene",
-        scene("noisy_sphere").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        size,
-        "--height",
-        size,
-        "--spp",
-        "4",
-        "--in-process",
-        "--quiet",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
-
 /// A TLS farm with a token across namespaces: a worker with a wrong token
 /// is refused, one worker's link is cut mid-frame and restored, the other
 /// is stopped (SIGSTOP) past its lease and continued, and the image is
 /// byte-identical to the in-process one.
 #[test]
 fn a_tls_farm_across_namespaces_survives_a_cut_link_and_a_stopped_worker() {
+    let _alone = alone();
     if let Some(why) = cannot_run() {
         eprintln!("skipped: {why}");
         return;
@@ -179,7 +159,11 @@ fn a_tls_farm_across_namespaces_survives_a_cut_link_and_a_stopped_worker() {
     // Long enough (4 samples a pixel) that the cut falls mid-frame.
     let size = "256";
     let (out, expected) = (dir.join("farm.png"), dir.join("in-process.png"));
-    in_process(size, &expected);
+    in_process(
+        "noisy_sphere",
+        &expected,
+        &["--width", size, "--height", size, "--spp", "4"],
+    );
     let net = Net::new("farm", 3);
     let (coord_ns, coord_addr) = net.host(0);
 

@@ -1,63 +1,16 @@
 //! The farm with real processes on loopback: exact images from any number of
 //! workers, workers killed or joining mid-frame, tokens, time-outs, bad tiles.
 
-mod support;
-
 use std::path::Path;
 
-use support::*;
-
-/// Renders `scene` at `size` in-process to `out` (PNG or EXR by extension).
-fn in_process(scene_name: &str, size: u32, out: &Path) {
-    let size = size.to_string();
-    let o = coordinator(&[
-        "--scene",
-        scene(scene_name).to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        &size,
-        "--height",
-        &size,
-        "--in-process",
-        "--quiet",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// A coordinator rendering `scene_name` at `size`² to `out` that starts no
-/// workers of its own (the test brings them), with `extra` flags; and its URL.
-fn remote_only(scene_name: &str, size: u32, out: &Path, extra: &[&str]) -> (Running, String) {
-    let size = size.to_string();
-    let scene = scene(scene_name);
-    let args = [
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--width",
-        &size,
-        "--height",
-        &size,
-        "--local-workers",
-        "0",
-    ];
-    let mut coord = Running::coordinator(&[&args[..], extra].concat());
-    let url = format!("http://127.0.0.1:{}", coord.port());
-    (coord, url)
-}
-
-fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
-}
+use crate::support::*;
 
 #[test]
 fn any_number_of_workers_gives_the_in_process_bytes() {
     let dir = scratch("farm-counts");
     for ext in ["png", "exr"] {
         let reference = dir.join(format!("reference.{ext}"));
-        in_process("tribble", 40, &reference);
+        in_process_at("tribble", 40, &reference);
         for workers in ["1", "2", "4"] {
             let out = dir.join(format!("farm-{workers}.{ext}"));
             let o = coordinator(&[
@@ -90,7 +43,7 @@ fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
     let reference = dir.join("reference.png");
     // Big enough that one render thread is still busy when it is killed
     // (about 0.4 s of rendering on one thread of a fast machine).
-    in_process("fur", 512, &reference);
+    in_process_at("fur", 512, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only(
         "fur",
@@ -203,7 +156,7 @@ fn malformed_tiles_are_rejected_without_touching_the_image() {
     let dir = scratch("farm-malformed");
     // An EXR: the tiles carry float samples, which can be NaN or infinite.
     let reference = dir.join("reference.exr");
-    in_process("noisy_sphere", 32, &reference);
+    in_process_at("noisy_sphere", 32, &reference);
     let out = dir.join("farm.exr");
     let (coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
     block_on(async {
@@ -427,7 +380,7 @@ fn the_unit_handed_out_with_a_tile_is_not_lost_when_its_worker_dies() {
 
     let dir = scratch("farm-ahead");
     let reference = dir.join("reference.png");
-    in_process("noisy_sphere", 32, &reference);
+    in_process_at("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--lease-timeout", "1"]);
     block_on(async {
@@ -499,7 +452,7 @@ fn a_worker_that_asks_after_the_image_is_written_is_told_the_render_is_finished(
 
     let dir = scratch("farm-told");
     let reference = dir.join("reference.png");
-    in_process("noisy_sphere", 16, &reference);
+    in_process_at("noisy_sphere", 16, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only("noisy_sphere", 16, &out, &["--verify", "1"]);
     block_on(async {
@@ -547,7 +500,7 @@ fn a_worker_that_asks_after_the_image_is_written_is_told_the_render_is_finished(
 fn workers_wait_for_a_late_coordinator_and_outlive_a_dead_one() {
     let dir = scratch("farm-rejoin");
     let reference = dir.join("reference.png");
-    in_process("fur", 96, &reference);
+    in_process_at("fur", 96, &reference);
     let port = free_port();
     let url = format!("http://127.0.0.1:{port}");
     let listen = format!("127.0.0.1:{port}");
@@ -613,7 +566,7 @@ fn tls_farm_gives_the_same_bytes() {
     std::fs::write(&cert_path, cert.pem()).unwrap();
     std::fs::write(&key_path, key.serialize_pem()).unwrap();
     let reference = dir.join("reference.exr");
-    in_process("fire_ball", 32, &reference);
+    in_process_at("fire_ball", 32, &reference);
     let out = dir.join("tls.exr");
     let o = coordinator(&[
         "--scene",
@@ -636,10 +589,10 @@ fn tls_farm_gives_the_same_bytes() {
     assert!(log.contains("https://"), "{log}");
     same_bytes(&reference, &out);
     // A plaintext worker cannot talk to a TLS farm; a worker without --ca cannot verify it.
-    let o = std::process::Command::new(worker_bin())
-        .args(["--coordinator", "https://localhost:1"])
-        .output()
-        .unwrap();
+    let o = output_within(
+        std::process::Command::new(worker_bin()).args(["--coordinator", "https://localhost:1"]),
+        RUN_SECS,
+    );
     assert!(!o.status.success());
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -762,7 +715,7 @@ fn a_lone_worker_claiming_the_scene_does_not_build_is_blocklisted_and_nothing_ha
 fn a_worker_with_other_arithmetic_is_refused_and_the_image_stays_exact() {
     let dir = scratch("farm-arithmetic");
     let reference = dir.join("reference.png");
-    in_process("noisy_sphere", 32, &reference);
+    in_process_at("noisy_sphere", 32, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only("noisy_sphere", 32, &out, &["--worker-timeout", "60"]);
     let (runtime, _stop, task) = in_process_worker(&url, "skewed", Some(worker::Fault::Arithmetic));
@@ -921,23 +874,24 @@ fn failing_local_worker_binaries_give_way_to_in_process_workers() {
     .unwrap();
     std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
     let reference = dir.join("reference.png");
-    in_process("noisy_sphere", 48, &reference);
+    in_process_at("noisy_sphere", 48, &reference);
     let out = dir.join("farm.png");
     let started = std::time::Instant::now();
-    let o = std::process::Command::new(&exe)
-        .args(["--scene", scene("noisy_sphere").to_str().unwrap()])
-        .args([
-            "--out",
-            out.to_str().unwrap(),
-            "--width",
-            "48",
-            "--height",
-            "48",
-        ])
-        .args(["--local-workers", "2", "--worker-timeout", "30"])
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
+    let o = output_within(
+        std::process::Command::new(&exe)
+            .args(["--scene", scene("noisy_sphere").to_str().unwrap()])
+            .args([
+                "--out",
+                out.to_str().unwrap(),
+                "--width",
+                "48",
+                "--height",
+                "48",
+            ])
+            .args(["--local-workers", "2", "--worker-timeout", "30"])
+            .env_remove("RUST_LOG"),
+        RUN_SECS,
+    );
     let log = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{log}");
     assert!(log.contains("every local worker process"), "{log}");
@@ -959,28 +913,29 @@ fn previews_are_written_while_rendering_and_the_final_image_replaces_them() {
     for ext in ["png", "exr"] {
         let reference = dir.join(format!("reference.{ext}"));
         // About a second of one debug-build thread: many preview intervals.
-        in_process("fur", 384, &reference);
+        in_process_at("fur", 384, &reference);
         let out = dir.join(format!("farm.{ext}"));
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
-            .args([
-                "--scene",
-                fur.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-            ])
-            .args(["--width", "384", "--height", "384"])
-            .args([
-                "--local-workers",
-                "1",
-                "--threads",
-                "1",
-                "--preview-every",
-                "0.05",
-            ])
-            .env("RUST_LOG", "info,coordinator=debug")
-            .env("NO_COLOR", "1")
-            .output()
-            .unwrap();
+        let o = output_within(
+            std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+                .args([
+                    "--scene",
+                    fur.to_str().unwrap(),
+                    "--out",
+                    out.to_str().unwrap(),
+                ])
+                .args(["--width", "384", "--height", "384"])
+                .args([
+                    "--local-workers",
+                    "1",
+                    "--threads",
+                    "1",
+                    "--preview-every",
+                    "0.05",
+                ])
+                .env("RUST_LOG", "info,coordinator=debug")
+                .env("NO_COLOR", "1"),
+            RUN_SECS,
+        );
         let log = String::from_utf8_lossy(&o.stderr);
         assert!(o.status.success(), "{log}");
         assert!(

@@ -3,8 +3,6 @@
 //! manifests, the compose file, the systemd units and the README's examples) is
 //! accepted by the real argument parsers of the coordinator and the worker.
 
-mod support;
-
 use clap::Parser;
 use coordinator::cli::{Command, ServeArgs};
 use yaml_rust2::{Yaml, YamlLoader};
@@ -16,7 +14,8 @@ const PORT: u16 = 47000;
 const QUEUE_METRIC: &str = "hypertexture_farm_units_queued";
 
 fn read(path: &str) -> String {
-    std::fs::read_to_string(support::root().join(path)).unwrap_or_else(|e| panic!("{path}: {e}"))
+    std::fs::read_to_string(crate::support::root().join(path))
+        .unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
 fn load(path: &str) -> Vec<Yaml> {
@@ -73,7 +72,7 @@ fn parse(argv: &[String]) -> Parsed {
                 Err(_) => scene.clone(),
             };
             assert!(
-                support::root().join(&local).exists(),
+                crate::support::root().join(&local).exists(),
                 "{}: not in scenes/ ({argv:?})",
                 scene.display()
             );
@@ -519,7 +518,7 @@ fn readme_commands_match_the_binaries() {
 /// `systemd-analyze security --offline=true`'s overall exposure of a unit
 /// file (0 is safest, 10 is fully exposed).
 fn exposure(path: &str) -> f64 {
-    let file = support::root().join(path);
+    let file = crate::support::root().join(path);
     let out = std::process::Command::new("systemd-analyze")
         .args(["security", "--offline=true"])
         .arg(&file)

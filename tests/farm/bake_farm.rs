@@ -2,11 +2,9 @@
 //! OpenVDB file is byte-identical to the in-process bake for 1, 2 and 4
 //! workers, and when a worker is killed mid-bake.
 
-mod support;
-
 use std::path::{Path, PathBuf};
 
-use support::*;
+use crate::support::*;
 
 /// Bakes the gallery scene `name` at `resolution` to `out` with `extra`
 /// flags (the coordinator has its own deadline); returns its log.
