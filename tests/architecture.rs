@@ -67,6 +67,7 @@ const LAYERS: &[(&str, &[&[&str]])] = &[
         "coordinator",
         &[
             &["files", "guard", "logging"],
+            &["image"],
             &["farm"],
             &["pipeline"],
             &["service"],
@@ -76,7 +77,17 @@ const LAYERS: &[(&str, &[&[&str]])] = &[
     ),
     (
         "worker",
-        &[&["body", "cache", "logging"], &["crate"], &["cli"]],
+        &[
+            &["body", "cache", "cpu", "logging", "signal"],
+            &["crate"],
+            &["connection"],
+            &["assets", "tiles", "withdrawals"],
+            &["render"],
+            &["register"],
+            &["session"],
+            &["run"],
+            &["cli"],
+        ],
     ),
 ];
 
@@ -800,12 +811,37 @@ fn levels_of(name: &str) -> Option<&'static [&'static [&'static str]]> {
         .map(|(_, levels)| *levels)
 }
 
+/// Debts the check knows of, each as the first line of its report says it:
+/// a breach listed here does not fail the check, and a listed one that is
+/// no longer found fails it until it is struck off, so the list only
+/// shrinks.
+///
+/// - The density tree and its distortion hold each other: `Hypertexture`
+///   holds a `Distortion`, whose `apply`, `exit_distance` and
+///   `max_displacement` take the `Density` they bend.
+/// - Inside `field::density`, the node types written in `mod.rs` are used by
+///   the DMFs, the lane kernels and the bounds, which `mod.rs` calls back.
+/// - The expression language's lane interpreter is one `match` over the
+///   operations: split into functions it ran about 15% slower on the
+///   expression scenes (`pse_bench 256 9`, taking turns with the whole
+///   function), so it stays whole.
+const KNOWN: &[&str] = &[
+    "cycle among the children of hypertexture::field: density, distortion",
+    "cycle among the children of hypertexture::field::density: bounds, density (own items), dmf, lanes",
+    "fn run_lanes is",
+];
+
 fn verdict(rule: &str, found: Vec<String>) {
+    let first = |f: &String| f.lines().next().unwrap_or_default().to_string();
+    let new: Vec<String> = found
+        .into_iter()
+        .filter(|f| !KNOWN.iter().any(|k| first(f).contains(k)))
+        .collect();
     assert!(
-        found.is_empty(),
+        new.is_empty(),
         "{rule}: {} found\n{}",
-        found.len(),
-        found.join("\n")
+        new.len(),
+        new.join("\n")
     );
 }
 
@@ -831,6 +867,29 @@ fn no_function_over_the_limit() {
         &format!("functions over {MAX_FN_LINES} lines"),
         crates().iter().flat_map(long_functions).collect(),
     );
+}
+
+/// Every debt in [`KNOWN`] is still owed: one that was paid is struck off.
+#[test]
+fn every_known_debt_is_still_owed() {
+    let krates = crates();
+    let mut found: Vec<String> = krates.iter().flat_map(cycles).collect();
+    found.extend(krates.iter().flat_map(long_functions));
+    for krate in &krates {
+        if let Some(levels) = levels_of(&krate.name) {
+            found.extend(layer_breaches(krate, levels));
+        }
+    }
+    let paid: Vec<&str> = KNOWN
+        .iter()
+        .copied()
+        .filter(|k| {
+            !found
+                .iter()
+                .any(|f| f.lines().next().unwrap_or_default().contains(k))
+        })
+        .collect();
+    assert!(paid.is_empty(), "paid, strike these off KNOWN: {paid:?}");
 }
 
 // ---------------------------------------------------------------------------

@@ -8,6 +8,7 @@ pub mod cli;
 pub mod farm;
 pub mod files;
 pub mod guard;
+pub mod image;
 pub mod logging;
 pub mod pipeline;
 pub mod service;

@@ -84,8 +84,8 @@ fn golden_images_hold_on_every_isa_path() {
             let film = pool.install(|| hypertexture::render::render(&scene, 0, &|_| {}));
             let out = dir.join(format!("{name}-{}.png", isa.name()));
             let metadata =
-                coordinator::pipeline::output::ImageMetadata::without_scene(64, 64, None, None);
-            coordinator::pipeline::output::write_image(&film, &out, &metadata).unwrap();
+                coordinator::image::output::ImageMetadata::without_scene(64, 64, None, None);
+            coordinator::image::output::write_image(&film, &out, &metadata).unwrap();
             let got = decode_png(&out);
             if got.as_raw() != want.as_raw() {
                 let differing = got

@@ -42,11 +42,9 @@ mod withdrawals;
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use hypertexture::Scene;
-use hypertexture::render::interleave::WorkUnit;
 use hypertexture_proto::FailureKind;
 use hypertexture_proto::pb;
 
@@ -55,7 +53,7 @@ pub use cpu::process_cpu_micros;
 pub use run::run;
 pub use signal::{exit_when_orphaned, shutdown_signal};
 
-use render::render_tile;
+pub use render::UnitRenderer;
 
 /// Everything a worker needs to know.
 #[derive(Clone, Debug)]
@@ -164,68 +162,6 @@ pub struct WorkerReport {
     /// Units dropped unfinished because the coordinator took them back (their
     /// job was cancelled, or a studio frame superseded).
     pub withdrawn: u64,
-}
-
-/// Renders units exactly as a worker does, outside the farm: the
-/// coordinator's own check of a unit (verified rendering) builds the scene
-/// from the assignment's wire job with the worker's code and renders the
-/// tile with the worker's function, so the bytes are those every worker of
-/// this build must send. It renders on the caller's rayon pool.
-pub struct UnitRenderer {
-    scenes: SceneCache,
-}
-
-impl Default for UnitRenderer {
-    fn default() -> UnitRenderer {
-        UnitRenderer {
-            scenes: SceneCache::new(cache::DEFAULT_ASSET_CACHE_MB << 20),
-        }
-    }
-}
-
-impl UnitRenderer {
-    /// Builds the scene of `job` (which carries its text), with the files it
-    /// names from `files` (by content hash), as a worker would.
-    pub fn build(
-        &mut self,
-        job: &pb::Job,
-        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
-    ) -> Result<Arc<Scene>, (FailureKind, String)> {
-        let mut fetched = Fetched::new();
-        for a in self.scenes.missing(job) {
-            let bytes = files(a.hash).ok_or_else(|| {
-                (
-                    FailureKind::Assignment,
-                    format!(
-                        "{}: no file {} with hash {:016x}",
-                        job.scene_name, a.path, a.hash
-                    ),
-                )
-            })?;
-            let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
-                .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
-            fetched.insert(a.hash, Arc::new(mesh));
-        }
-        self.scenes.get(job, &fetched)
-    }
-
-    /// The tile of `unit` of `job` (which carries its scene text and frame),
-    /// as a worker sends it; `None` when `stop` was set before the end.
-    pub fn render(
-        &mut self,
-        job: &pb::Job,
-        unit: &WorkUnit,
-        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
-        stop: &AtomicBool,
-    ) -> Result<Option<Vec<u8>>, (FailureKind, String)> {
-        let scene = self.build(job, files)?;
-        let (format, bake) = render::tile_form(job, &scene)?;
-        let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
-        Ok(
-            render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop)
-                .map(|t| t.to_vec()),
-        )
-    }
 }
 
 /// Meshes fetched for one assignment and not kept yet: the cache takes them

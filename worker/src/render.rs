@@ -247,6 +247,68 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
         .unwrap_or("(no message)")
 }
 
+/// Renders units exactly as a worker does, outside the farm: the
+/// coordinator's own check of a unit (verified rendering) builds the scene
+/// from the assignment's wire job with the worker's code and renders the
+/// tile with the worker's function, so the bytes are those every worker of
+/// this build must send. It renders on the caller's rayon pool.
+pub struct UnitRenderer {
+    scenes: SceneCache,
+}
+
+impl Default for UnitRenderer {
+    fn default() -> UnitRenderer {
+        UnitRenderer {
+            scenes: SceneCache::new(crate::cache::DEFAULT_ASSET_CACHE_MB << 20),
+        }
+    }
+}
+
+impl UnitRenderer {
+    /// Builds the scene of `job` (which carries its text), with the files it
+    /// names from `files` (by content hash), as a worker would.
+    pub fn build(
+        &mut self,
+        job: &pb::Job,
+        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
+    ) -> Result<Arc<Scene>, (FailureKind, String)> {
+        let mut fetched = Fetched::new();
+        for a in self.scenes.missing(job) {
+            let bytes = files(a.hash).ok_or_else(|| {
+                (
+                    FailureKind::Assignment,
+                    format!(
+                        "{}: no file {} with hash {:016x}",
+                        job.scene_name, a.path, a.hash
+                    ),
+                )
+            })?;
+            let mesh = hypertexture::mesh::Mesh::from_obj(&a.path, &bytes, Default::default())
+                .map_err(|e| (FailureKind::Scene, format!("{}: {e}", job.scene_name)))?;
+            fetched.insert(a.hash, Arc::new(mesh));
+        }
+        self.scenes.get(job, &fetched)
+    }
+
+    /// The tile of `unit` of `job` (which carries its scene text and frame),
+    /// as a worker sends it; `None` when `stop` was set before the end.
+    pub fn render(
+        &mut self,
+        job: &pb::Job,
+        unit: &WorkUnit,
+        files: &dyn Fn(u64) -> Option<Arc<Vec<u8>>>,
+        stop: &AtomicBool,
+    ) -> Result<Option<Vec<u8>>, (FailureKind, String)> {
+        let scene = self.build(job, files)?;
+        let (format, bake) = tile_form(job, &scene)?;
+        let pixels: Vec<(u32, u32)> = unit.pixels(scene.width()).collect();
+        Ok(
+            render_tile(&scene, &pixels, job.frame, format, bake.as_ref(), stop)
+                .map(|t| t.to_vec()),
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::sync::atomic::AtomicBool;

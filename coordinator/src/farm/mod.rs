@@ -10,7 +10,6 @@
 //! which take its lock once and hand back plain values: the scheduler and the
 //! farm's state are private to `farm/`.
 
-pub mod canvas;
 pub mod cert;
 pub mod gate;
 pub mod local;
@@ -32,9 +31,9 @@ use hypertexture_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION, convert};
 use tokio::sync::{broadcast, watch};
 use tonic::{Request, Response, Status};
 
-use crate::farm::canvas::FrameImage;
 pub use crate::farm::scheduler::{Accepted, JobId};
 use crate::farm::scheduler::{Next, Refusal, Scheduler};
+use crate::image::canvas::FrameImage;
 pub use view::{QueueView, WorkerSummary};
 
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
@@ -155,7 +154,7 @@ pub struct FrameJob {
     /// The frames, rendered in this order (at least one).
     pub frames: Vec<FrameOut>,
     /// What the images record (previews too).
-    pub metadata: std::sync::Arc<crate::pipeline::output::ImageMetadata>,
+    pub metadata: std::sync::Arc<crate::image::output::ImageMetadata>,
     /// The files the scene names (meshes), which workers fetch by hash.
     pub assets: Vec<Asset>,
 }
@@ -1552,11 +1551,11 @@ async fn run_session(
 fn write_preview(
     image: FrameImage,
     path: PathBuf,
-    meta: crate::pipeline::output::ImageMetadata,
+    meta: crate::image::output::ImageMetadata,
 ) -> tokio::task::JoinHandle<()> {
     let frame = meta.frame;
     tokio::task::spawn_blocking(move || {
-        match crate::pipeline::output::write_frame_image(&image, &path, &meta) {
+        match crate::image::output::write_frame_image(&image, &path, &meta) {
             Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),
             Err(e) => tracing::warn!("preview: {e}"),
         }

@@ -53,7 +53,7 @@ fn frame_job(frames: &[u32]) -> FrameJob {
                 out: format!("frame{frame}.png").into(),
             })
             .collect(),
-        metadata: Arc::new(crate::pipeline::output::ImageMetadata::without_scene(
+        metadata: Arc::new(crate::image::output::ImageMetadata::without_scene(
             16, 16, None, None,
         )),
         assets: Vec::new(),

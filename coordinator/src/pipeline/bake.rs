@@ -252,7 +252,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
             let active_voxels = leaves.density.iter().map(Leaf::active).sum();
             let count = leaves.density.len();
             let bytes = encode(&name, frame, &lattice, leaves);
-            crate::pipeline::output::write_atomically(&out, &bytes)?;
+            crate::image::output::write_atomically(&out, &bytes)?;
             let [nx, ny, nz] = lattice.dims;
             tracing::info!(
                 "baked {name} (frame {frame}, {nx}×{ny}×{nz} voxels of {}) with {how} in {:.3} s: {count} leaves, {active_voxels} active voxels, {} bytes → {}",
@@ -308,7 +308,7 @@ fn bake_on_farm(
             frame,
             out: PathBuf::new(),
         }],
-        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(scene, request)),
+        metadata: std::sync::Arc::new(crate::image::output::ImageMetadata::new(scene, request)),
         assets: crate::farm::Asset::of_scene(scene, &request.scene_name)
             .map_err(CoordinatorError::Asset)?,
     };
@@ -340,8 +340,8 @@ fn bake_on_farm(
         CoordinatorError::Bake("the farm finished without the bake's frame".into())
     })?;
     match frame.image {
-        crate::farm::canvas::FrameImage::Film(film) => Ok((film, frame.render_time)),
-        crate::farm::canvas::FrameImage::Srgb8 { .. } => Err(CoordinatorError::Bake(
+        crate::image::canvas::FrameImage::Film(film) => Ok((film, frame.render_time)),
+        crate::image::canvas::FrameImage::Srgb8 { .. } => Err(CoordinatorError::Bake(
             "the farm returned 8-bit colour for a bake".into(),
         )),
     }

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use hypertexture::render::interleave::{DEFAULT_INTERLEAVE, farm_units};
 use hypertexture::{Film, Overrides, Scene};
 
-use crate::farm::canvas::FrameImage;
+use crate::image::canvas::FrameImage;
 use crate::{CoordinatorError, farm};
 
 /// What to measure.
@@ -321,7 +321,7 @@ fn farm_render(
             frame: 0,
             out: PathBuf::new(),
         }],
-        metadata: std::sync::Arc::new(crate::pipeline::output::ImageMetadata::new(scene, &request)),
+        metadata: std::sync::Arc::new(crate::image::output::ImageMetadata::new(scene, &request)),
         assets: farm::Asset::of_scene(scene, &request.scene_name)
             .map_err(CoordinatorError::Asset)?,
         request: request.with_size_of(scene),

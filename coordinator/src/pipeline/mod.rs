@@ -4,7 +4,6 @@
 //! - [`destination`]: where a job's images may go: output patterns and roots.
 //! - [`run`]: a scene rendered on the farm or in this process, written as
 //!   an image or a numbered sequence.
-//! - [`output`]: frames to PNG and EXR files.
 //! - [`bake`], [`vdb`]: H(x) sampled on a lattice and written as OpenVDB.
 //! - [`recolor`]: an EXR's density channel mapped through new curves.
 //! - [`grid`]: a painted PNG as a 2D shape transfer function.
@@ -14,7 +13,6 @@ pub mod bake;
 pub mod bench;
 pub mod destination;
 pub mod grid;
-pub mod output;
 pub mod recolor;
 pub mod run;
 pub mod vdb;

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use hypertexture::{Film, Sample};
 
-use crate::{CoordinatorError, pipeline::output};
+use crate::{CoordinatorError, image::output};
 
 /// The channels of an EXR written by the coordinator that a new colour map
 /// keeps: `density` and `A`, and the AOVs carried through (`depth`,

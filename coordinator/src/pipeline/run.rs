@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use hypertexture::{Film, FrameRange, RenderRequest, Scene, SceneError};
 
 use crate::farm;
-use crate::pipeline::output::{ImageFormat, ImageMetadata};
+use crate::image::output::{ImageFormat, ImageMetadata};
 
 /// Everything a render needs to know.
 #[derive(Clone, Debug)]
@@ -103,7 +103,7 @@ impl Config {
         // A sequence's files go beside `out`: one directory to check.
         crate::files::check_writable(&out)?;
         let request = RenderRequest {
-            pixel_format: crate::pipeline::output::pixel_format_for([out.as_path()]),
+            pixel_format: crate::image::output::pixel_format_for([out.as_path()]),
             ..read_scene(scene, request, sequence)?
         };
         Ok(Config {
@@ -153,7 +153,7 @@ fn read_scene(
             ..request
         });
     }
-    let stored = crate::pipeline::output::read_stored_render(scene)?;
+    let stored = crate::image::output::read_stored_render(scene)?;
     tracing::info!(
         "{}: the scene {} stored in the image",
         scene.display(),
@@ -188,7 +188,7 @@ pub enum CoordinatorError {
     Scene(#[from] SceneError),
     /// The image could not be written.
     #[error(transparent)]
-    Output(#[from] crate::pipeline::output::OutputError),
+    Output(#[from] crate::image::output::OutputError),
     /// The farm failed.
     #[error(transparent)]
     Farm(#[from] farm::FarmError),
@@ -223,9 +223,6 @@ pub enum CoordinatorError {
     /// A bake cannot be done as asked.
     #[error("{0}")]
     Bake(String),
-    /// The service failed.
-    #[error(transparent)]
-    Service(Box<crate::service::ServiceError>),
     /// The render threads could not be started.
     #[error("cannot start {threads} render threads: {message}")]
     Threads {
@@ -288,7 +285,7 @@ fn render_all_in_process(
         .into_iter()
         .map(|f| {
             let (film, time) = render_in_process(scene, f.frame, threads, config.progress)?;
-            let image = crate::farm::canvas::FrameImage::Film(film);
+            let image = crate::image::canvas::FrameImage::Film(film);
             let meta = metadata.at_frame(f.frame);
             write_frame(config, scene, &image, &meta, time, &f.out, &how)
         })
@@ -308,13 +305,13 @@ pub fn run(config: Config) -> Result<Summary, CoordinatorError> {
 fn write_frame(
     config: &Config,
     scene: &Scene,
-    image: &crate::farm::canvas::FrameImage,
+    image: &crate::image::canvas::FrameImage,
     meta: &ImageMetadata,
     render_time: Duration,
     out: &Path,
     how: &str,
 ) -> Result<Summary, CoordinatorError> {
-    crate::pipeline::output::write_frame_image(image, out, meta)?;
+    crate::image::output::write_frame_image(image, out, meta)?;
     let frame = meta.frame;
     tracing::info!(
         "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",

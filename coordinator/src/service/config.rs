@@ -7,7 +7,6 @@ use std::num::NonZeroUsize;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use crate::CoordinatorError;
 use crate::farm::{self, FarmConfig};
 use crate::pipeline::destination;
 use crate::service::{ServiceConfig, ServiceError, limits};
@@ -76,14 +75,14 @@ fn local_workers(asked: Option<usize>) -> usize {
 }
 
 /// A failure to set up the output roots.
-fn roots_error(message: String) -> CoordinatorError {
-    CoordinatorError::Service(Box::new(ServiceError::Roots(message)))
+fn roots_error(message: String) -> ServiceError {
+    ServiceError::Roots(message)
 }
 
 impl ServeConfig {
     /// The service's configuration: the TLS files read, the output roots
     /// resolved against the working directory.
-    pub fn service_config(self) -> Result<ServiceConfig, CoordinatorError> {
+    pub fn service_config(self) -> Result<ServiceConfig, ServiceError> {
         let tls = match &self.tls {
             Some((cert, key)) => Some(crate::farm::cert::read_server_tls(cert, key)?),
             None => None,
@@ -123,7 +122,7 @@ impl StudioConfig {
     /// The service's configuration: renders are written beside the scene
     /// or in the working directory; the store is a fresh temporary
     /// directory unless given.
-    pub fn service_config(self) -> Result<ServiceConfig, CoordinatorError> {
+    pub fn service_config(self) -> Result<ServiceConfig, ServiceError> {
         let data = self.data.unwrap_or_else(|| {
             std::env::temp_dir().join(format!("hypertexture-studio-{}", std::process::id()))
         });
@@ -163,4 +162,18 @@ impl StudioConfig {
             keep_ended: limits::KeepEnded::default(),
         })
     }
+}
+
+/// `coordinator serve`: sets up logging and the runtime, and serves until
+/// SIGTERM or Ctrl-C.
+pub fn run(config: ServeConfig) -> Result<(), ServiceError> {
+    crate::logging::init_with(config.quiet, config.json_logs);
+    super::serve_until_signal(config.service_config()?)
+}
+
+/// `coordinator studio SCENE`: the service with its local workers, the
+/// scene open at `/`; prints the page's URL and serves until SIGTERM or Ctrl-C.
+pub fn run_studio(config: StudioConfig) -> Result<(), ServiceError> {
+    crate::logging::init_with(config.quiet, false);
+    super::serve_until_signal(config.service_config()?)
 }

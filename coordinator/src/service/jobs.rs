@@ -109,9 +109,7 @@ impl From<JobJson> for JobSpec {
                 knobs: json.knobs.into_iter().collect(),
             },
             frames,
-            pixel_format: crate::pipeline::output::pixel_format_for([std::path::Path::new(
-                &json.out,
-            )]),
+            pixel_format: crate::image::output::pixel_format_for([std::path::Path::new(&json.out)]),
             bake: None,
         };
         JobSpec {

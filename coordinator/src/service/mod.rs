@@ -23,7 +23,7 @@ pub mod params;
 pub mod store;
 pub mod studio;
 
-pub use config::{ServeConfig, StudioConfig};
+pub use config::{ServeConfig, StudioConfig, run, run_studio};
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -114,7 +114,7 @@ struct JobMeta {
     units_per_frame: u64,
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
-    metadata: Option<Arc<crate::pipeline::output::ImageMetadata>>,
+    metadata: Option<Arc<crate::image::output::ImageMetadata>>,
     /// Its scene while it is in the farm: the farm's checks and in-process
     /// workers render this one rather than build it again.
     scene: Option<Arc<hypertexture::Scene>>,
@@ -236,7 +236,7 @@ struct Checked {
     built: hypertexture_proto::request::Built,
     frames: Frames,
     /// What its images record.
-    metadata: Arc<crate::pipeline::output::ImageMetadata>,
+    metadata: Arc<crate::image::output::ImageMetadata>,
 }
 
 /// Units per job, for the metrics.
@@ -265,7 +265,7 @@ fn check_spec(
     // Every frame's file has the first one's extension: a `#` run in it
     // would make digits, and no format is named by digits.
     let first = PathBuf::from(expand_pattern(&spec.out, frames.first()));
-    crate::pipeline::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
+    crate::image::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
     roots
         .resolve(&spec.out, &first, base)
         .map_err(|e| ApiError::Forbidden(e.to_string()))?;
@@ -275,7 +275,7 @@ fn check_spec(
     let built =
         hypertexture_proto::request::build(request, Some(&hypertexture::scene::Assets::none()))
             .map_err(|e| bad(e.to_string()))?;
-    let metadata = Arc::new(crate::pipeline::output::ImageMetadata::new(
+    let metadata = Arc::new(crate::image::output::ImageMetadata::new(
         &built.scene,
         request,
     ));
@@ -591,7 +591,7 @@ impl Service {
                 .roots
                 .prepare(&pattern, &target, &service.base)
                 .map_err(|e| e.to_string())?;
-            crate::pipeline::output::write_frame_image(&image, &target, &metadata)
+            crate::image::output::write_frame_image(&image, &target, &metadata)
                 .map_err(|e| e.to_string())
         })
         .await;
@@ -1006,31 +1006,15 @@ impl Control for Arc<Service> {
     }
 }
 
-/// `coordinator serve`: sets up logging and the runtime, and serves until
-/// SIGTERM or Ctrl-C.
-pub fn run(config: ServeConfig) -> Result<(), crate::CoordinatorError> {
-    crate::logging::init_with(config.quiet, config.json_logs);
-    serve_until_signal(config.service_config()?)
-}
-
-/// `coordinator studio SCENE`: the service with its local workers, the
-/// scene open at `/`; prints the page's URL and serves until SIGTERM or Ctrl-C.
-pub fn run_studio(config: StudioConfig) -> Result<(), crate::CoordinatorError> {
-    crate::logging::init_with(config.quiet, false);
-    serve_until_signal(config.service_config()?)
-}
-
 /// Serves `config` on a runtime of one thread until SIGTERM or Ctrl-C.
-fn serve_until_signal(config: ServiceConfig) -> Result<(), crate::CoordinatorError> {
+pub(crate) fn serve_until_signal(config: ServiceConfig) -> Result<(), ServiceError> {
     // One thread serves the farm and the API: per unit it checks, stores and
     // persists a tile, and any thread more competes with the local workers.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(crate::CoordinatorError::Runtime)?;
-    runtime
-        .block_on(serve(config, worker::shutdown_signal()))
-        .map_err(|e| crate::CoordinatorError::Service(Box::new(e)))
+        .map_err(ServiceError::Runtime)?;
+    runtime.block_on(serve(config, worker::shutdown_signal()))
 }
 
 /// Serves until `shutdown` resolves, then drains and returns.

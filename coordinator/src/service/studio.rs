@@ -632,7 +632,7 @@ impl Studio {
                 out: PathBuf::new(),
             }],
             // A live frame is drawn in the page, never written to a file.
-            metadata: Arc::new(crate::pipeline::output::ImageMetadata::without_scene(
+            metadata: Arc::new(crate::image::output::ImageMetadata::without_scene(
                 width, height, None, None,
             )),
             assets: Vec::new(),

@@ -7,7 +7,7 @@
 use std::time::{Duration, Instant};
 
 use super::{JobId, Scheduler};
-use crate::farm::canvas::FrameImage;
+use crate::image::canvas::FrameImage;
 
 /// A frame whose every unit is in.
 #[derive(Clone, Debug)]

@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 use hypertexture::PixelFormat;
 use hypertexture::render::interleave::WorkUnit;
 
-use crate::farm::canvas::{Canvas, FrameImage};
+use crate::image::canvas::{Canvas, FrameImage};
 use hypertexture_proto::convert::{self, WireError};
 
 mod failures;

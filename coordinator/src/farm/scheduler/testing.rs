@@ -8,7 +8,7 @@ pub(super) use hypertexture::{PixelFormat, Sample};
 pub(super) use hypertexture_proto::{FailureKind, convert};
 
 pub(super) use super::*;
-pub(super) use crate::farm::canvas::FrameImage;
+pub(super) use crate::image::canvas::FrameImage;
 
 pub(super) fn tile(unit: &WorkUnit, width: u32, value: f32) -> Vec<u8> {
     let samples = vec![Sample::from_array([value; Sample::CHANNELS]); unit.pixel_count(width)];

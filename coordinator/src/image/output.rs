@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use hypertexture::{Film, Overrides, PixelFormat, Quality, RenderRequest, Scene};
 
-use crate::farm::canvas::FrameImage;
+use crate::image::canvas::FrameImage;
 
 /// Image formats we write, chosen by the output file's extension.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
