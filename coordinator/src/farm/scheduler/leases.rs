@@ -2,20 +2,8 @@
 //! units a worker gives back (or loses when its lease runs out) queued again,
 //! and the assignments of a removed job taken back from their workers.
 
-use std::time::Instant;
-
+use super::state::{JobId, Scheduler};
 use super::workers::number;
-use super::{JobId, Scheduler};
-
-#[derive(Clone, Copy, Debug)]
-pub(super) struct Lease {
-    pub(super) job: JobId,
-    pub(super) unit: usize,
-    pub(super) worker: u64,
-    pub(super) issued: Instant,
-    /// A second rendering of a unit whose tile is in (verified rendering).
-    pub(super) check: bool,
-}
 
 impl Scheduler {
     /// The job, frame index and unit of an assignment of a job still in the

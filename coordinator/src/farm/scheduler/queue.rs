@@ -6,13 +6,10 @@
 use std::collections::HashMap;
 use std::time::Instant;
 
-use hypertexture::PixelFormat;
 use hypertexture::render::interleave::WorkUnit;
 use hypertexture_proto::convert::WireError;
 
-use super::frames::Frames;
-use super::leases::Lease;
-use super::{Job, JobId, Refusal, Scheduler};
+use super::state::{Job, JobId, JobPlan, Lease, Refusal, Resume, Scheduler};
 
 /// At most this many workers hold the same unit at once.
 const MAX_HOLDERS: usize = 2;
@@ -31,62 +28,6 @@ pub enum Next {
     Wait,
     /// Every frame is complete (one-shot renders only: a service waits for jobs).
     Finished,
-}
-
-/// What the scheduler needs of a job.
-#[derive(Clone, Debug)]
-pub struct JobPlan {
-    /// Its id (the queue's order among equal priorities).
-    pub id: JobId,
-    /// Higher runs first.
-    pub priority: i32,
-    /// The units of every frame.
-    pub units: Vec<WorkUnit>,
-    /// Image width.
-    pub width: u32,
-    /// Image height.
-    pub height: u32,
-    /// What its tiles carry.
-    pub format: PixelFormat,
-    /// Its frames, in order (at least one).
-    pub frames: Frames,
-    /// Tags a worker must carry to render it.
-    pub require_tags: Vec<String>,
-}
-
-impl JobPlan {
-    /// A job of the one frame 0, `width × height` pixels in `units`, that
-    /// any worker may render.
-    pub fn one_frame(
-        id: JobId,
-        priority: i32,
-        units: Vec<WorkUnit>,
-        (width, height): (u32, u32),
-        format: PixelFormat,
-    ) -> JobPlan {
-        JobPlan {
-            id,
-            priority,
-            units,
-            width,
-            height,
-            format,
-            frames: Frames::one(0),
-            require_tags: Vec::new(),
-        }
-    }
-}
-
-/// Where a job restored from the store stands.
-#[derive(Clone, Debug, Default)]
-pub struct Resume {
-    /// Frames already complete and written (the first ones of the plan).
-    pub frames_done: usize,
-    /// Frames among those complete to render again (they hold a liar's
-    /// tiles), by frame number.
-    pub redo: Vec<u32>,
-    /// Tiles of the next frame received before (unit index, tile bytes).
-    pub tiles: Vec<(usize, Vec<u8>)>,
 }
 
 impl Scheduler {

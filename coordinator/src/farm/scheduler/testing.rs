@@ -7,6 +7,9 @@ pub(super) use hypertexture::render::interleave::{WorkUnit, work_units};
 pub(super) use hypertexture::{PixelFormat, Sample};
 pub(super) use hypertexture_proto::{FailureKind, convert};
 
+pub(super) use std::collections::HashMap;
+
+pub(super) use super::state::*;
 pub(super) use super::*;
 pub(super) use crate::image::canvas::FrameImage;
 

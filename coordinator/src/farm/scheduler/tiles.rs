@@ -9,8 +9,7 @@ use hypertexture::render::interleave::WorkUnit;
 use hypertexture_proto::convert::{self, WireError};
 use hypertexture_proto::{FailureKind, pb};
 
-use super::verify::{Check, CheckWhy};
-use super::{Accepted, JobId, Refusal, Scheduler};
+use super::state::{Accepted, Check, CheckWhy, JobId, Refusal, Scheduler};
 
 /// What [`Scheduler::accept_kept`] calls to keep a tile before accepting it:
 /// `Err` (why) refuses the tile.

@@ -15,50 +15,11 @@
 
 use std::time::{Duration, Instant};
 
-use hypertexture::render::interleave::WorkUnit;
 use hypertexture_proto::FailureKind;
 use hypertexture_proto::convert;
 
 use super::failures::Counted;
-use super::{Accepted, JobId, ONE_SHOT_JOB, Refusal, Scheduler};
-
-/// Why the coordinator renders a unit itself.
-#[derive(Clone, Debug, PartialEq)]
-pub enum CheckWhy {
-    /// The unit is among those sampled for a second rendering.
-    Sample,
-    /// Two renderings of the unit differ.
-    Dispute,
-    /// A worker says it cannot build the scene or render the unit.
-    Claim {
-        /// The worker.
-        worker: u64,
-        /// Its name (escaped).
-        name: String,
-        /// What it claims.
-        kind: FailureKind,
-        /// What it said (escaped).
-        reason: String,
-    },
-}
-
-/// A unit the coordinator renders itself ([`Scheduler::take_check`]), and why.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Check {
-    /// The job.
-    pub job: JobId,
-    /// The job's pass when the check was asked for (a check of a frame
-    /// already complete is stale).
-    pub(super) pass: u64,
-    /// The frame number.
-    pub frame: u32,
-    /// The unit's index.
-    pub index: usize,
-    /// The unit.
-    pub unit: WorkUnit,
-    /// Why.
-    pub why: CheckWhy,
-}
+use super::state::{Accepted, Check, CheckWhy, JobId, ONE_SHOT_JOB, Refusal, Scheduler};
 
 /// What the coordinator's own rendering of a [`Check`] gave.
 #[derive(Clone, Debug, PartialEq)]
