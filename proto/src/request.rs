@@ -59,7 +59,9 @@ pub fn from_wire(job: &pb::Job) -> Result<RenderRequest, WireError> {
 
 /// The content hash of `request` with the files its scene names (path as
 /// written, content hash, in path order): everything that changes the
-/// pixels but the frame. Stable across machines and builds.
+/// built scene. The frame, the pixel format and a bake's lattice are left
+/// out: they choose what a unit computes from that scene, and travel in the
+/// job beside the hash. Stable across machines and builds.
 pub fn content_hash(request: &RenderRequest, assets: &[(String, u64)]) -> u64 {
     let o = &request.overrides;
     convert::scene_hash_with_assets(
