@@ -253,6 +253,70 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     let _ = studio.child.wait();
 }
 
+/// A scene on a mesh opens in the studio: the studio reads the mesh beside
+/// the scene file and sends it to its workers, and the page shows the
+/// in-process render.
+#[test]
+fn a_mesh_scene_opens_and_matches_the_in_process_render() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-mesh");
+    let text = std::fs::read_to_string(root().join("scenes/mesh/furry_spot.ron"))
+        .expect("the furry Spot scene")
+        .replace(
+            "image: (width: 512, height: 512)",
+            "image: (width: 40, height: 40)",
+        );
+    assert!(text.contains("width: 40"));
+    let scene = dir.join("furry_spot.ron");
+    std::fs::write(&scene, &text).unwrap();
+    std::fs::create_dir_all(dir.join("meshes")).unwrap();
+    std::fs::copy(
+        root().join("scenes/mesh/meshes/spot.obj"),
+        dir.join("meshes/spot.obj"),
+    )
+    .unwrap();
+    let reference = dir.join("reference.png");
+    let out = coordinator(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        reference.to_str().unwrap(),
+        "--in-process",
+        "--quiet",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let reference = decode_png(&reference).into_raw();
+
+    let mut studio = studio(&scene, &dir.join("data"), 2);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut browser = Browser::start(&chromium, &dir.join("profile"));
+    browser.call(
+        "Page.navigate",
+        json!({ "url": format!("http://127.0.0.1:{port}/") }),
+    );
+    browser.wait_until(COMPLETE_HIGH, 120);
+    assert_eq!(
+        browser.eval("document.getElementById('error').textContent"),
+        json!(""),
+        "no error is shown"
+    );
+    assert_eq!(
+        browser.canvas(),
+        reference,
+        "the page's image is the in-process render"
+    );
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// The one-shot farm's frame time (its "rendered … in X s" line: first unit
 /// out to last tile in) with 2 local workers.
 fn one_shot_seconds(scene: &Path, out: &Path) -> f64 {

@@ -186,8 +186,14 @@ impl Asset {
     /// Every file `scene` names, read beside the scene file `scene_name`:
     /// the bytes the scene was built from (their hashes must agree).
     pub fn of_scene(scene: &hypertexture::Scene, scene_name: &str) -> Result<Vec<Asset>, String> {
-        scene
-            .asset_hashes()
+        Asset::read_all(scene.asset_hashes(), scene_name)
+    }
+
+    /// The files `hashes` names (as the scene writes them, with their
+    /// content hashes), read beside the scene file `scene_name`; a file whose
+    /// bytes no longer have its hash is an error.
+    pub fn read_all(hashes: &[(String, u64)], scene_name: &str) -> Result<Vec<Asset>, String> {
+        hashes
             .iter()
             .map(|(path, hash)| {
                 let file = hypertexture::scene::asset_path(scene_name, path);

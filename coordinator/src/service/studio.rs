@@ -152,6 +152,8 @@ pub struct Studio {
     farm: OnceLock<Arc<Shared>>,
     next_job: AtomicU64,
     token: Option<String>,
+    /// The files the live text names.
+    files: Mutex<Files>,
 }
 
 /// A change asked by the page.
@@ -269,6 +271,21 @@ struct Checked {
     shown: String,
     /// The scene, and the request the farm's workers get.
     built: hypertexture_proto::request::Built,
+    /// The files the scene names, as the farm serves them to workers.
+    files: Vec<farm::Asset>,
+}
+
+/// The files (meshes) a scene names, read beside the scene file the studio
+/// opened, kept while the text names the same ones: a slider's change
+/// neither reads them again nor rebuilds their meshes.
+#[derive(Default)]
+struct Files {
+    /// The paths as the scene writes them, in the scene's order.
+    paths: Vec<String>,
+    /// Their meshes, for building the scene.
+    assets: hypertexture::scene::Assets,
+    /// Their bytes, for the workers.
+    sent: Vec<farm::Asset>,
 }
 
 /// Parses and builds `text` at `quality` with `knobs` (clamped to their
@@ -278,6 +295,7 @@ fn check(
     name: &str,
     knobs: &BTreeMap<String, f64>,
     quality: QualitySpec,
+    files: &Files,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
     let values: BTreeMap<String, f64> = desc
@@ -303,10 +321,10 @@ fn check(
         pixel_format: PixelFormat::Srgb8,
         ..RenderRequest::new(text, name)
     };
-    // A scene sent over HTTP brings no files: one that names a mesh is refused.
-    let built =
-        hypertexture_proto::request::build(&request, Some(&hypertexture::scene::Assets::none()))
-            .map_err(|e| e.to_string())?;
+    // Only the files read beside the scene file are used: a scene whose
+    // studio opened no file (or that names a file not beside it) is refused.
+    let built = hypertexture_proto::request::build(&request, Some(&files.assets))
+        .map_err(|e| e.to_string())?;
     let shown = with_knob_values(text, &values).unwrap_or_else(|| text.to_string());
     Ok(Checked {
         text: text.to_string(),
@@ -314,6 +332,7 @@ fn check(
         declared: desc.knobs,
         shown,
         built,
+        files: files.sent.clone(),
     })
 }
 
@@ -382,6 +401,7 @@ impl Studio {
             farm: OnceLock::new(),
             next_job: AtomicU64::new(LIVE_JOBS),
             token,
+            files: Mutex::new(Files::default()),
         })
     }
 
@@ -605,7 +625,34 @@ impl Studio {
         } else {
             params::with_values(&text, &change.params)?
         };
-        check(&text, &self.name, &knobs, change.quality)
+        let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
+        self.read_files(&text, &mut files)?;
+        check(&text, &self.name, &knobs, change.quality, &files)
+    }
+
+    /// Makes `files` hold the files `text` names, read beside the opened
+    /// scene file (nothing when the studio opened none). A text that does not
+    /// parse keeps the files: its build gives the parse error.
+    fn read_files(&self, text: &str, files: &mut Files) -> Result<(), String> {
+        if self.path.is_none() {
+            return Ok(());
+        }
+        let Ok(desc) = hypertexture::scene::parse(text, &self.name) else {
+            return Ok(());
+        };
+        let paths = desc.mesh_paths();
+        if paths == files.paths {
+            return Ok(());
+        }
+        let assets = hypertexture::scene::Assets::load(&desc, &self.name, Default::default())
+            .map_err(|e| e.to_string())?;
+        let sent = farm::Asset::read_all(&assets.hashes(), &self.name)?;
+        *files = Files {
+            paths,
+            assets,
+            sent,
+        };
+        Ok(())
     }
 
     /// Takes the frame in flight off the farm and puts the frame of
@@ -635,7 +682,7 @@ impl Studio {
             metadata: Arc::new(crate::image::output::ImageMetadata::without_scene(
                 width, height, None, None,
             )),
-            assets: Vec::new(),
+            assets: checked.files.clone(),
         };
         let frame_units = units.clone();
         let data = serde_json::json!({
