@@ -473,6 +473,20 @@ impl Service {
         Ok(())
     }
 
+    /// Why the store does not keep what it is given: its last write failed,
+    /// or records still wait for it (other writes may succeed meanwhile, as
+    /// the tiles of a frame whose record a full table refuses).
+    fn store_failure(&self) -> Option<String> {
+        if let Some((why, _)) = self.health.failure() {
+            return Some(why);
+        }
+        match self.pending_lock().len() {
+            0 => None,
+            1 => Some("a record waits for the store".into()),
+            n => Some(format!("{n} records wait for the store")),
+        }
+    }
+
     fn pending_lock(&self) -> std::sync::MutexGuard<'_, Vec<Pending>> {
         self.pending.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -986,7 +1000,7 @@ impl Control for Arc<Service> {
             queued: &queued,
             in_flight: &in_flight,
             store: metrics::StoreHealth {
-                writable: self.health.writable(),
+                writable: self.store_failure().is_none(),
                 tiles_dropped: self
                     .health
                     .tiles_dropped
@@ -999,8 +1013,8 @@ impl Control for Arc<Service> {
         if self.draining.load(std::sync::atomic::Ordering::Relaxed) {
             return Err("the coordinator is shutting down".into());
         }
-        match self.health.failure() {
-            Some((why, _)) => Err(why),
+        match self.store_failure() {
+            Some(why) => Err(why),
             None => Ok(()),
         }
     }
