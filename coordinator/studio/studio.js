@@ -36,7 +36,13 @@ const studio = window.studio = {
   },
   framesDrawn: 0,     // canvas updates
   view: null,         // the last /studio/scene answer
+  version: 0,         // the version of the text and values the sliders show
+  textBase: 0,        // the version the text box's text was made on
+  conflict: null,     // the last edit another tab's edit refused
 };
+// This tab, as its edits name it: the server's `scene` events carry it back,
+// so the tab tells its own edits from other tabs'.
+const TAB = Math.random().toString(36).slice(2) + Date.now().toString(36);
 
 let token = sessionStorage.getItem('hypertexture-token') || '';
 const $ = (id) => document.getElementById(id);
@@ -89,7 +95,7 @@ async function call(method, path, body) {
     throw new Error('this service needs its token');
   }
   const answer = await response.json();
-  if (!response.ok) throw new Error(answer.error);
+  if (!response.ok) throw Object.assign(new Error(answer.error), { status: response.status });
   return answer;
 }
 
@@ -337,8 +343,23 @@ function listen() {
   source.addEventListener('frame', (e) => {
     // The picture shown stays until the new frame's first tile.
     pending = JSON.parse(e.data);
+    // A frame the service started itself (the high-quality one, once the
+    // edits rest) is timed from its announcement.
+    const m = moment(pending.generation);
+    m.asked ??= performance.now();
+    m.quality ??= pending.quality;
   });
   source.addEventListener('tile', (e) => receive(JSON.parse(e.data)));
+  // Another tab's edit: its text, values and ranges (this tab's own edits
+  // come back in the answer to its request).
+  source.addEventListener('scene', (e) => {
+    const { tab, view } = JSON.parse(e.data);
+    if (tab !== TAB) others(view);
+  });
+  // Connected, or connected again: edits made meanwhile are fetched.
+  source.addEventListener('open', () => {
+    call('GET', '/studio/scene').then(others, () => {});
+  });
   // A high-quality frame's tiles, several at once, without their pixels.
   source.addEventListener('tiles', (e) => {
     for (const t of JSON.parse(e.data).tiles) receive(t);
@@ -434,6 +455,21 @@ function slider(box, id, label, min, max, step, onInput) {
   return input;
 }
 
+/** A slider's range as the server gives it (it widens as values grow). */
+function setRange(input, min, max, step) {
+  if (input.min !== String(min)) input.min = min;
+  if (input.max !== String(max)) input.max = max;
+  if (input.step !== String(step)) input.step = step;
+}
+
+/** The slider this tab's pointer holds: another tab's edit leaves it be. */
+let holding = null;
+document.addEventListener('pointerdown', (e) => { holding = e.target; });
+document.addEventListener('pointerup', () => { holding = null; });
+function held(input) {
+  return input === holding;
+}
+
 function setSlider(input, value) {
   input.value = value;
   input.nextElementSibling.textContent = format(value);
@@ -462,10 +498,14 @@ function curveLabel(id) {
 /** Shows the scene; `text`: replace the text box, `sliders`: set the sliders. */
 function showScene(view, { text, sliders }) {
   studio.view = view;
+  studio.version = Math.max(studio.version, view.version);
   $('scene-name').textContent = view.name;
   $('save').disabled = !view.savable;
   $('error').textContent = view.error || '';
-  if (text) $('text').value = view.text;
+  if (text) {
+    $('text').value = view.text;
+    studio.textBase = view.version;
+  }
 
   const knobNames = view.knobs.map((k) => k.name).join(',');
   const box = $('knobs');
@@ -479,7 +519,9 @@ function showScene(view, { text, sliders }) {
     if (!view.knobs.length) box.textContent = 'This scene has no knobs.';
   }
   for (const k of view.knobs) {
+    setRange($('knob-' + k.name), k.min, k.max, (k.max - k.min) / 1000);
     if (!sliders && !rebuilt) continue;
+    if (held($('knob-' + k.name))) continue;
     setSlider($('knob-' + k.name), k.value);
     knobValues[k.name] = k.value;
   }
@@ -505,10 +547,24 @@ function showScene(view, { text, sliders }) {
     }
   }
   for (const p of view.params) {
+    const input = document.getElementById('param-' + p.id);
+    setRange(input, p.min, p.max, p.step);
     if (!sliders && !paramsRebuilt) continue;
-    setSlider(document.getElementById('param-' + p.id), p.value);
+    if (held(input)) continue;
+    setSlider(input, p.value);
+    if (p.id in paramValues) paramValues[p.id] = p.value;
   }
   if (!dragging) showCurves(view.curves);
+  else {
+    // The dragged curve keeps its points; its line takes the new samples.
+    for (const c of view.curves) {
+      const mine = curves.find((m) => m.id === c.id && m.points.length === c.points.length);
+      if (mine) {
+        Object.assign(mine, samplesOf(c));
+        placeCurve(mine);
+      }
+    }
+  }
 }
 
 function format(v) {
@@ -526,12 +582,24 @@ function curveKey(c) {
   return c.id + ':' + c.points.map((p) => [p.x.value, p.y?.value, p.rgb].join('/')).join(';');
 }
 
+/** A curve's samples (the renderer's own values, from the server). */
+function samplesOf(c) {
+  return { interpolation: c.interpolation, from: c.from, to: c.to, values: c.values, colours: c.colours };
+}
+
 function showCurves(list) {
-  // Unchanged curves stay as drawn (a handle keeps its focus).
-  if (list.length === curves.length && list.every((c, i) => curveKey(c) === curveKey(curves[i]))) return;
+  // Unchanged curves stay as drawn (a handle keeps its focus); their line
+  // takes the server's samples.
+  if (list.length === curves.length && list.every((c, i) => curveKey(c) === curveKey(curves[i]))) {
+    list.forEach((c, i) => {
+      Object.assign(curves[i], samplesOf(c));
+      placeCurve(curves[i]);
+    });
+    return;
+  }
   const focused = document.activeElement?.closest?.('svg')?.id;
   const point = document.activeElement?.dataset?.point;
-  curves = list.map((c) => ({ id: c.id, points: c.points.map((p) => ({
+  curves = list.map((c) => ({ id: c.id, ...samplesOf(c), points: c.points.map((p) => ({
     x: { ...p.x }, y: p.y && { ...p.y }, rgb: p.rgb && [...p.rgb] })) }));
   const box = $('curves');
   box.innerHTML = '';
@@ -556,10 +624,11 @@ function showCurves(list) {
   if (focused && point !== undefined) document.getElementById(focused)?.querySelector(`[data-point="${point}"]`)?.focus();
 }
 
-/** The curve's domain: [0, 1] on each axis, widened to take every point. */
+/** The curve's domain: [0, 1] on each axis, widened to take every point
+ * and every sampled value (a spline overshoots its points). */
 function domain(c) {
   const xs = c.points.map((p) => p.x.value);
-  const ys = c.points.filter((p) => p.y).map((p) => p.y.value);
+  const ys = c.points.filter((p) => p.y).map((p) => p.y.value).concat(c.values ?? []);
   return {
     x0: Math.min(0, ...xs), x1: Math.max(1, ...xs),
     y0: Math.min(0, ...ys), y1: Math.max(1, ...ys),
@@ -590,7 +659,7 @@ function drawCurve(c) {
     // The colour map as a strip, its stops at the control points.
     const gradient = document.createElementNS(SVG, 'linearGradient');
     gradient.id = 'gradient-' + c.id.replace(/[^A-Za-z0-9_-]/g, '_');
-    c.stops = c.points.map(() => gradient.appendChild(document.createElementNS(SVG, 'stop')));
+    c.gradient = gradient;
     const defs = document.createElementNS(SVG, 'defs');
     defs.appendChild(gradient);
     const strip = document.createElementNS(SVG, 'rect');
@@ -646,12 +715,27 @@ function drawCurve(c) {
  * (the elements stay: a dragged handle keeps its pointer capture). */
 function placeCurve(c) {
   const d = c.domain;
-  if (c.line) c.line.setAttribute('points', c.points.map((p) => toScreen(c, d, p).join(',')).join(' '));
-  c.stops?.forEach((stop, i) => {
-    const p = c.points[i];
-    stop.setAttribute('offset', (p.x.value - d.x0) / (d.x1 - d.x0));
-    stop.setAttribute('stop-color', rgbCss(p.rgb));
-  });
+  const n = Math.max(c.values?.length ?? 0, c.colours?.length ?? 0);
+  const keyAt = (i) => c.from + (i / (n - 1)) * (c.to - c.from);
+  if (c.line) {
+    const line = c.values?.length
+      ? c.values.map((y, i) => toScreen(c, d, { x: { value: keyAt(i) }, y: { value: y } }).join(','))
+      : c.points.map((p) => toScreen(c, d, p).join(','));
+    c.line.setAttribute('points', line.join(' '));
+  }
+  if (c.gradient) {
+    // One stop a sample: the map as the renderer evaluates it (a step map
+    // shows its steps).
+    const stops = c.colours?.length
+      ? c.colours.map((rgb, i) => [keyAt(i), rgb])
+      : c.points.map((p) => [p.x.value, p.rgb]);
+    c.gradient.replaceChildren(...stops.map(([x, rgb]) => {
+      const stop = document.createElementNS(SVG, 'stop');
+      stop.setAttribute('offset', (x - d.x0) / (d.x1 - d.x0));
+      stop.setAttribute('stop-color', rgbCss(rgb));
+      return stop;
+    }));
+  }
   c.handles.forEach((handle, i) => {
     const p = c.points[i];
     const [x, y] = toScreen(c, d, p);
@@ -683,10 +767,8 @@ function movePoint(c, i, x, y) {
 
 // ---- Sending changes ----------------------------------------------------------
 
-let restTimer = null;
 let inFlight = false;
 let queued = null;
-const REST_MS = 300;
 // While a slider moves, the next frame waits for the one in flight to be
 // drawn whole (or, if it is slow, to have shown something for GATE_MS): a
 // frame replaced before its first tile would never be seen.
@@ -726,20 +808,58 @@ function flush() {
   }
 }
 
-/** Sends a change (from a slider, or from the text); while one is in
- * flight, only the latest waits. */
+/** Whether the text box holds edits not sent yet (or on their way). */
+function textDirty() {
+  return editTimer !== null || $('text').value !== studio.view?.text;
+}
+
+/** Shows a view newer than this tab's: every slider (but one held) and,
+ * unless this tab's text has edits of its own, the text. */
+function others(view) {
+  if (view.version <= studio.version) return;
+  showScene(view, { text: !textDirty(), sliders: true });
+}
+
+/** An edit refused because another tab changed the same value or lines:
+ * the page shows why; "Take theirs" shows the current state, "Keep mine"
+ * sends this tab's text over it. */
+function conflict(message, change) {
+  studio.conflict = message;
+  $('conflict-message').textContent = message;
+  $('conflict').hidden = false;
+  $('keep-mine').hidden = change.text === undefined;
+  $('keep-mine').onclick = () => {
+    $('conflict').hidden = true;
+    send({ ...change, text: $('text').value, base: studio.version }, performance.now(), false);
+  };
+}
+
+$('take-theirs').addEventListener('click', () => {
+  $('conflict').hidden = true;
+  clearTimeout(editTimer);
+  editTimer = null;
+  call('GET', '/studio/scene').then((view) => showScene(view, { text: true, sliders: true }),
+    (e) => { $('error').textContent = e.message; });
+});
+
+/** Sends a change (from a slider, or from the text) made on version
+ * `change.base`; while one is in flight, only the latest waits. */
 function send(change, asked, fromSlider) {
   if (inFlight || gated()) {
     queued = [change, asked, fromSlider];
     return;
   }
   inFlight = true;
-  call('POST', '/studio/scene', change).then((view) => {
+  call('POST', '/studio/scene', { ...change, tab: TAB }).then((view) => {
     const m = moment(view.generation);
     m.asked ??= asked;
     m.answered ??= performance.now();
     m.quality ??= change.quality ?? 'high';
-    showScene(view, { text: fromSlider, sliders: !fromSlider });
+    $('conflict').hidden = true;
+    // The text as sent, merged with other tabs' edits, replaces the box's
+    // unless typing went on meanwhile.
+    const sentText = change.text !== undefined && $('text').value === change.text && editTimer === null;
+    showScene(view, { text: (fromSlider && !textDirty()) || sentText, sliders: !fromSlider });
     if (change.quality === 'interactive') {
       if (fromSlider) {
         waitingFor = view.generation;
@@ -748,12 +868,10 @@ function send(change, asked, fromSlider) {
         gateTimer = setTimeout(checkGate, 50);
         frameProgress();
       }
-      clearTimeout(restTimer);
-      restTimer = setTimeout(() => send(current('high'), performance.now(), fromSlider), REST_MS);
     }
   }, (error) => {
-    clearTimeout(restTimer);
-    $('error').textContent = error.message;
+    if (error.status === 409) conflict(error.message, change);
+    else $('error').textContent = error.message;
   }).finally(() => {
     inFlight = false;
     flush();
@@ -762,7 +880,7 @@ function send(change, asked, fromSlider) {
 
 /** The sliders' values as a change at `quality`. */
 function current(quality) {
-  return { knobs: { ...knobValues }, params: { ...paramValues }, quality };
+  return { knobs: { ...knobValues }, params: { ...paramValues }, quality, base: studio.version };
 }
 
 function moved(name, input) {
@@ -770,7 +888,6 @@ function moved(name, input) {
   const value = Number(input.value);
   knobValues[name] = value;
   setSlider(input, value);
-  clearTimeout(restTimer);
   send(current('interactive'), asked, true);
 }
 
@@ -778,7 +895,6 @@ function paramMoved(values, input) {
   const asked = performance.now();
   Object.assign(paramValues, values);
   if (input) setSlider(input, Number(input.value));
-  clearTimeout(restTimer);
   send(current('interactive'), asked, true);
 }
 
@@ -786,24 +902,71 @@ let editTimer = null;
 $('text').addEventListener('input', () => {
   const asked = performance.now();
   clearTimeout(editTimer);
-  clearTimeout(restTimer);
   editTimer = setTimeout(() => {
+    editTimer = null;
     for (const key of Object.keys(paramValues)) delete paramValues[key];
-    send({ text: $('text').value, quality: 'interactive' }, asked, false);
+    send({ text: $('text').value, quality: 'interactive', base: studio.textBase }, asked, false);
   }, 150);
 });
 
-$('save').addEventListener('click', () => {
-  call('POST', '/studio/save').then((r) => { $('action-result').textContent = r.saved; },
-    (e) => { $('action-result').textContent = e.message; });
+/** Saves the text; a file changed on disk since is not written over
+ * unless `over`: the page offers Reload and Save over it instead. */
+function save(over) {
+  $('changed-on-disk').hidden = true;
+  call('POST', over ? '/studio/save?over=true' : '/studio/save').then(
+    (r) => { $('action-result').textContent = r.saved; },
+    (e) => {
+      $('action-result').textContent = e.message;
+      if (e.status === 409) $('changed-on-disk').hidden = false;
+    });
+}
+
+$('save').addEventListener('click', () => save(false));
+$('save-over').addEventListener('click', () => save(true));
+$('reload').addEventListener('click', () => {
+  $('changed-on-disk').hidden = true;
+  call('POST', '/studio/reload').then((view) => {
+    showScene(view, { text: true, sliders: true });
+    $('action-result').textContent = 'reloaded the file';
+  }, (e) => { $('action-result').textContent = e.message; });
 });
 
 $('final').addEventListener('click', () => {
-  if (!studio.view) return;
-  call('POST', '/api/v1/jobs', studio.view.final_job).then(
-    (job) => { $('action-result').textContent = `job ${job.id} queued → ${job.out}`; },
-    (e) => { $('action-result').textContent = e.message; });
+  call('POST', '/studio/final').then(({ job, number }) => {
+    $('action-result').textContent = `job ${job.id} queued → ${job.out}`;
+    watchFinal(job, number);
+  }, (e) => { $('action-result').textContent = e.message; });
 });
+
+/** Follows a final render's job; once written, shows its image with a
+ * download link. */
+function watchFinal(job, number) {
+  setTimeout(() => call('GET', `/api/v1/jobs/${job.id}`).then(async (now) => {
+    if (now.state === 'queued' || now.state === 'running') {
+      const percent = now.units_total ? Math.floor((100 * now.units_done) / now.units_total) : 0;
+      $('action-result').textContent = `job ${job.id} ${now.state} ${percent}% → ${job.out}`;
+      watchFinal(job, number);
+      return;
+    }
+    if (now.state !== 'done') {
+      $('action-result').textContent = `job ${job.id} ${now.state}${now.error ? ': ' + now.error : ''}`;
+      return;
+    }
+    const response = await fetch(`/studio/final/${number}`, { headers: headers(false) });
+    if (!response.ok) {
+      $('action-result').textContent = (await response.json()).error;
+      return;
+    }
+    const url = URL.createObjectURL(await response.blob());
+    const name = job.out.split('/').pop();
+    $('final-image').src = url;
+    $('final-link').href = url;
+    $('final-link').download = name;
+    $('final-link').textContent = `download ${name}`;
+    $('final-figure').hidden = false;
+    $('action-result').textContent = `job ${job.id} done → ${job.out}`;
+  }, (e) => { $('action-result').textContent = e.message; }), 500);
+}
 
 call('GET', '/studio/scene').then((view) => {
   showScene(view, { text: true, sliders: true });

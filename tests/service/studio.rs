@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use crate::support::browser::{Browser, chromium_or_skip};
 use crate::support::{
-    RUN_SECS, Running, coordinator, decode_png, median, output_within, root, scratch,
+    RUN_SECS, Running, decode_png, in_process_file, median, output_within, root, scratch,
 };
 use serde_json::{Value, json};
 
@@ -31,30 +31,9 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     };
     let dir = scratch("studio");
     // The PSE fur at 64 × 64: small enough for CI.
-    let text = std::fs::read_to_string(root().join("scenes/pse/fur.ron"))
-        .expect("the fur scene")
-        .replace(
-            "image: (width: 512, height: 512)",
-            "image: (width: 64, height: 64)",
-        );
-    assert!(text.contains("width: 64"));
-    let scene = dir.join("fur.ron");
-    std::fs::write(&scene, &text).unwrap();
-    let reference = dir.join("reference.png");
-    let out = coordinator(&[
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        reference.to_str().unwrap(),
-        "--in-process",
-        "--quiet",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let reference = decode_png(&reference).into_raw();
+    let scene = small_copy(&dir, "scenes/pse/fur.ron", 64);
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let reference = in_process(&scene, &dir);
 
     let data = dir.join("data");
     let mut studio = studio(&scene, &data, 2);
@@ -166,7 +145,7 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     );
     assert_eq!(browser.canvas(), curly, "the image is back");
 
-    // Save writes the text, the old file to .bak.
+    // Save writes the text, the file before to its first numbered backup.
     browser.eval("document.getElementById('save').click()");
     browser.wait_until(
         "document.getElementById('action-result').textContent.startsWith('saved')",
@@ -179,7 +158,7 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
         .unwrap();
     assert_eq!(json!(saved), good);
     assert_eq!(
-        std::fs::read_to_string(dir.join("fur.ron.bak")).unwrap(),
+        std::fs::read_to_string(dir.join("fur.ron.~1~")).unwrap(),
         text
     );
 
@@ -253,6 +232,332 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     let _ = studio.child.wait();
 }
 
+/// A tab that moves a slider and closes (or reloads) before the edits rest
+/// still leaves the high-quality frame: the service starts it itself, so a
+/// new tab sees "high", never the banded interactive frame.
+#[test]
+fn a_tab_closed_within_the_rest_still_leaves_the_high_quality_frame() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-rest");
+    let scene = small_copy(&dir, "scenes/pse/fur.ron", 48);
+    let mut studio = studio(&scene, &dir.join("data"), 2);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let url = format!("http://127.0.0.1:{port}");
+    // What a tab sends as a slider moves, and nothing after: it is gone.
+    let moved = crate::support::http::post(
+        &url,
+        "/studio/scene",
+        &json!({ "knobs": { "curliness": 1.5 }, "quality": "interactive" }),
+    );
+    assert_eq!(moved.status, 200, "{}", moved.body);
+    let mut browser = Browser::start(&chromium, &dir.join("profile"));
+    browser.call("Page.navigate", json!({ "url": format!("{url}/") }));
+    browser.wait_until(
+        &format!(
+            "studio.generation > {} && {COMPLETE_HIGH}",
+            moved.json()["generation"]
+        ),
+        120,
+    );
+    assert_eq!(
+        browser.eval("document.querySelector('#knob-curliness + output').textContent"),
+        json!("1.5"),
+        "the new tab shows the moved slider"
+    );
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// Save keeps every version: each save that changes the file first copies
+/// it to the next numbered backup, a second save of the same text writes
+/// nothing, and a file changed on disk is never written over without a word:
+/// the page offers Reload (the file's text) and Save over it.
+#[test]
+fn save_keeps_numbered_backups_and_never_silently_overwrites_the_file() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-save");
+    let scene = small_copy(&dir, "scenes/pse/fur.ron", 32);
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut browser = open_page(&chromium, &dir, port);
+    let result = "document.getElementById('action-result').textContent";
+    let click = |browser: &mut Browser, id: &str| {
+        browser.eval(&format!(
+            "document.getElementById('action-result').textContent = ''; \
+             document.getElementById('{id}').click()"
+        ));
+        browser.wait_until(&format!("{result} !== ''"), 30);
+        browser.eval(result).as_str().unwrap().to_string()
+    };
+    let page_text = |browser: &mut Browser| {
+        browser
+            .eval("document.getElementById('text').value")
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+
+    // A slider moved: the text changes; Save keeps the file before as ~1~.
+    let generation = browser.eval("studio.generation");
+    browser.eval(
+        "(() => { const k = document.getElementById('knob-curliness'); \
+         k.value = 1.5; k.dispatchEvent(new Event('input')); })()",
+    );
+    browser.wait_until(
+        &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+        120,
+    );
+    let edited = page_text(&mut browser);
+    assert_ne!(edited, text);
+    let said = click(&mut browser, "save");
+    assert!(said.contains("fur.ron.~1~"), "{said}");
+    assert_eq!(std::fs::read_to_string(&scene).unwrap(), edited);
+    assert_eq!(
+        std::fs::read_to_string(dir.join("fur.ron.~1~")).unwrap(),
+        text
+    );
+    // Saved again: nothing is written, the backup keeps the first text.
+    let said = click(&mut browser, "save");
+    assert!(said.ends_with("is saved"), "{said}");
+    assert!(
+        !dir.join("fur.ron.~2~").exists(),
+        "no backup of the same text"
+    );
+
+    // Changed on disk: Save refuses and offers Reload, which takes the file.
+    let outside = format!("// edited in another editor\n{text}");
+    std::fs::write(&scene, &outside).unwrap();
+    browser.eval(
+        "(() => { const k = document.getElementById('knob-curliness'); \
+         k.value = 1.2; k.dispatchEvent(new Event('input')); })()",
+    );
+    browser.wait_until("document.getElementById('text').value.includes('1.2')", 60);
+    let said = click(&mut browser, "save");
+    assert!(said.contains("changed on disk"), "{said}");
+    assert_eq!(
+        browser.eval("document.getElementById('changed-on-disk').hidden"),
+        json!(false)
+    );
+    assert_eq!(std::fs::read_to_string(&scene).unwrap(), outside);
+    click(&mut browser, "reload");
+    assert_eq!(page_text(&mut browser), outside, "Reload shows the file");
+
+    // Changed again, and saved over: the other editor's text is a backup.
+    let again = format!("// edited again\n{text}");
+    std::fs::write(&scene, &again).unwrap();
+    let said = click(&mut browser, "save");
+    assert!(said.contains("changed on disk"), "{said}");
+    let said = click(&mut browser, "save-over");
+    assert!(said.contains("fur.ron.~2~"), "{said}");
+    assert_eq!(std::fs::read_to_string(&scene).unwrap(), outside);
+    assert_eq!(
+        std::fs::read_to_string(dir.join("fur.ron.~2~")).unwrap(),
+        again
+    );
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// Render final writes a new numbered file each time, never over the last,
+/// and shows the finished render in the page with a download link.
+#[test]
+fn two_final_renders_give_two_files_and_the_page_shows_the_last() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-final");
+    let scene = small_copy(&dir, "scenes/fur.ron", 32);
+    // A final render from an earlier session stays.
+    std::fs::write(dir.join("fur.final.0001.png"), b"kept").unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut browser = open_page(&chromium, &dir, port);
+    for number in ["0002", "0003"] {
+        browser.eval(
+            "document.getElementById('final-figure').hidden = true; \
+             document.getElementById('final').click()",
+        );
+        browser.wait_until(
+            &format!(
+                "!document.getElementById('final-figure').hidden && \
+                 document.getElementById('final-image').complete && \
+                 document.getElementById('final-image').naturalWidth === 32 && \
+                 document.getElementById('final-link').download === 'fur.final.{number}.png'"
+            ),
+            120,
+        );
+        let png = decode_png(&dir.join(format!("fur.final.{number}.png")));
+        assert_eq!(png.dimensions(), (32, 32));
+    }
+    assert_eq!(
+        std::fs::read(dir.join("fur.final.0001.png")).unwrap(),
+        b"kept"
+    );
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// Two tabs share one state: a slider moved in one moves in the other, text
+/// and value; a text edit in the other keeps it; a range the server widens
+/// reaches every tab; a stale edit of the same value is a conflict (409),
+/// of another value merged.
+#[test]
+fn two_tabs_stay_in_sync_and_never_undo_each_other() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-tabs");
+    let scene = small_copy(&dir, "scenes/fur.ron", 24);
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let url = format!("http://127.0.0.1:{port}");
+    let mut a = open_page(&chromium, &dir.join("a"), port);
+    let mut b = open_page(&chromium, &dir.join("b"), port);
+    let before = crate::support::http::get(&url, "/studio/scene").json()["version"].clone();
+    const BIAS: &str = "document.getElementById('param-modulation[0].Fur.bias')";
+    a.eval(&format!(
+        "(() => {{ const i = {BIAS}; i.value = 0.67; i.dispatchEvent(new Event('input')); }})()"
+    ));
+    b.wait_until(
+        &format!(
+            "{BIAS}.value === '0.67' && {BIAS}.nextElementSibling.textContent === '0.67' && \
+             document.getElementById('text').value.includes('bias: 0.67')"
+        ),
+        60,
+    );
+    // A text edit in B keeps A's value.
+    b.eval(
+        "(() => { const t = document.getElementById('text'); \
+         t.value = '// edited in B\\n' + t.value; t.dispatchEvent(new Event('input')); })()",
+    );
+    a.wait_until(
+        "document.getElementById('text').value.startsWith('// edited in B') && \
+         document.getElementById('text').value.includes('bias: 0.67')",
+        60,
+    );
+    let now = crate::support::http::get(&url, "/studio/scene").json();
+    let text = now["text"].as_str().unwrap();
+    assert!(text.starts_with("// edited in B\n"), "{text}");
+    assert!(text.contains("bias: 0.67"), "B did not undo A: {text}");
+    // A range widened by a value typed in B reaches A.
+    b.eval(
+        "(() => { const t = document.getElementById('text'); \
+         t.value = t.value.replace('frequency: 40.0', 'frequency: 200.0'); \
+         t.dispatchEvent(new Event('input')); })()",
+    );
+    a.wait_until(
+        "Number(document.getElementById('param-modulation[0].Fur.frequency').max) >= 200 && \
+         document.getElementById('param-modulation[0].Fur.frequency').value === '200'",
+        60,
+    );
+    // A stale edit (made on the version before A's move) of the same value
+    // is refused; of another value, merged.
+    let stale = |params: Value| {
+        crate::support::http::post(
+            &url,
+            "/studio/scene",
+            &json!({ "params": params, "quality": "high", "base": before }),
+        )
+    };
+    let refused = stale(json!({ "modulation[0].Fur.bias": 0.1 }));
+    assert_eq!(refused.status, 409, "{}", refused.body);
+    assert!(refused.body.contains("bias"), "{}", refused.body);
+    let merged = stale(json!({ "modulation[0].Fur.gain": 0.8 }));
+    assert_eq!(merged.status, 200, "{}", merged.body);
+    let text = merged.json()["text"].as_str().unwrap().to_string();
+    assert!(
+        text.contains("bias: 0.67") && text.contains("gain: 0.8"),
+        "{text}"
+    );
+    assert!(text.contains("frequency: 200.0") && text.starts_with("// edited in B"));
+    b.wait_until(
+        "document.getElementById('text').value.includes('gain: 0.8')",
+        60,
+    );
+    drop((a, b));
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// A curve is drawn as the renderer evaluates it: the `Step` alpha map of
+/// Gilet & Dischler's isolines stays 0 up to its second key, then 1 (read
+/// from the page's pixels: never the ramp its two points would make).
+#[test]
+fn a_step_curve_is_drawn_as_a_step() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-step");
+    let text = std::fs::read_to_string(root().join("scenes/gilet/isolines_r0.ron"))
+        .unwrap()
+        .replace(
+            "image: (width: 256, height: 256)",
+            "image: (width: 24, height: 24)",
+        );
+    assert!(text.contains("interpolation: Step, points: [(0.0, 0.0), (0.5, 1.0)]"));
+    let scene = dir.join("isolines.ron");
+    std::fs::write(&scene, text).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut browser = open_page(&chromium, &dir, port);
+    let rect = browser.eval(
+        "(() => { const e = document.getElementById('curve-alpha_map.points'); \
+         e.scrollIntoView(); const r = e.getBoundingClientRect(); \
+         return [r.x + scrollX, r.y + scrollY, r.width, r.height]; })()",
+    );
+    let [x, y, w, h] = [0, 1, 2, 3].map(|i| rect[i].as_f64().expect("the curve's box"));
+    let shot = browser.call(
+        "Page.captureScreenshot",
+        json!({ "format": "png", "captureBeyondViewport": true,
+                "clip": { "x": x, "y": y, "width": w, "height": h, "scale": 1 } }),
+    );
+    use base64::Engine as _;
+    let png = base64::engine::general_purpose::STANDARD
+        .decode(shot["data"].as_str().expect("png data"))
+        .expect("base64");
+    std::fs::write(dir.join("curve.png"), &png).unwrap();
+    let image = image::load_from_memory(&png).unwrap().to_rgba8();
+    // The curve's line: its pixels are brighter than the frame (#111) and
+    // its border (#444). Its mean row in a column at `at` of the inner width
+    // (the frame is inset by 8 of 280 × 120 units), as a fraction of the
+    // inner height from the top.
+    let (iw, ih) = (image.width() as f64, image.height() as f64);
+    let line_at = |at: f64| {
+        let px = ((8.0 + at * 264.0) / 280.0 * iw) as u32;
+        let rows: Vec<f64> = (0..image.height())
+            .filter(|&py| {
+                let p = image.get_pixel(px, py);
+                p.0[..3].iter().any(|&c| c > 0x80)
+            })
+            .map(|py| ((py as f64 + 0.5) / ih * 120.0 - 8.0) / 104.0)
+            .collect();
+        assert!(!rows.is_empty(), "no line in column {at}");
+        rows.iter().sum::<f64>() / rows.len() as f64
+    };
+    let (low, high) = (line_at(0.25), line_at(0.75));
+    assert!(
+        low > 0.85,
+        "0 below the step's key (a ramp gives 0.5): {low}"
+    );
+    assert!(high < 0.15, "1 past it: {high}");
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// A scene on a mesh opens in the studio: the studio reads the mesh beside
 /// the scene file and sends it to its workers, and the page shows the
 /// in-process render.
@@ -262,46 +567,19 @@ fn a_mesh_scene_opens_and_matches_the_in_process_render() {
         return;
     };
     let dir = scratch("studio-mesh");
-    let text = std::fs::read_to_string(root().join("scenes/mesh/furry_spot.ron"))
-        .expect("the furry Spot scene")
-        .replace(
-            "image: (width: 512, height: 512)",
-            "image: (width: 40, height: 40)",
-        );
-    assert!(text.contains("width: 40"));
-    let scene = dir.join("furry_spot.ron");
-    std::fs::write(&scene, &text).unwrap();
+    let scene = small_copy(&dir, "scenes/mesh/furry_spot.ron", 40);
     std::fs::create_dir_all(dir.join("meshes")).unwrap();
     std::fs::copy(
         root().join("scenes/mesh/meshes/spot.obj"),
         dir.join("meshes/spot.obj"),
     )
     .unwrap();
-    let reference = dir.join("reference.png");
-    let out = coordinator(&[
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        reference.to_str().unwrap(),
-        "--in-process",
-        "--quiet",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let reference = decode_png(&reference).into_raw();
+    let reference = in_process(&scene, &dir);
 
     let mut studio = studio(&scene, &dir.join("data"), 2);
     let port = studio.port();
     studio.wait_for("serving on", 30);
-    let mut browser = Browser::start(&chromium, &dir.join("profile"));
-    browser.call(
-        "Page.navigate",
-        json!({ "url": format!("http://127.0.0.1:{port}/") }),
-    );
-    browser.wait_until(COMPLETE_HIGH, 120);
+    let mut browser = open_page(&chromium, &dir, port);
     assert_eq!(
         browser.eval("document.getElementById('error').textContent"),
         json!(""),
@@ -381,6 +659,38 @@ fn cpu_seconds(root: u32, descendants: bool) -> f64 {
         .sum()
 }
 
+/// A copy of the scene file `scene` (from the repository's root) in `dir`,
+/// its image made `size` × `size` pixels.
+fn small_copy(dir: &Path, scene: &str, size: u32) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(root().join(scene)).expect(scene);
+    let small = text.replace(
+        "image: (width: 512, height: 512)",
+        &format!("image: (width: {size}, height: {size})"),
+    );
+    assert_ne!(small, text, "{scene} is 512 × 512");
+    let copy = dir.join(Path::new(scene).file_name().unwrap());
+    std::fs::write(&copy, small).unwrap();
+    copy
+}
+
+/// The in-process render of `scene` (written in `dir`): its RGBA bytes.
+fn in_process(scene: &Path, dir: &Path) -> Vec<u8> {
+    let reference = dir.join("reference.png");
+    in_process_file(scene, &reference, &[]);
+    decode_png(&reference).into_raw()
+}
+
+/// A browser on the studio at `port`, once its first high-quality frame is drawn.
+fn open_page(chromium: &Path, dir: &Path, port: u16) -> Browser {
+    let mut browser = Browser::start(chromium, &dir.join("profile"));
+    browser.call(
+        "Page.navigate",
+        json!({ "url": format!("http://127.0.0.1:{port}/") }),
+    );
+    browser.wait_until(COMPLETE_HIGH, 120);
+    browser
+}
+
 /// `coordinator studio SCENE` on a free loopback port with `workers` local
 /// workers and its store under `data`.
 fn studio(scene: &std::path::Path, data: &std::path::Path, workers: u32) -> Running {
@@ -442,14 +752,7 @@ fn latency() {
     };
     let size = env("HYPERTEXTURE_LATENCY_SIZE", 64);
     let rounds = env("HYPERTEXTURE_LATENCY_ROUNDS", 1).max(1);
-    let text = std::fs::read_to_string(root().join("scenes/fur.ron"))
-        .unwrap()
-        .replace(
-            "image: (width: 512, height: 512)",
-            &format!("image: (width: {size}, height: {size})"),
-        );
-    let scene = dir.join("fur.ron");
-    std::fs::write(&scene, text).unwrap();
+    let scene = small_copy(&dir, "scenes/fur.ron", size);
     let data = dir.join("data");
     let mut studio = studio(&scene, &data, 2);
     let port = studio.port();

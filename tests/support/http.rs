@@ -37,8 +37,13 @@ pub fn answer(result: Result<ureq::http::Response<ureq::Body>, ureq::Error>) -> 
 
 /// `POST /api/v1/jobs` with `body` as JSON.
 pub fn post_job(url: &str, body: &serde_json::Value) -> Answer {
+    post(url, "/api/v1/jobs", body)
+}
+
+/// `POST path` with `body` as JSON.
+pub fn post(url: &str, path: &str, body: &serde_json::Value) -> Answer {
     answer(
-        ureq::post(&format!("{url}/api/v1/jobs"))
+        ureq::post(&format!("{url}{path}"))
             .config()
             .http_status_as_error(false)
             .build()

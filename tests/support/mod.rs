@@ -131,7 +131,12 @@ pub fn wait_within(child: &mut std::process::Child, secs: u64) -> std::process::
 /// Renders the gallery scene `scene_name` in-process to `out` (PNG or EXR
 /// by extension) with `extra` flags, which must succeed.
 pub fn in_process(scene_name: &str, out: &Path, extra: &[&str]) {
-    let scene = scene(scene_name);
+    in_process_file(&scene(scene_name), out, extra);
+}
+
+/// Renders the scene file `scene` in-process to `out` with `extra` flags,
+/// which must succeed.
+pub fn in_process_file(scene: &Path, out: &Path, extra: &[&str]) {
     let args = [
         "--scene",
         scene.to_str().unwrap(),

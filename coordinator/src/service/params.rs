@@ -59,10 +59,17 @@ fn join(path: &str, segment: &str) -> String {
 /// Every number in `text` with its path, in the order they stand. Numbers in
 /// comments and strings are not numbers of the scene.
 pub fn numbers(text: &str) -> Vec<Number> {
+    scan(text).out
+}
+
+/// The numbers of `text`, and the words given as a field's value
+/// (`interpolation: Step`) by the field's path.
+fn scan(text: &str) -> NumberScan<'_> {
     let bytes = text.as_bytes();
     let mut scan = NumberScan {
         text,
         out: Vec::new(),
+        words: BTreeMap::new(),
         levels: Vec::new(),
         ident: None,
     };
@@ -90,10 +97,14 @@ pub fn numbers(text: &str) -> Vec<Number> {
             }
             b'(' | b'[' => scan.open(),
             b')' | b']' => {
+                scan.word();
                 scan.levels.pop();
                 scan.ident = None;
             }
-            b',' => scan.comma(),
+            b',' => {
+                scan.word();
+                scan.comma();
+            }
             b':' => {
                 if let Some(level) = scan.levels.last_mut() {
                     level.key = scan.ident.take();
@@ -115,7 +126,7 @@ pub fn numbers(text: &str) -> Vec<Number> {
         }
         i += 1;
     }
-    scan.out
+    scan
 }
 
 /// Just after a raw string `r"…"` or `r#"…"#` starting at `at` (the `r`),
@@ -138,6 +149,7 @@ fn raw_string_end(bytes: &[u8], at: usize) -> usize {
 struct NumberScan<'a> {
     text: &'a str,
     out: Vec<Number>,
+    words: BTreeMap<String, String>,
     /// The outermost `Scene(` opens the root: its fields' paths start bare.
     levels: Vec<Level>,
     ident: Option<String>,
@@ -163,6 +175,16 @@ impl NumberScan<'_> {
             index: 0,
             key: None,
         });
+    }
+
+    /// A field's value that is a bare word, at the end of its item.
+    fn word(&mut self) {
+        if let Some(level) = self.levels.last()
+            && level.key.is_some()
+            && let Some(word) = self.ident.take()
+        {
+            self.words.insert(level.item(), word);
+        }
     }
 
     fn comma(&mut self) {
@@ -281,17 +303,31 @@ pub struct Curve {
     /// The path of its `points` list.
     pub id: String,
     pub points: Vec<ControlPoint>,
+    /// `Linear`, `Spline` or `Step`.
+    pub interpolation: String,
+    /// The curve as the renderer evaluates it, at [`SAMPLES`] keys evenly
+    /// from `from` to `to` (its domain: [0, 1] and every point): a scalar
+    /// curve's values, or a colour map's colours (empty while its keys do
+    /// not increase: the scene does not build).
+    pub from: f64,
+    pub to: f64,
+    pub values: Vec<f64>,
+    pub colours: Vec<[f64; 3]>,
 }
+
+/// How many keys a curve is sampled at for the page.
+pub const SAMPLES: usize = 241;
 
 /// The sliders and curves of a scene text. `ranges` keeps each slider's range
 /// from one call to the next (a range is chosen around the value when its
 /// path first appears, and again only if the value leaves it), so that a
 /// moving slider's scale stays put.
 pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<Param>, Vec<Curve>) {
-    let found = numbers(text);
+    let scanned = scan(text);
+    let found = &scanned.out;
     let mut params = Vec::new();
     let mut curves: Vec<Curve> = Vec::new();
-    for n in &found {
+    for n in found {
         if let Some((curve, index, rest)) = curve_point(&n.path) {
             let at = match curves.iter().position(|c| c.id == curve) {
                 Some(at) => at,
@@ -299,6 +335,11 @@ pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<P
                     curves.push(Curve {
                         id: curve.to_string(),
                         points: Vec::new(),
+                        interpolation: String::new(),
+                        from: 0.0,
+                        to: 1.0,
+                        values: Vec::new(),
+                        colours: Vec::new(),
                     });
                     curves.len() - 1
                 }
@@ -362,7 +403,57 @@ pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<P
                 .iter()
                 .all(|p| !p.x.id.is_empty() && (p.y.is_some() || p.rgb.is_some()))
     });
+    for c in &mut curves {
+        let owner = c.id.strip_suffix(".points").unwrap_or(&c.id);
+        c.interpolation = scanned
+            .words
+            .get(&format!("{owner}.interpolation"))
+            .cloned()
+            .unwrap_or_else(|| "Linear".into());
+        sample(c);
+    }
     (params, curves)
+}
+
+/// Samples `c` with the renderer's own [`hypertexture::field::curve::Curve`].
+fn sample(c: &mut Curve) {
+    use hypertexture::desc::Interpolation;
+    use hypertexture::field::curve::Curve as Evaluated;
+    let xs: Vec<f32> = c.points.iter().map(|p| p.x.value as f32).collect();
+    c.from = xs.iter().fold(0.0_f64, |lo, &x| lo.min(f64::from(x)));
+    c.to = xs.iter().fold(1.0_f64, |hi, &x| hi.max(f64::from(x)));
+    let interpolation = match c.interpolation.as_str() {
+        "Linear" => Interpolation::Linear,
+        "Spline" => Interpolation::Spline,
+        "Step" => Interpolation::Step,
+        _ => return,
+    };
+    if xs.windows(2).any(|w| w[1] <= w[0]) {
+        return;
+    }
+    let keys = (0..SAMPLES).map(|i| {
+        let t = i as f64 / (SAMPLES - 1) as f64;
+        (c.from + t * (c.to - c.from)) as f32
+    });
+    if c.points.iter().all(|p| p.rgb.is_some()) {
+        let map = Evaluated::new(
+            interpolation,
+            c.points
+                .iter()
+                .zip(&xs)
+                .map(|(p, &x)| (x, p.rgb.unwrap_or_default().map(|v| v as f32))),
+        );
+        c.colours = keys.map(|t| map.eval(t).map(f64::from)).collect();
+    } else {
+        let map = Evaluated::new(
+            interpolation,
+            c.points.iter().zip(&xs).map(|(p, &x)| {
+                let y = p.y.as_ref().map_or(0.0, |y| y.value);
+                (x, [y as f32])
+            }),
+        );
+        c.values = keys.map(|t| f64::from(map.eval1(t))).collect();
+    }
 }
 
 /// A slider's step: the power of ten at most a thousandth of its span, so
@@ -424,6 +515,37 @@ mod tests {
     use super::*;
 
     const FUR: &str = include_str!("../../../scenes/fur.ron");
+
+    #[test]
+    fn curves_are_sampled_as_the_renderer_evaluates_them() {
+        let text = include_str!("../../../scenes/gilet/isolines_r0.ron");
+        let (_, curves) = controls(text, &mut BTreeMap::new());
+        let alpha = curves.iter().find(|c| c.id == "alpha_map.points").unwrap();
+        assert_eq!(alpha.interpolation, "Step");
+        assert_eq!(
+            (alpha.from, alpha.to, alpha.values.len()),
+            (0.0, 1.0, SAMPLES)
+        );
+        let at = |t: f64| alpha.values[(t * (SAMPLES - 1) as f64).round() as usize];
+        assert_eq!(
+            (at(0.25), at(0.49), at(0.5), at(0.75)),
+            (0.0, 0.0, 1.0, 1.0)
+        );
+        // A spline passes its points and bends between them.
+        let spline =
+            "Scene(m: (interpolation: Spline, points: [(0.0, 0.0), (0.5, 1.0), (1.0, 0.0)]))";
+        let (_, curves) = controls(spline, &mut BTreeMap::new());
+        let c = &curves[0];
+        assert_eq!(c.interpolation, "Spline");
+        let mid = c.values[(SAMPLES - 1) / 4];
+        assert!(mid > 0.5, "above the straight segment: {mid}");
+        // A colour map's colours; a linear one by default.
+        let (_, curves) = controls(FUR, &mut BTreeMap::new());
+        let colour = curves.iter().find(|c| c.id == "colour_map.points").unwrap();
+        assert_eq!(colour.interpolation, "Linear");
+        assert_eq!(colour.colours.len(), SAMPLES);
+        assert!(colour.values.is_empty());
+    }
 
     fn at<'a>(found: &'a [Number], path: &str) -> &'a Number {
         found

@@ -21,6 +21,13 @@
 //! (its `EventSource` reconnects and is sent the frame again); a closed tab's
 //! receiver is dropped with its stream.
 //!
+//! The server owns the state every tab shows ([`versions`]): the text and
+//! values carry a version; each edit that changes them is broadcast to every
+//! tab (a `scene` event, ranges included), and an edit made on an older
+//! version is merged or refused as a conflict, never applied blindly. Once
+//! the edits rest for [`REST`], the server draws the high-quality frame
+//! itself.
+//!
 //! Lock order: the studio's state, then the farm's state. The tile sink takes
 //! no studio lock.
 //!
@@ -28,9 +35,12 @@
 //! |--------------------------|-----------------------------------------------------------|
 //! | `GET /`                  | the page (and `/studio/studio.js`, `/studio/studio.css`)  |
 //! | `GET /studio/scene`      | the scene: its text for the current knob values, the knobs |
-//! | `POST /studio/scene`     | new text and/or knob values and a quality: a new frame     |
-//! | `POST /studio/save`      | writes the text back to SCENE, the old file to SCENE.bak  |
-//! | `GET /studio/events`     | Server-Sent Events: `frame`, `tile`, `tiles`, `done`, `status`, `error` |
+//! | `POST /studio/scene`     | new text and/or values and a quality, made on a version: a new frame; 409 when it conflicts |
+//! | `POST /studio/save[?over=true]` | writes the text back to SCENE, the file before to SCENE.~N~; 409 when SCENE changed on disk |
+//! | `POST /studio/reload`    | takes SCENE's text from disk: a new frame                 |
+//! | `POST /studio/final`     | queues the shown text as a job writing `STEM.final.NNNN.png` (the next free N) |
+//! | `GET /studio/final/N`    | final render N's PNG                                      |
+//! | `GET /studio/events`     | Server-Sent Events: `scene`, `frame`, `tile`, `tiles`, `done`, `status`, `error` |
 //! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
@@ -46,7 +56,7 @@ use std::time::{Duration, Instant};
 
 use axum::Json;
 use axum::Router;
-use axum::extract::{Request, State};
+use axum::extract::{Query, Request, State};
 use axum::http::{StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
@@ -61,6 +71,9 @@ use tokio::sync::{broadcast, mpsc};
 use super::params::{self, Curve, Param};
 use crate::farm::{self, Accepted, JobId, Shared, WireJob};
 use crate::service::jobs::{Control, JobSpec, QualitySpec};
+use versions::{Edit, Stale, Versions};
+
+mod versions;
 
 /// Live frames' job ids start here (the store's ids are far below).
 pub const LIVE_JOBS: JobId = 1 << 48;
@@ -73,6 +86,10 @@ const BATCH_EVERY: Duration = Duration::from_millis(100);
 
 /// How often each browser is sent the workers and the job queue.
 const STATUS_EVERY: Duration = Duration::from_millis(500);
+
+/// How long the edits rest before the service draws the live scene at high
+/// quality ([`Studio::rested`]).
+pub const REST: Duration = Duration::from_millis(300);
 
 /// One Server-Sent Event, encoded once for every browser.
 #[derive(Debug)]
@@ -135,6 +152,8 @@ struct Live {
     ranges: BTreeMap<String, (f64, f64)>,
     frame: Option<LiveFrame>,
     generation: u64,
+    /// The versions of the text and knob values (every tab's edits).
+    versions: Versions,
 }
 
 /// The studio of a service.
@@ -143,8 +162,11 @@ pub struct Studio {
     path: Option<PathBuf>,
     /// The scene's name in messages.
     name: String,
-    /// Where "render final" writes its image.
-    final_out: String,
+    /// Where "render final" writes its images: `PREFIX.0001.png`,
+    /// `PREFIX.0002.png`, … (the prefix is `DIR/STEM.final`).
+    final_prefix: PathBuf,
+    /// The last final render's number handed out.
+    last_final: Mutex<u32>,
     live: Mutex<Live>,
     raw: mpsc::UnboundedSender<RawTile>,
     raw_rx: Mutex<Option<mpsc::UnboundedReceiver<RawTile>>>,
@@ -154,6 +176,9 @@ pub struct Studio {
     token: Option<String>,
     /// The files the live text names.
     files: Mutex<Files>,
+    /// The scene file's text as the studio last read or wrote it (`None`:
+    /// no file there): Save does not write over a file changed since.
+    on_disk: Mutex<Option<String>>,
 }
 
 /// A change asked by the page.
@@ -172,6 +197,14 @@ pub struct Change {
     pub params: BTreeMap<String, f64>,
     /// `interactive` while a slider moves, `high` once it rests.
     pub quality: QualitySpec,
+    /// The version the edit was made on ([`SceneView`]'s `version`); absent:
+    /// the current one. A stale edit is merged or refused as a conflict.
+    #[serde(default)]
+    pub base: Option<u64>,
+    /// The tab that made it, echoed in the `scene` event so that the tab can
+    /// tell its own edits from others'.
+    #[serde(default)]
+    pub tab: Option<String>,
 }
 
 /// A knob as the page shows it.
@@ -199,10 +232,9 @@ pub struct SceneView {
     /// The curves, with their control points.
     curves: Vec<Curve>,
     error: Option<String>,
-    /// A job spec for "render final": the shown text at the scene's own size,
-    /// quality and samples.
-    final_job: JobSpec,
     generation: u64,
+    /// The version of the text and knob values shown.
+    version: u64,
 }
 
 /// An error answered as `{"error": …}`.
@@ -212,6 +244,65 @@ impl IntoResponse for Refused {
     fn into_response(self) -> Response {
         (self.0, Json(serde_json::json!({ "error": self.1 }))).into_response()
     }
+}
+
+/// Final render `number` of `prefix`: `PREFIX.NNNN.png`.
+fn final_path(prefix: &Path, number: u32) -> PathBuf {
+    let mut name = prefix.as_os_str().to_os_string();
+    name.push(format!(".{number:04}.png"));
+    PathBuf::from(name)
+}
+
+/// The highest N of the `PREFIX.N.png` files on disk (0: none).
+fn highest_final(prefix: &Path) -> u32 {
+    let (Some(dir), Some(stem)) = (prefix.parent(), prefix.file_name()) else {
+        return 0;
+    };
+    let stem = format!("{}.", stem.to_string_lossy());
+    std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|entry| {
+            let file = entry.file_name();
+            let number = file.to_str()?.strip_prefix(&stem)?.strip_suffix(".png")?;
+            number.parse::<u32>().ok()
+        })
+        .max()
+        .unwrap_or(0)
+}
+
+/// Why Save wrote nothing.
+enum SaveRefused {
+    /// The file changed on disk since the studio read or wrote it.
+    Changed(String),
+    /// Anything else (no file open, the file system's error).
+    Other(String),
+}
+
+/// The next numbered backup of `path`: `NAME.~N~`, N one past the highest
+/// beside it.
+fn next_backup(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map_or_else(|| "scene".into(), |n| n.to_string_lossy().into_owned());
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let prefix = format!("{name}.~");
+    let highest = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|entry| {
+            let file = entry.file_name();
+            let number = file.to_str()?.strip_prefix(&prefix)?.strip_suffix('~')?;
+            number.parse::<u64>().ok()
+        })
+        .max()
+        .unwrap_or(0);
+    dir.join(format!("{prefix}{}~", highest + 1))
 }
 
 /// `text` with each knob's `default:` set to `values` (the knobs' map found
@@ -352,7 +443,7 @@ impl Studio {
     /// A studio of the scene at `path` (none: an empty editor), whose final
     /// renders go beside the scene (or into the working directory).
     pub fn new(path: Option<&Path>, data: &Path, token: Option<String>) -> Result<Studio, String> {
-        let (text, name, final_out) = match path {
+        let (text, name, final_prefix) = match path {
             Some(p) => {
                 let text = std::fs::read_to_string(p)
                     .map_err(|e| format!("{}: cannot read the scene: {e}", p.display()))?;
@@ -363,25 +454,24 @@ impl Studio {
                     Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
                     _ => PathBuf::from("."),
                 };
-                let out = std::path::absolute(dir.join(format!("{stem}.final.png")))
-                    .unwrap_or_else(|_| dir.join(format!("{stem}.final.png")));
-                (text, p.display().to_string(), out.display().to_string())
+                let prefix = dir.join(format!("{stem}.final"));
+                let prefix = std::path::absolute(&prefix).unwrap_or(prefix);
+                (text, p.display().to_string(), prefix)
             }
             // Without a scene, in the directory serve runs in (an output root).
             None => (
                 String::new(),
                 "scene.ron".to_string(),
-                std::path::absolute("studio.final.png")
-                    .unwrap_or_else(|_| data.join("studio.final.png"))
-                    .display()
-                    .to_string(),
+                std::path::absolute("studio.final").unwrap_or_else(|_| data.join("studio.final")),
             ),
         };
+        let text_read = text.clone();
         let (raw, raw_rx) = mpsc::unbounded_channel();
         Ok(Studio {
             path: path.map(Path::to_path_buf),
             name,
-            final_out,
+            final_prefix,
+            last_final: Mutex::new(0),
             live: Mutex::new(Live {
                 shown: text.clone(),
                 text,
@@ -394,6 +484,7 @@ impl Studio {
                 ranges: BTreeMap::new(),
                 frame: None,
                 generation: 0,
+                versions: Versions::new(&text_read),
             }),
             raw,
             raw_rx: Mutex::new(Some(raw_rx)),
@@ -402,6 +493,7 @@ impl Studio {
             next_job: AtomicU64::new(LIVE_JOBS),
             token,
             files: Mutex::new(Files::default()),
+            on_disk: Mutex::new(path.map(|_| text_read)),
         })
     }
 
@@ -434,6 +526,8 @@ impl Studio {
                 knobs: BTreeMap::new(),
                 params: BTreeMap::new(),
                 quality: QualitySpec::High,
+                base: None,
+                tab: None,
             });
         }
     }
@@ -576,12 +670,70 @@ impl Studio {
     /// is good, the frame in flight leaves the farm and the new one starts.
     /// The error (with line:column) is the CLI's.
     pub fn change(&self, change: Change) -> Result<SceneView, String> {
+        let mut live = self.live();
+        self.change_live(&mut live, change)
+    }
+
+    /// A tab's edit: made on its `base` version, merged onto the current one
+    /// (409 when another tab changed the same value since), then applied.
+    fn edit(&self, change: Change) -> Result<SceneView, Refused> {
+        let mut live = self.live();
+        let edit = Edit {
+            text: change.text,
+            knobs: change.knobs,
+            params: change.params,
+        };
+        let edit = live
+            .versions
+            .rebase(change.base, edit)
+            .map_err(|stale| match stale {
+                Stale::Conflict(why) => Refused(StatusCode::CONFLICT, why),
+                Stale::Unknown(why) => Refused(StatusCode::CONFLICT, why),
+            })?;
+        let change = Change {
+            text: edit.text,
+            knobs: edit.knobs,
+            params: edit.params,
+            base: None,
+            ..change
+        };
+        self.change_live(&mut live, change)
+            .map_err(|e| Refused(StatusCode::BAD_REQUEST, e))
+    }
+
+    /// Once the edits have rested for [`REST`]: if frame `generation` is
+    /// still the live one and was drawn at interactive quality, the same
+    /// scene is drawn at high quality. The service does this itself, so a
+    /// tab closed or reloaded within the rest still leaves every viewer the
+    /// high-quality frame.
+    pub fn rested(&self, generation: u64) {
+        let mut live = self.live();
+        if live.generation != generation
+            || live.quality != QualitySpec::Interactive
+            || live.error.is_some()
+        {
+            return;
+        }
+        let change = Change {
+            text: None,
+            knobs: live.knobs.clone(),
+            params: BTreeMap::new(),
+            quality: QualitySpec::High,
+            base: None,
+            tab: None,
+        };
+        if let Err(e) = self.change_live(&mut live, change) {
+            tracing::warn!("the high-quality frame of {}: {e}", self.name);
+        }
+    }
+
+    /// [`Studio::change`] on the live state, locked by the caller.
+    fn change_live(&self, live: &mut Live, change: Change) -> Result<SceneView, String> {
         let shared = self
             .farm
             .get()
             .ok_or_else(|| "the farm is starting".to_string())?;
-        let mut live = self.live();
-        let checked = match self.check_change(&live, &change) {
+        let checked = match self.check_change(live, &change) {
             Ok(c) => c,
             Err(e) => {
                 live.error = Some(e.clone());
@@ -594,7 +746,7 @@ impl Studio {
             && live.quality == change.quality;
         live.error = None;
         if !same {
-            self.start_frame(shared, &mut live, &checked, change.quality)?;
+            self.start_frame(shared, live, &checked, change.quality)?;
         }
         live.text = checked.text;
         live.knobs = checked.knobs;
@@ -607,9 +759,18 @@ impl Studio {
             params,
             curves,
             ..
-        } = &mut *live;
+        } = live;
         (*params, *curves) = params::controls(text, ranges);
-        Ok(self.view(&live))
+        let view = self.view(live);
+        if live.versions.record(&live.shown, &live.knobs) {
+            let view = self.view(live);
+            self.send(Event {
+                name: "scene",
+                data: serde_json::json!({ "tab": change.tab, "view": view }).to_string(),
+            });
+            return Ok(view);
+        }
+        Ok(view)
     }
 
     /// The scene `change` asks for, built: its new text (knobs at their
@@ -741,39 +902,111 @@ impl Studio {
             params: live.params.clone(),
             curves: live.curves.clone(),
             error: live.error.clone(),
-            final_job: JobSpec {
-                request: RenderRequest::new(live.shown.clone(), self.name.clone()),
-                out: self.final_out.clone(),
-                priority: 0,
-                require_tags: Vec::new(),
-            },
             generation: live.generation,
+            version: live.versions.current().number,
         }
     }
 
-    /// Writes the shown text to the scene file, the file before to `SCENE.bak`.
-    fn save(&self) -> Result<String, String> {
+    /// Writes the shown text to the scene file. The file's text before goes
+    /// to the next numbered backup (`SCENE.~1~`, `SCENE.~2~`, …); a save that
+    /// changes nothing writes nothing. Unless `over`, a file changed on disk
+    /// since the studio read or wrote it is refused ([`SaveRefused::Changed`]).
+    fn save(&self, over: bool) -> Result<String, SaveRefused> {
         let path = self.path.as_ref().ok_or_else(|| {
-            "no scene file is open (start with `coordinator studio SCENE`)".to_string()
+            SaveRefused::Other(
+                "no scene file is open (start with `coordinator studio SCENE`)".to_string(),
+            )
         })?;
         let text = self.live().shown.clone();
-        let mut backup = path.clone().into_os_string();
-        backup.push(".bak");
-        let backup = PathBuf::from(backup);
-        if path.exists() {
-            std::fs::copy(path, &backup)
-                .map_err(|e| format!("{}: cannot back up: {e}", backup.display()))?;
+        let mut known = self.on_disk.lock().unwrap_or_else(|p| p.into_inner());
+        let disk = match std::fs::read_to_string(path) {
+            Ok(t) => Some(t),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => return Err(SaveRefused::Other(format!("{}: {e}", path.display()))),
+        };
+        if !over && disk != *known {
+            return Err(SaveRefused::Changed(format!(
+                "{} changed on disk since the studio read or wrote it: Reload takes the file's \
+                 text, Save over it writes the studio's (the file's text is kept as a backup)",
+                path.display()
+            )));
         }
+        if disk.as_deref() == Some(text.as_str()) {
+            *known = disk;
+            return Ok(format!("{} is saved", path.display()));
+        }
+        let io = |p: &Path, e: std::io::Error| SaveRefused::Other(format!("{}: {e}", p.display()));
+        let backup = match &disk {
+            Some(before) => {
+                let backup = next_backup(path);
+                std::fs::write(&backup, before).map_err(|e| io(&backup, e))?;
+                Some(backup)
+            }
+            None => None,
+        };
         let mut tmp = path.clone().into_os_string();
         tmp.push(".tmp");
         let tmp = PathBuf::from(tmp);
-        std::fs::write(&tmp, &text).map_err(|e| format!("{}: {e}", tmp.display()))?;
-        std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))?;
-        Ok(format!(
-            "saved {} (the previous file is {})",
-            path.display(),
-            backup.display()
-        ))
+        std::fs::write(&tmp, &text).map_err(|e| io(&tmp, e))?;
+        std::fs::rename(&tmp, path).map_err(|e| io(path, e))?;
+        *known = Some(text);
+        Ok(match backup {
+            Some(b) => format!(
+                "saved {} (the file before is {})",
+                path.display(),
+                b.display()
+            ),
+            None => format!("saved {}", path.display()),
+        })
+    }
+
+    /// The job of "render final": the shown text at the scene's own size,
+    /// quality and samples, into the next free `PREFIX.NNNN.png` (past every
+    /// one on disk and every one handed out), with that number.
+    fn final_job(&self) -> (JobSpec, u32) {
+        let mut last = self.last_final.lock().unwrap_or_else(|p| p.into_inner());
+        let number = (*last).max(highest_final(&self.final_prefix)) + 1;
+        *last = number;
+        let spec = JobSpec {
+            request: RenderRequest::new(self.live().shown.clone(), self.name.clone()),
+            out: final_path(&self.final_prefix, number).display().to_string(),
+            priority: 0,
+            require_tags: Vec::new(),
+        };
+        (spec, number)
+    }
+
+    /// The bytes of final render `number`, once handed out and written.
+    fn final_png(&self, number: u32) -> Result<Vec<u8>, Refused> {
+        if number == 0 || number > *self.last_final.lock().unwrap_or_else(|p| p.into_inner()) {
+            return Err(Refused(
+                StatusCode::NOT_FOUND,
+                format!("no final render {number}"),
+            ));
+        }
+        let path = final_path(&self.final_prefix, number);
+        std::fs::read(&path)
+            .map_err(|e| Refused(StatusCode::NOT_FOUND, format!("{}: {e}", path.display())))
+    }
+
+    /// Takes the scene file's text from disk, as an edit of the text.
+    fn reload(&self) -> Result<SceneView, String> {
+        let path = self.path.as_ref().ok_or_else(|| {
+            "no scene file is open (start with `coordinator studio SCENE`)".to_string()
+        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("{}: cannot read the scene: {e}", path.display()))?;
+        let mut known = self.on_disk.lock().unwrap_or_else(|p| p.into_inner());
+        let view = self.change(Change {
+            text: Some(text.clone()),
+            knobs: BTreeMap::new(),
+            params: BTreeMap::new(),
+            quality: QualitySpec::High,
+            base: None,
+            tab: None,
+        })?;
+        *known = Some(text);
+        Ok(view)
     }
 
     /// The events of the frame so far, and a receiver of those to come (taken
@@ -843,6 +1076,9 @@ pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
             axum::routing::get(get_scene).post(post_scene),
         )
         .route("/studio/save", axum::routing::post(save))
+        .route("/studio/reload", axum::routing::post(reload))
+        .route("/studio/final", axum::routing::post(render_final))
+        .route("/studio/final/{number}", axum::routing::get(final_png))
         .route("/studio/events", axum::routing::get(events))
         .route("/studio/tiles", axum::routing::get(tiles))
         .layer(middleware::from_fn_with_state(ctx.clone(), check_token));
@@ -857,21 +1093,21 @@ pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
 async fn page() -> Response {
     static_file(
         "text/html; charset=utf-8",
-        include_str!("../../studio/index.html"),
+        include_str!("../../../studio/index.html"),
     )
 }
 
 async fn script() -> Response {
     static_file(
         "text/javascript; charset=utf-8",
-        include_str!("../../studio/studio.js"),
+        include_str!("../../../studio/studio.js"),
     )
 }
 
 async fn style() -> Response {
     static_file(
         "text/css; charset=utf-8",
-        include_str!("../../studio/studio.css"),
+        include_str!("../../../studio/studio.css"),
     )
 }
 
@@ -923,17 +1159,80 @@ async fn post_scene(
         Ok(b) => b,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    match ctx.studio.change(change) {
-        Ok(view) => Json(view).into_response(),
-        Err(e) => Refused(StatusCode::BAD_REQUEST, e).into_response(),
+    let interactive = change.quality == QualitySpec::Interactive;
+    match ctx.studio.edit(change) {
+        Ok(view) => {
+            if interactive {
+                let studio = Arc::clone(&ctx.studio);
+                let generation = view.generation;
+                tokio::spawn(async move {
+                    tokio::time::sleep(REST).await;
+                    let _ = tokio::task::spawn_blocking(move || studio.rested(generation)).await;
+                });
+            }
+            Json(view).into_response()
+        }
+        Err(refused) => refused.into_response(),
     }
 }
 
-async fn save(State(ctx): State<Ctx>) -> Response {
+/// `POST /studio/save`'s query: `over=true` writes over a file changed on
+/// disk.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SaveQuery {
+    #[serde(default)]
+    over: bool,
+}
+
+async fn save(
+    State(ctx): State<Ctx>,
+    query: Result<Query<SaveQuery>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let over = match query {
+        Ok(Query(q)) => q.over,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
     let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.save()).await {
+    match tokio::task::spawn_blocking(move || studio.save(over)).await {
         Ok(Ok(message)) => Json(serde_json::json!({ "saved": message })).into_response(),
-        Ok(Err(e)) => Refused(StatusCode::CONFLICT, e).into_response(),
+        Ok(Err(SaveRefused::Changed(e))) => Refused(StatusCode::CONFLICT, e).into_response(),
+        Ok(Err(SaveRefused::Other(e))) => Refused(StatusCode::BAD_REQUEST, e).into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+/// Queues "render final" on the service; answers the job and its number.
+async fn render_final(State(ctx): State<Ctx>) -> Response {
+    let (spec, number) = ctx.studio.final_job();
+    let control = Arc::clone(&ctx.control);
+    match tokio::task::spawn_blocking(move || control.submit(spec)).await {
+        Ok(Ok(job)) => Json(serde_json::json!({ "job": job, "number": number })).into_response(),
+        Ok(Err(e)) => crate::service::api::Refusal::from(e).into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+/// A final render's PNG, for the page to show and download.
+async fn final_png(
+    State(ctx): State<Ctx>,
+    number: Result<axum::extract::Path<u32>, axum::extract::rejection::PathRejection>,
+) -> Response {
+    let number = match number {
+        Ok(axum::extract::Path(n)) => n,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match ctx.studio.final_png(number) {
+        Ok(png) => ([(header::CONTENT_TYPE, "image/png")], png).into_response(),
+        Err(refused) => refused.into_response(),
+    }
+}
+
+async fn reload(State(ctx): State<Ctx>) -> Response {
+    let studio = Arc::clone(&ctx.studio);
+    match tokio::task::spawn_blocking(move || studio.reload()).await {
+        Ok(Ok(view)) => Json(view).into_response(),
+        Ok(Err(e)) => Refused(StatusCode::BAD_REQUEST, e).into_response(),
         Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
     }
 }
@@ -1120,7 +1419,7 @@ mod tests {
             flush_at: None,
             _scene: Arc::new(
                 hypertexture::RenderRequest::new(
-                    include_str!("../../../scenes/noisy_sphere.ron"),
+                    include_str!("../../../../scenes/noisy_sphere.ron"),
                     "noisy_sphere.ron",
                 )
                 .build(None)
