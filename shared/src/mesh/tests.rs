@@ -8,6 +8,8 @@ use glam::Vec3;
 use super::*;
 use crate::math::random::SplitMix64;
 
+mod teddy;
+
 /// An axis-aligned cube of half size `h` about the origin, faces outward.
 pub(crate) fn cube_obj(h: f32) -> String {
     let mut s = String::new();
@@ -242,16 +244,16 @@ pub(crate) fn spot() -> Mesh {
     Mesh::from_obj("spot.obj", &bytes, MeshLimits::default()).unwrap()
 }
 
-/// Blender's Suzanne as Blender exports it: quads and triangles, open at
-/// the eyes, whose two half-spheres each touch the head at one position.
-pub(crate) fn suzanne() -> Mesh {
-    let bytes = std::fs::read(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../scenes/mesh/meshes/suzanne.obj"
-    ))
-    .unwrap();
-    Mesh::from_obj("suzanne.obj", &bytes, MeshLimits::default()).unwrap()
+/// Teddy (scenes/mesh/meshes/teddy.obj, written by [`teddy::teddy_obj`]).
+pub(crate) fn teddy() -> Mesh {
+    let bytes = std::fs::read(TEDDY_PATH).unwrap();
+    Mesh::from_obj("teddy.obj", &bytes, MeshLimits::default()).unwrap()
 }
+
+const TEDDY_PATH: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../scenes/mesh/meshes/teddy.obj"
+);
 
 /// Inside the box of half size `h` about `centre`, at least `margin` from
 /// its faces (negative `margin`: outside by at least -margin).
@@ -287,7 +289,7 @@ fn the_winding_number_is_one_inside_and_zero_outside_a_closed_mesh() {
 
 #[test]
 fn the_tree_agrees_with_the_exact_sum() {
-    for mesh in [spot(), suzanne(), load(&open_cube_obj(0.5)).unwrap()] {
+    for mesh in [spot(), teddy(), load(&open_cube_obj(0.5)).unwrap()] {
         let corners: Vec<[Vec3; 3]> = mesh.triangles.iter().map(|t| t.v).collect();
         let (mut worst, mut sum) = (0f32, 0.0);
         let n = 2000;
@@ -411,32 +413,59 @@ fn quads_n_gons_and_objects_are_fanned_in_file_order() {
 }
 
 #[test]
-fn suzanne_loads_open_with_its_counts() {
-    let mesh = suzanne();
-    // 468 quads and 32 triangles; welded into one part.
-    assert_eq!(
-        (
-            mesh.triangle_count(),
-            mesh.vertex_count(),
-            mesh.part_count()
-        ),
-        (968, 505, 1)
+fn the_teddy_file_is_what_its_helper_writes() {
+    let text = teddy::teddy_obj();
+    if std::env::var_os("HYPERTEXTURE_BLESS").is_some_and(|v| v == "1") {
+        std::fs::write(TEDDY_PATH, &text).unwrap();
+    }
+    let stored = std::fs::read_to_string(TEDDY_PATH).unwrap();
+    assert!(
+        stored == text,
+        "{TEDDY_PATH} differs from teddy_obj(): run HYPERTEXTURE_BLESS=1 cargo test -p hypertexture --lib mesh::tests::the_teddy"
     );
+}
+
+#[test]
+fn teddy_loads_open_and_overlapping_with_an_inside() {
+    let mesh = teddy();
+    // Seven objects, none welded to another.
+    assert_eq!(mesh.part_count(), 7);
     assert_eq!(
         mesh.warnings(),
-        [
-            "the mesh is open: 42 edges belong to one triangle only; inside and outside come from the generalized winding number"
-        ]
+        [format!(
+            "the mesh is open: {} edges belong to one triangle only; inside and outside come from the generalized winding number",
+            2 * teddy::EYE_SEGMENTS
+        )]
     );
     assert!(!mesh.is_closed());
-    let warnings = mesh.warnings().join("\n");
-    assert!(warnings.contains("the mesh is open: "), "{warnings}");
-    // Far from the head is outside; its middle is inside; the same bits on
-    // a second load.
-    assert!(mesh.signed_distance(Vec3::new(0.0, 3.0, 0.0)) > 0.0);
-    assert!(mesh.signed_distance(Vec3::new(0.0, 0.0, 0.0)) < 0.0);
-    let again = suzanne();
-    for p in points(300, 1.5, 13) {
+    // The head's middle, an ear, the nose tip and an eye's bulge are inside;
+    // beyond them is outside.
+    for p in [
+        Vec3::ZERO,
+        Vec3::new(0.36, 0.44, -0.04),
+        Vec3::new(0.0, -0.04, 0.62),
+    ] {
+        assert!(mesh.is_inside(p) && mesh.signed_distance(p) < 0.0, "{p}");
+    }
+    for p in [
+        Vec3::new(0.0, 3.0, 0.0),
+        Vec3::new(0.0, 0.5, 0.0),
+        Vec3::new(0.0, -0.04, 0.7),
+        Vec3::new(0.6, 0.0, 0.0),
+    ] {
+        assert!(!mesh.is_inside(p) && mesh.signed_distance(p) > 0.0, "{p}");
+    }
+    // Between an eye's open half-sphere and the head it is set into: only
+    // the winding number of the eye's faces makes that inside.
+    for side in [-1.0, 1.0] {
+        let (on_head, outward) = teddy::eye_axis(side);
+        let bulge = on_head + outward * 0.03;
+        assert!(mesh.is_inside(bulge), "{bulge}");
+        assert!(!mesh.is_inside(on_head + outward * 0.07), "{bulge}");
+    }
+    // The same bits on a second load.
+    let again = teddy();
+    for p in points(300, 0.8, 13) {
         assert_eq!(mesh.closest(p), again.closest(p));
         assert_eq!(
             mesh.winding_number(p).to_bits(),
@@ -535,4 +564,65 @@ fn bad_meshes_are_refused_and_imperfect_ones_warned_about() {
         .unwrap_err()
         .to_string();
     assert!(e.starts_with("big.obj: more than 11 triangles"), "{e}");
+}
+
+/// An icosphere subdivided `levels` times (20·4^levels triangles; 8 levels:
+/// 1,310,720) with every vertex pushed along its radius by a sum of sines:
+/// a closed, bumpy mesh as large as a scan, made here and never stored.
+pub(crate) fn displaced_icosphere_obj(levels: u32) -> String {
+    icosphere_obj(Vec3::ZERO, 0.8, levels)
+        .lines()
+        .map(|l| match l.strip_prefix("v ") {
+            Some(xyz) => {
+                let v: Vec<f32> = xyz.split(' ').map(|c| c.parse().unwrap()).collect();
+                let p = Vec3::new(v[0], v[1], v[2]);
+                let bump = 1.0 + 0.08 * (7.0 * p.x).sin() * (9.0 * p.y).sin() * (8.0 * p.z).sin();
+                let q = p * bump;
+                format!("v {} {} {}\n", q.x, q.y, q.z)
+            }
+            None => format!("{l}\n"),
+        })
+        .collect()
+}
+
+/// Prints how long Spot and a 1.3 M-triangle displaced icosphere take to
+/// load (read, weld, edges, pseudo-normals, tree, expansions) and what they
+/// hold: `cargo test --release -p hypertexture --lib
+/// mesh::tests::loading_times -- --ignored --nocapture`.
+#[test]
+#[ignore = "timing: run in release, alone"]
+fn loading_times() {
+    let spot = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenes/mesh/meshes/spot.obj"
+    ))
+    .unwrap();
+    let big = displaced_icosphere_obj(8).into_bytes();
+    for (name, bytes, triangles) in [
+        ("spot", spot, 5856),
+        ("displaced icosphere", big, 1_310_720),
+    ] {
+        let mut times = Vec::new();
+        let mut mesh = None;
+        for _ in 0..3 {
+            let start = std::time::Instant::now();
+            mesh = Some(Mesh::from_obj(name, &bytes, MeshLimits::default()).unwrap());
+            times.push(start.elapsed().as_secs_f64());
+        }
+        let mesh = mesh.unwrap();
+        assert_eq!(mesh.triangle_count(), triangles);
+        assert!(mesh.is_closed() && mesh.warnings().is_empty(), "{mesh:?}");
+        let start = std::time::Instant::now();
+        let parsed = obj::read(&bytes, usize::MAX).unwrap();
+        let read = start.elapsed().as_secs_f64();
+        assert_eq!(parsed.faces.len(), triangles);
+        times.sort_by(f64::total_cmp);
+        eprintln!(
+            "{name}: {triangles} triangles, {} bytes of OBJ, loaded in {:.4} s (median of 3; reading and welding {:.4} s), {:.1} MB held",
+            bytes.len(),
+            times[1],
+            read,
+            mesh.memory_bytes() as f64 / 1e6
+        );
+    }
 }
