@@ -15,8 +15,8 @@
 //!   when it lies on the pseudo-normal's side of the closest point. That is
 //!   exact on such a mesh.
 //! - On any other mesh (open, non-manifold, inconsistently oriented, or made
-//!   of parts whose boxes overlap, nested or crossing), from the generalized winding number w (the module
-//!   `winding`): x is inside where w ≥ ½. Such a mesh loads with warnings
+//!   of parts whose boxes overlap, nested or crossing), from the generalized
+//!   winding number w (the module `winding`): x is inside where w ≥ ½. Such a mesh loads with warnings
 //!   that count its boundary, non-manifold and misoriented edges
 //!   ([`Mesh::warnings`]). Where a hole lets the inside meet the outside, the
 //!   sign changes across the hole while the distance to the triangles does

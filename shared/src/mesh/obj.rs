@@ -4,9 +4,10 @@
 //! `f` with three or more corners, each `v`, `v/vt`, `v//vn` or `v/vt/vn`,
 //! its position index counted from 1, or from the end of the positions read
 //! so far when negative. A polygon is fanned into triangles from its first
-//! corner, in file order. Objects and groups (`o`, `g`) all join one mesh. Statements that do not shape a density
-//! (`vt`, `vn`, `vp`, `usemtl`, `mtllib`, `s`, `l`, `p` and the rest of the
-//! format's keywords) are skipped.
+//! corner, in file order. Objects and groups (`o`, `g`) all join one mesh.
+//! Statements that do not shape a density (`vt`, `vn`, `vp`, `usemtl`,
+//! `mtllib`, `s`, `l`, `p` and the rest of the format's keywords) are
+//! skipped.
 //!
 //! Positions with the same coordinates are welded into one vertex (−0 and +0
 //! are one), numbered in the order faces first name them; positions no face
