@@ -24,6 +24,15 @@ struct Node {
     count: u32,
 }
 
+/// What a node holds.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(super) enum Content {
+    /// The indices of its two children.
+    Inner(usize, usize),
+    /// The triangles of a leaf.
+    Leaf(std::ops::Range<usize>),
+}
+
 /// The tree (nodes in a flat array, the root first).
 #[derive(Clone, Debug, PartialEq)]
 pub(super) struct Bvh {
@@ -105,6 +114,29 @@ impl Bvh {
             pending.push((left, lo, lo + mid));
         }
         (Bvh { nodes }, order)
+    }
+
+    /// The number of nodes; a node's children come after it, so going down
+    /// the indices visits every child before its parent.
+    pub(super) fn len(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// The box (min, max) of node `i`.
+    pub(super) fn bounds(&self, i: usize) -> (Vec3, Vec3) {
+        (self.nodes[i].min, self.nodes[i].max)
+    }
+
+    /// What node `i` holds: two children, or a leaf's triangles (indices in
+    /// the order the tree stores them).
+    #[inline]
+    pub(super) fn content(&self, i: usize) -> Content {
+        let n = &self.nodes[i];
+        if n.count > 0 {
+            Content::Leaf(n.first as usize..(n.first + n.count) as usize)
+        } else {
+            Content::Inner(n.first as usize, n.first as usize + 1)
+        }
     }
 
     /// Calls `test` on the index of every triangle that may be closer to `p`

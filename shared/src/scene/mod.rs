@@ -149,9 +149,28 @@ impl Assets {
                 scene: scene_path.to_string(),
                 error,
             })?;
+            warn_once(scene_path, &name, &mesh);
             assets.insert(&path, Arc::new(mesh));
         }
         Ok(assets)
+    }
+}
+
+/// Logs what is wrong with a mesh that loads anyway (open, non-manifold,
+/// inconsistently oriented: [`Mesh::warnings`]) as warnings naming the scene
+/// and the file, once per file and content in this process (a scene loaded
+/// again, as the studio does at each change, does not repeat them).
+fn warn_once(scene_path: &str, name: &str, mesh: &Mesh) {
+    static WARNED: std::sync::Mutex<std::collections::BTreeSet<(String, u64)>> =
+        std::sync::Mutex::new(std::collections::BTreeSet::new());
+    if mesh.warnings().is_empty() {
+        return;
+    }
+    let mut warned = WARNED.lock().unwrap_or_else(|e| e.into_inner());
+    if warned.insert((name.to_string(), mesh.hash())) {
+        for w in mesh.warnings() {
+            tracing::warn!("{scene_path}: mesh {name}: {w}");
+        }
     }
 }
 
