@@ -54,13 +54,13 @@ use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
 use hypertexture::desc::KnobDesc;
 use hypertexture::render::interleave::{WorkUnit, farm_units};
-use hypertexture::{Overrides, PixelFormat, RenderRequest};
+use hypertexture::{Overrides, PixelFormat, Quality, RenderRequest};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
 use super::params::{self, Curve, Param};
 use crate::farm::{self, Accepted, JobId, Shared, WireJob};
-use crate::service::jobs::{Control, JobSpec, QualitySpec};
+use crate::service::jobs::{Control, JobSpec};
 
 /// Live frames' job ids start here (the store's ids are far below).
 pub const LIVE_JOBS: JobId = 1 << 48;
@@ -99,7 +99,7 @@ struct LiveFrame {
     remaining: usize,
     started: Instant,
     /// Interactive or high.
-    quality: QualitySpec,
+    quality: Quality,
     /// The frame event and every tile event so far (for browsers that
     /// connect later).
     events: Vec<Arc<Event>>,
@@ -127,7 +127,7 @@ struct Live {
     /// The last edit's error (the last good frame stays).
     error: Option<String>,
     /// The quality of the frame asked last.
-    quality: QualitySpec,
+    quality: Quality,
     /// The sliders of the text's numeric parameters, and its curves.
     params: Vec<Param>,
     curves: Vec<Curve>,
@@ -169,7 +169,7 @@ pub struct Change {
     #[serde(default)]
     pub params: BTreeMap<String, f64>,
     /// `interactive` while a slider moves, `high` once it rests.
-    pub quality: QualitySpec,
+    pub quality: Quality,
 }
 
 /// A knob as the page shows it.
@@ -277,7 +277,7 @@ fn check(
     text: &str,
     name: &str,
     knobs: &BTreeMap<String, f64>,
-    quality: QualitySpec,
+    quality: Quality,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
     let values: BTreeMap<String, f64> = desc
@@ -295,7 +295,7 @@ fn check(
         .collect();
     let request = RenderRequest {
         overrides: Overrides {
-            quality: Some(quality.into()),
+            quality: Some(quality),
             knobs: overrides(&values, &desc.knobs),
             ..Overrides::default()
         },
@@ -317,16 +317,18 @@ fn check(
     })
 }
 
-/// The knobs whose value is not their default, as `--set` gives them.
+/// The knobs whose value is not their default, as a request holds them
+/// ([`Overrides::knob_list`]).
 fn overrides(
     values: &BTreeMap<String, f64>,
     declared: &BTreeMap<String, KnobDesc>,
 ) -> Vec<(String, f64)> {
-    values
-        .iter()
-        .filter(|(k, v)| declared.get(*k).is_none_or(|d| d.default != **v))
-        .map(|(k, v)| (k.clone(), *v))
-        .collect()
+    Overrides::knob_list(
+        values
+            .iter()
+            .filter(|(k, v)| declared.get(*k).is_none_or(|d| d.default != **v))
+            .map(|(k, v)| (k.clone(), *v)),
+    )
 }
 
 impl Studio {
@@ -369,7 +371,7 @@ impl Studio {
                 knobs: BTreeMap::new(),
                 declared: BTreeMap::new(),
                 error: None,
-                quality: QualitySpec::High,
+                quality: Quality::High,
                 params: Vec::new(),
                 curves: Vec::new(),
                 ranges: BTreeMap::new(),
@@ -413,7 +415,7 @@ impl Studio {
                 text: Some(text),
                 knobs: BTreeMap::new(),
                 params: BTreeMap::new(),
-                quality: QualitySpec::High,
+                quality: Quality::High,
             });
         }
     }
@@ -503,7 +505,7 @@ impl Studio {
             // drawn as they come. A high-quality one is watched while the
             // workers take the machine: its events are small, and the page
             // fetches the pixels when it draws (`GET /studio/tiles`).
-            if frame.quality == QualitySpec::Interactive {
+            if frame.quality == Quality::Interactive {
                 data["pixels"] = base64::engine::general_purpose::STANDARD
                     .encode(&raw.pixels)
                     .into();
@@ -615,7 +617,7 @@ impl Studio {
         shared: &Arc<Shared>,
         live: &mut Live,
         checked: &Checked,
-        quality: QualitySpec,
+        quality: Quality,
     ) -> Result<(), String> {
         if let Some(old) = live.frame.take() {
             shared.remove_job(old.job);
@@ -1062,7 +1064,7 @@ mod tests {
             recorded: Vec::new(),
             remaining: 0,
             started: Instant::now(),
-            quality: QualitySpec::High,
+            quality: Quality::High,
             events: Vec::new(),
             pixels: vec![
                 Arc::new(vec![1, 2, 3, 4]),
