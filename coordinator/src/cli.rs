@@ -21,7 +21,7 @@ use crate::service::{ServeConfig, StudioConfig};
 /// default local worker processes, one per core) or in-process.
 #[derive(Debug, Parser)]
 #[command(version, about, long_about = None, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
-#[command(mut_arg("tls_cert", |a| a.help("TLS certificate (PEM) for the farm's server; needs --tls-key.")))]
+#[command(mut_arg("tls_cert", |a| a.help("TLS certificate (PEM) for the farm's server; needs --tls-key")))]
 pub struct Cli {
     /// Other tasks than rendering.
     #[command(subcommand)]
@@ -86,9 +86,9 @@ pub struct RequestArgs {
     /// default) or `high` (the scene's step, the default).
     #[arg(long, value_name = "PRESET", value_parser = quality())]
     pub quality: Option<Quality>,
-    /// Set a knob of the scene (repeatable): --set curliness=0.8.
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = Overrides::parse_knob)]
-    pub set: Vec<(String, f64)>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
 }
 
 impl RequestArgs {
@@ -101,7 +101,7 @@ impl RequestArgs {
                 height: self.height,
                 spp: self.spp,
                 quality: self.quality,
-                knobs: Overrides::knob_list(self.set),
+                knobs: self.knobs.knob_list(),
             },
             frames,
             ..RenderRequest::new(String::new(), String::new())
@@ -113,8 +113,8 @@ impl RequestArgs {
 #[derive(Debug, clap::Args)]
 #[command(mut_arg("listen", |a| a
     .default_value("127.0.0.1:0")
-    .help("Where the farm listens for workers. Anything but loopback needs --token.")))]
-#[command(mut_arg("token", |a| a.help("Shared secret workers must present (required beyond loopback).")))]
+    .help("Where the farm listens for workers. Anything but loopback needs --token")))]
+#[command(mut_arg("token", |a| a.help("Shared secret workers must present (required beyond loopback)")))]
 pub struct FarmArgs {
     /// Where it listens and its local workers.
     #[command(flatten)]
@@ -122,9 +122,9 @@ pub struct FarmArgs {
     /// The workers' secret.
     #[command(flatten)]
     pub token: worker::cli::TokenArg,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
+    /// When a silent worker's units go to others.
+    #[command(flatten)]
+    pub lease: LeaseArg,
     /// Give up (exit non-zero) when no worker is connected for this many seconds.
     #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
     pub worker_timeout: f64,
@@ -137,7 +137,7 @@ impl FarmArgs {
         FarmOptions {
             listen: self.listen.listen,
             token: self.token.secret(),
-            lease: Duration::from_secs_f64(self.lease_timeout),
+            lease: self.lease.lease(),
             worker_timeout: Duration::from_secs_f64(self.worker_timeout),
             local_workers: self.listen.local_workers.unwrap_or_else(|| {
                 std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
@@ -207,6 +207,38 @@ pub struct UnitArgs {
     /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
     #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
     pub interleave: u32,
+}
+
+/// `--set KNOB=VALUE` (repeatable): knob values of a render, a bake or an
+/// `eval`, parsed by [`Overrides::parse_knob`] (`eval` words the help with
+/// `mut_arg`).
+#[derive(Debug, clap::Args)]
+pub struct KnobArgs {
+    /// Set a knob of the scene (repeatable): --set curliness=0.8.
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = Overrides::parse_knob)]
+    pub set: Vec<(String, f64)>,
+}
+
+impl KnobArgs {
+    /// The knobs as a request holds them ([`Overrides::knob_list`]).
+    pub fn knob_list(self) -> Vec<(String, f64)> {
+        Overrides::knob_list(self.set)
+    }
+}
+
+/// `--lease-timeout` of a farm (a render's, a bake's and `serve`'s).
+#[derive(Debug, clap::Args)]
+pub struct LeaseArg {
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+}
+
+impl LeaseArg {
+    /// How long a lease lasts.
+    pub fn lease(&self) -> Duration {
+        Duration::from_secs_f64(self.lease_timeout)
+    }
 }
 
 /// Subcommands.
@@ -293,11 +325,11 @@ pub enum LogFormat {
 /// Arguments of `coordinator serve`.
 #[derive(Debug, clap::Args)]
 #[command(mut_arg("listen", |a| a.help(
-    "Where to listen: the workers' gRPC and the HTTP API share this port. Anything but loopback needs --token.")))]
+    "Where to listen: the workers' gRPC and the HTTP API share this port. Anything but loopback needs --token")))]
 #[command(mut_arg("token", |a| a.help(
-    "Shared secret that workers and API clients must present (required beyond loopback).")))]
+    "Shared secret that workers and API clients must present (required beyond loopback)")))]
 #[command(mut_arg("tls_cert", |a| a.help(
-    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike.")))]
+    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike")))]
 pub struct ServeArgs {
     /// Where the queue, job states and completed tiles are kept (created if missing).
     #[arg(long, value_name = "DIR")]
@@ -314,9 +346,9 @@ pub struct ServeArgs {
     /// Its TLS certificate and key.
     #[command(flatten)]
     pub tls: TlsArgs,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
+    /// When a silent worker's units go to others.
+    #[command(flatten)]
+    pub lease: LeaseArg,
     /// On SIGTERM or Ctrl-C: seconds that units in flight get to arrive.
     #[arg(long, value_name = "SECS", default_value_t = 30.0, value_parser = positive_seconds)]
     pub drain_timeout: f64,
@@ -354,9 +386,9 @@ pub struct ServeArgs {
 /// Arguments of `coordinator studio`.
 #[derive(Debug, clap::Args)]
 #[command(mut_arg("listen", |a| a.help(
-    "Where to listen (port 0: any free port). Anything but loopback needs --token.")))]
-#[command(mut_arg("local_workers", |a| a.help("Local worker processes to start (default: one per core).")))]
-#[command(mut_arg("token", |a| a.help("Shared secret workers and the page must present.")))]
+    "Where to listen (port 0: any free port). Anything but loopback needs --token")))]
+#[command(mut_arg("local_workers", |a| a.help("Local worker processes to start (default: one per core)")))]
+#[command(mut_arg("token", |a| a.help("Shared secret workers and the page must present")))]
 pub struct StudioArgs {
     /// The scene file (RON) to open; Save writes it back (the old file to SCENE.bak).
     #[arg(value_name = "SCENE")]
@@ -377,8 +409,8 @@ pub struct StudioArgs {
 
 /// How a client reaches the service.
 #[derive(Debug, clap::Args)]
-#[command(mut_arg("token", |a| a.help("The service's token (needed beyond loopback).")))]
-#[command(mut_arg("ca", |a| a.help("CA certificate (PEM) to verify an https:// service.")))]
+#[command(mut_arg("token", |a| a.help("The service's token (needed beyond loopback)")))]
+#[command(mut_arg("ca", |a| a.help("CA certificate (PEM) to verify an https:// service")))]
 pub struct ServerArgs {
     /// The service's URL.
     #[arg(long, value_name = "URL", default_value = DEFAULT_SERVER)]
@@ -472,6 +504,7 @@ pub struct GridArgs {
 
 /// Arguments of `coordinator eval`.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("set", |a| a.help("Set a knob of the scene (repeatable)")))]
 pub struct EvalArgs {
     /// The expression, e.g. "turbulence(x * 4)".
     #[arg(value_name = "EXPR")]
@@ -486,9 +519,9 @@ pub struct EvalArgs {
     /// The frame (t = frame / frame_rate).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
-    /// Set a knob of the scene (repeatable).
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = Overrides::parse_knob)]
-    pub set: Vec<(String, f64)>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
 }
 
 /// Arguments of `coordinator bake`.
@@ -514,9 +547,9 @@ pub struct BakeArgs {
     /// each local worker on the farm (default 1).
     #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
     pub threads: Option<NonZeroUsize>,
-    /// Set a knob of the scene (repeatable): --set curliness=0.8.
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = Overrides::parse_knob)]
-    pub set: Vec<(String, f64)>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
     /// Bake in this process with a thread pool, without the farm (no gRPC).
     #[arg(long)]
     pub in_process: bool,
@@ -538,7 +571,7 @@ impl BakeArgs {
             frame: self.frame,
             frames: self.frames,
             threads: self.threads,
-            knobs: self.set,
+            knobs: self.knobs.set,
             farm: (!self.in_process).then(|| self.farm.options()),
         }
     }
@@ -659,7 +692,7 @@ impl ServeArgs {
             token: self.access.token.token,
             allow_hosts: self.access.allow_host,
             tls: self.tls.pair(),
-            lease: Duration::from_secs_f64(self.lease_timeout),
+            lease: self.lease.lease(),
             drain_timeout: Duration::from_secs_f64(self.drain_timeout),
             verify: self.units.verify,
             interleave: self.units.interleave,
@@ -720,10 +753,12 @@ impl SubmitArgs {
     }
 }
 
-/// `--quality`: one of [`Quality::NAMES`] (listed in the help and in a refusal).
+/// `--quality`: one of [`Quality::NAMES`] (listed in the help, each with
+/// its [`Quality::step`], and in a refusal).
 fn quality() -> impl clap::builder::TypedValueParser<Value = Quality> {
-    use clap::builder::TypedValueParser as _;
-    clap::builder::PossibleValuesParser::new(Quality::NAMES).try_map(|s| s.parse::<Quality>())
+    use clap::builder::{PossibleValue, TypedValueParser as _};
+    let values = Quality::ALL.map(|q| PossibleValue::new(q.name()).help(q.step()));
+    clap::builder::PossibleValuesParser::new(values).try_map(|s| s.parse::<Quality>())
 }
 
 /// `A..B` (B excluded) or `A..=B` (B included), as the inclusive pair (A, last).
@@ -1068,6 +1103,45 @@ mod tests {
         assert_eq!(render.tls.pair(), Some(("c".into(), "k".into())));
     }
 
+    #[test]
+    fn knobs_and_leases_read_alike_on_every_command() {
+        let knobs = ["--set", "b=1", "--set", "a=0.5", "--set", "b=2"];
+        let render =
+            parse(&[&["--scene", "s.ron", "--lease-timeout", "3"][..], &knobs].concat()).unwrap();
+        assert_eq!(render.farm.lease.lease(), Duration::from_secs(3));
+        let bake = [
+            &["bake", "s.ron", "--out", "f.vdb", "--lease-timeout", "3"][..],
+            &knobs,
+        ];
+        let Some(Command::Bake(bake)) = parse(&bake.concat()).unwrap().command else {
+            panic!("not a bake")
+        };
+        assert_eq!(bake.farm.lease.lease(), Duration::from_secs(3));
+        let eval = [&["eval", "a + b", "--scene", "s.ron"][..], &knobs].concat();
+        let Some(Command::Eval(eval)) = parse(&eval).unwrap().command else {
+            panic!("not an eval")
+        };
+        let given = [("b", 1.0), ("a", 0.5), ("b", 2.0)].map(|(k, v)| (k.to_string(), v));
+        assert_eq!(eval.knobs.set, given);
+        assert_eq!(bake.into_config().knobs, given);
+        assert_eq!(
+            render.request.request(FrameRange::one(0)).overrides.knobs,
+            [("a".to_string(), 0.5), ("b".to_string(), 2.0)]
+        );
+        let Some(Command::Serve(serve)) = parse(&["serve", "--data", "d", "--lease-timeout", "3"])
+            .unwrap()
+            .command
+        else {
+            panic!("not a serve")
+        };
+        assert_eq!(serve.into_config().lease, Duration::from_secs(3));
+        // Each command words `--set` its own way.
+        assert!(help(&["eval"]).contains("Set a knob of the scene (repeatable)\n"));
+        for args in [&[][..], &["bake"], &["submit"]] {
+            assert!(help(args).contains("--set curliness=0.8"), "{args:?}");
+        }
+    }
+
     /// The help of `args`' command (the subcommand's when given).
     fn help(args: &[&str]) -> String {
         use clap::CommandFactory;
@@ -1081,50 +1155,58 @@ mod tests {
 
     #[test]
     fn shared_flags_keep_each_commands_help() {
+        // Each help ends as clap ends a doc comment's: no full stop, then
+        // the default or the variable.
         for (args, words) in [
             (
                 &[][..],
                 &[
-                    "Where the farm listens for workers. Anything but loopback needs --token.",
-                    "[default: 127.0.0.1:0]",
-                    "Shared secret workers must present (required beyond loopback).",
-                    "TLS certificate (PEM) for the farm's server; needs --tls-key.",
-                    "[possible values: interactive, high]",
+                    "Where the farm listens for workers. Anything but loopback needs --token \
+                     [default: 127.0.0.1:0]\n",
+                    "Shared secret workers must present (required beyond loopback) \
+                     [env: HYPERTEXTURE_TOKEN]\n",
+                    "TLS certificate (PEM) for the farm's server; needs --tls-key\n",
+                    "[possible values: interactive, high]\n",
+                    "Seconds of silence after which a worker's units go to others [default: 10]\n",
                 ][..],
             ),
             (
                 &["serve"],
                 &[
                     "Where to listen: the workers' gRPC and the HTTP API share this port. \
-                     Anything but loopback needs --token.",
-                    "0 = remote workers only",
-                    "Shared secret that workers and API clients must present",
-                    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike.",
+                     Anything but loopback needs --token [default: 127.0.0.1:47000]\n",
+                    "0 = remote workers only)\n",
+                    "Shared secret that workers and API clients must present \
+                     (required beyond loopback) [env: HYPERTEXTURE_TOKEN]\n",
+                    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike\n",
                     "--allow-host <NAME>",
+                    "Seconds of silence after which a worker's units go to others [default: 10]\n",
                 ],
             ),
             (
                 &["studio"],
                 &[
-                    "Where to listen (port 0: any free port).",
-                    "Local worker processes to start (default: one per core).\n",
-                    "Shared secret workers and the page must present.",
+                    "Where to listen (port 0: any free port). Anything but loopback needs \
+                     --token [default: 127.0.0.1:47000]\n",
+                    "Local worker processes to start (default: one per core)\n",
+                    "Shared secret workers and the page must present [env: HYPERTEXTURE_TOKEN]\n",
                     "--allow-host <NAME>",
                 ],
             ),
             (
                 &["bake"],
                 &[
-                    "Where the farm listens for workers.",
-                    "[default: 127.0.0.1:0]",
+                    "Where the farm listens for workers. Anything but loopback needs --token \
+                     [default: 127.0.0.1:0]\n",
+                    "Set a knob of the scene (repeatable): --set curliness=0.8\n",
                 ],
             ),
             (
                 &["submit"],
                 &[
-                    "The service's token (needed beyond loopback).",
-                    "CA certificate (PEM) to verify an https:// service.",
-                    "[possible values: interactive, high]",
+                    "The service's token (needed beyond loopback) [env: HYPERTEXTURE_TOKEN]\n",
+                    "CA certificate (PEM) to verify an https:// service\n",
+                    "[possible values: interactive, high]\n",
                 ],
             ),
         ] {
@@ -1133,6 +1215,14 @@ mod tests {
                 assert!(text.contains(w), "{args:?} lacks {w:?}:\n{text}");
             }
             assert!(text.contains("--token <TOKEN>"), "{args:?}");
+        }
+        use clap::CommandFactory;
+        let long = Cli::command().render_long_help().to_string();
+        for w in [
+            "- interactive: The scene's interactive step\n",
+            "- high:        The scene's step\n",
+        ] {
+            assert!(long.contains(w), "{w:?}:\n{long}");
         }
     }
 

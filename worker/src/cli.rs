@@ -274,9 +274,9 @@ mod tests {
         let help = Cli::command().render_help().to_string();
         for words in [
             "--token <TOKEN>",
-            "Shared secret the coordinator requires.",
+            "Shared secret the coordinator requires",
             "--ca <FILE>",
-            "CA certificate (PEM) to verify the coordinator's TLS certificate.",
+            "CA certificate (PEM) to verify the coordinator's TLS certificate",
         ] {
             assert!(help.contains(words), "{words:?}:\n{help}");
         }

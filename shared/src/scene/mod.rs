@@ -334,6 +334,14 @@ impl Quality {
             Quality::High => Quality::NAMES[1],
         }
     }
+
+    /// The step the preset marches with, in words (the command line's help).
+    pub const fn step(self) -> &'static str {
+        match self {
+            Quality::Interactive => "The scene's interactive step",
+            Quality::High => "The scene's step",
+        }
+    }
 }
 
 impl std::fmt::Display for Quality {
