@@ -7,18 +7,21 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::Parser;
-use hypertexture::{FrameRange, Overrides, RenderRequest};
+use hypertexture::{FrameRange, Overrides, Quality, RenderRequest};
+
+use worker::cli::positive_seconds;
 
 use crate::CoordinatorError;
 use crate::pipeline::run::{Config, FarmOptions};
 use crate::service::client::{ClientError, Endpoint};
-use crate::service::jobs::{JobSpec, QualitySpec};
+use crate::service::jobs::JobSpec;
 use crate::service::{ServeConfig, StudioConfig};
 
 /// Render a hypertexture scene to PNG or OpenEXR, on a farm of workers (by
 /// default local worker processes, one per core) or in-process.
 #[derive(Debug, Parser)]
 #[command(version, about, long_about = None, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+#[command(mut_arg("tls_cert", |a| a.help("TLS certificate (PEM) for the farm's server; needs --tls-key")))]
 pub struct Cli {
     /// Other tasks than rendering.
     #[command(subcommand)]
@@ -47,21 +50,12 @@ pub struct Cli {
     /// Rewrite the partial image at --out every SECS seconds while rendering.
     #[arg(long, value_name = "SECS", value_parser = positive_seconds)]
     pub preview_every: Option<f64>,
-    /// TLS certificate (PEM) for the farm's server; needs --tls-key.
-    #[arg(long, value_name = "FILE", requires = "tls_key")]
-    pub tls_cert: Option<PathBuf>,
-    /// TLS private key (PEM); needs --tls-cert.
-    #[arg(long, value_name = "FILE", requires = "tls_cert")]
-    pub tls_key: Option<PathBuf>,
-    /// Fraction of units rendered a second time (by another worker, or by the
-    /// coordinator) and compared byte for byte; a worker whose tile differs
-    /// from the coordinator's own rendering is blocklisted and its units
-    /// rendered again. 0 turns it off, 1 checks every unit.
-    #[arg(long, value_name = "FRACTION", default_value_t = crate::farm::DEFAULT_VERIFY, value_parser = fraction)]
-    pub verify: f64,
-    /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
-    #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
-    pub interleave: u32,
+    /// The farm server's TLS certificate and key.
+    #[command(flatten)]
+    pub tls: TlsArgs,
+    /// How units are checked and split.
+    #[command(flatten)]
+    pub units: UnitArgs,
     /// Frame number (animated scenes drift their noise by frame · flow; expressions
     /// see `frame` and `t = frame / frame_rate`).
     #[arg(long, value_name = "F", default_value_t = 0)]
@@ -90,11 +84,11 @@ pub struct RequestArgs {
     pub spp: Option<u32>,
     /// Marching step: `interactive` (the scene's interactive_step, 4× its step by
     /// default) or `high` (the scene's step, the default).
-    #[arg(long, value_name = "PRESET")]
-    pub quality: Option<QualitySpec>,
-    /// Set a knob of the scene (repeatable): --set curliness=0.8.
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
-    pub set: Vec<(String, f64)>,
+    #[arg(long, value_name = "PRESET", value_parser = quality())]
+    pub quality: Option<Quality>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
 }
 
 impl RequestArgs {
@@ -106,8 +100,8 @@ impl RequestArgs {
                 width: self.width,
                 height: self.height,
                 spp: self.spp,
-                quality: self.quality.map(Into::into),
-                knobs: self.set,
+                quality: self.quality,
+                knobs: self.knobs.knob_list(),
             },
             frames,
             ..RenderRequest::new(String::new(), String::new())
@@ -117,24 +111,20 @@ impl RequestArgs {
 
 /// How a one-shot render or bake runs its farm.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("listen", |a| a
+    .default_value("127.0.0.1:0")
+    .help("Where the farm listens for workers. Anything but loopback needs --token")))]
+#[command(mut_arg("token", |a| a.help("Shared secret workers must present (required beyond loopback)")))]
 pub struct FarmArgs {
-    /// Where the farm listens for workers. Anything but loopback needs --token.
-    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:0")]
-    pub listen: SocketAddr,
-    /// Local worker processes to start (default: one per core; 0 = remote workers only).
-    #[arg(long, value_name = "N")]
-    pub local_workers: Option<usize>,
-    /// Shared secret workers must present (required beyond loopback).
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
+    /// Where it listens and its local workers.
+    #[command(flatten)]
+    pub listen: ListenArgs,
+    /// The workers' secret.
+    #[command(flatten)]
+    pub token: worker::cli::TokenArg,
+    /// When a silent worker's units go to others.
+    #[command(flatten)]
+    pub lease: LeaseArg,
     /// Give up (exit non-zero) when no worker is connected for this many seconds.
     #[arg(long, value_name = "SECS", default_value_t = 60.0, value_parser = positive_seconds)]
     pub worker_timeout: f64,
@@ -145,11 +135,11 @@ impl FarmArgs {
     /// 8 and the default verified fraction.
     pub fn options(self) -> FarmOptions {
         FarmOptions {
-            listen: self.listen,
-            token: self.token.filter(|t| !t.is_empty()),
-            lease: Duration::from_secs_f64(self.lease_timeout),
+            listen: self.listen.listen,
+            token: self.token.secret(),
+            lease: self.lease.lease(),
             worker_timeout: Duration::from_secs_f64(self.worker_timeout),
-            local_workers: self.local_workers.unwrap_or_else(|| {
+            local_workers: self.listen.local_workers.unwrap_or_else(|| {
                 std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
             }),
             preview_every: None,
@@ -157,6 +147,97 @@ impl FarmArgs {
             interleave: 8,
             verify: crate::farm::DEFAULT_VERIFY,
         }
+    }
+}
+
+/// Where a farm listens and the workers it starts (render, bake, `serve`,
+/// `studio`; each words the help its own way with `mut_arg`).
+#[derive(Debug, clap::Args)]
+pub struct ListenArgs {
+    /// Where to listen. Anything but loopback needs --token.
+    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:47000")]
+    pub listen: SocketAddr,
+    /// Local worker processes to start (default: one per core; 0 = remote workers only).
+    #[arg(long, value_name = "N")]
+    pub local_workers: Option<usize>,
+}
+
+/// Whom a service serves (`serve` and `studio`): its secret and the names
+/// it answers to without one.
+#[derive(Debug, clap::Args)]
+pub struct AccessArgs {
+    /// The secret workers and clients present.
+    #[command(flatten)]
+    pub token: worker::cli::TokenArg,
+    /// A name of this machine the service answers to without a token, besides
+    /// 127.0.0.1, localhost and [::1] (repeatable). Without a token any other
+    /// `Host` is refused, so that a page elsewhere cannot reach the service by
+    /// DNS rebinding; with --token any name is served.
+    #[arg(long = "allow-host", value_name = "NAME", value_parser = allowed_host)]
+    pub allow_host: Vec<String>,
+}
+
+/// A server's TLS certificate and key (a render's farm and `serve`).
+#[derive(Debug, clap::Args)]
+pub struct TlsArgs {
+    /// TLS certificate (PEM); needs --tls-key.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+}
+
+impl TlsArgs {
+    /// The certificate and key, when both are given.
+    pub fn pair(self) -> Option<(PathBuf, PathBuf)> {
+        self.tls_cert.zip(self.tls_key)
+    }
+}
+
+/// How a farm checks and splits its units (a render and `serve`).
+#[derive(Debug, clap::Args)]
+pub struct UnitArgs {
+    /// Fraction of units rendered a second time (by another worker, or by the
+    /// coordinator) and compared byte for byte; a worker whose tile differs
+    /// from the coordinator's own rendering is blocklisted and its units
+    /// rendered again. 0 turns it off, 1 checks every unit.
+    #[arg(long, value_name = "FRACTION", default_value_t = crate::farm::DEFAULT_VERIFY, value_parser = fraction)]
+    pub verify: f64,
+    /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
+    #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
+    pub interleave: u32,
+}
+
+/// `--set KNOB=VALUE` (repeatable): knob values of a render, a bake or an
+/// `eval`, parsed by [`Overrides::parse_knob`] (`eval` words the help with
+/// `mut_arg`).
+#[derive(Debug, clap::Args)]
+pub struct KnobArgs {
+    /// Set a knob of the scene (repeatable): --set curliness=0.8.
+    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = Overrides::parse_knob)]
+    pub set: Vec<(String, f64)>,
+}
+
+impl KnobArgs {
+    /// The knobs as a request holds them ([`Overrides::knob_list`]).
+    pub fn knob_list(self) -> Vec<(String, f64)> {
+        Overrides::knob_list(self.set)
+    }
+}
+
+/// `--lease-timeout` of a farm (a render's, a bake's and `serve`'s).
+#[derive(Debug, clap::Args)]
+pub struct LeaseArg {
+    /// Seconds of silence after which a worker's units go to others.
+    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
+    pub lease_timeout: f64,
+}
+
+impl LeaseArg {
+    /// How long a lease lasts.
+    pub fn lease(&self) -> Duration {
+        Duration::from_secs_f64(self.lease_timeout)
     }
 }
 
@@ -243,55 +324,37 @@ pub enum LogFormat {
 
 /// Arguments of `coordinator serve`.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("listen", |a| a.help(
+    "Where to listen: the workers' gRPC and the HTTP API share this port. Anything but loopback needs --token")))]
+#[command(mut_arg("token", |a| a.help(
+    "Shared secret that workers and API clients must present (required beyond loopback)")))]
+#[command(mut_arg("tls_cert", |a| a.help(
+    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike")))]
 pub struct ServeArgs {
     /// Where the queue, job states and completed tiles are kept (created if missing).
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
-    /// Where to listen: the workers' gRPC and the HTTP API share this port.
-    /// Anything but loopback needs --token.
-    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:47000")]
-    pub listen: SocketAddr,
-    /// Local worker processes to start (default: one per core; 0 = remote workers only).
-    #[arg(long, value_name = "N")]
-    pub local_workers: Option<usize>,
+    /// Where it listens and its local workers.
+    #[command(flatten)]
+    pub listen: ListenArgs,
     /// Threads of each local worker (at most 4 × the cores, and 1024).
     #[arg(long, value_name = "N", default_value = "1", value_parser = worker::cli::threads)]
     pub threads: NonZeroUsize,
-    /// Shared secret that workers and API clients must present (required beyond loopback).
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// A name of this machine the service answers to without a token, besides
-    /// 127.0.0.1, localhost and [::1] (repeatable). Without a token any other
-    /// `Host` is refused, so that a page elsewhere cannot reach the service by
-    /// DNS rebinding; with --token any name is served.
-    #[arg(long = "allow-host", value_name = "NAME", value_parser = allowed_host)]
-    pub allow_host: Vec<String>,
-    /// TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike.
-    #[arg(long, value_name = "FILE", requires = "tls_key")]
-    pub tls_cert: Option<PathBuf>,
-    /// TLS private key (PEM); needs --tls-cert.
-    #[arg(long, value_name = "FILE", requires = "tls_cert")]
-    pub tls_key: Option<PathBuf>,
-    /// Seconds of silence after which a worker's units go to others.
-    #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
-    pub lease_timeout: f64,
+    /// Who it serves.
+    #[command(flatten)]
+    pub access: AccessArgs,
+    /// Its TLS certificate and key.
+    #[command(flatten)]
+    pub tls: TlsArgs,
+    /// When a silent worker's units go to others.
+    #[command(flatten)]
+    pub lease: LeaseArg,
     /// On SIGTERM or Ctrl-C: seconds that units in flight get to arrive.
     #[arg(long, value_name = "SECS", default_value_t = 30.0, value_parser = positive_seconds)]
     pub drain_timeout: f64,
-    /// Fraction of units rendered a second time (by another worker, or by the
-    /// coordinator) and compared byte for byte; a worker whose tile differs
-    /// from the coordinator's own rendering is blocklisted and its units
-    /// rendered again. 0 turns it off, 1 checks every unit.
-    #[arg(long, value_name = "FRACTION", default_value_t = crate::farm::DEFAULT_VERIFY, value_parser = fraction)]
-    pub verify: f64,
-    /// Pixel-set interleave B (B×B sets): 1, 2, 4, 8, 16, 32 or 64.
-    #[arg(long, value_name = "B", default_value_t = 8, value_parser = interleave)]
-    pub interleave: u32,
+    /// How units are checked and split.
+    #[command(flatten)]
+    pub units: UnitArgs,
     /// Open a store that is older than its generation file (jobs committed
     /// since are missing: a lost or truncated WAL, an older copy put back)
     /// and go on with what it holds; new job ids still start past every id
@@ -322,33 +385,23 @@ pub struct ServeArgs {
 
 /// Arguments of `coordinator studio`.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("listen", |a| a.help(
+    "Where to listen (port 0: any free port). Anything but loopback needs --token")))]
+#[command(mut_arg("local_workers", |a| a.help("Local worker processes to start (default: one per core)")))]
+#[command(mut_arg("token", |a| a.help("Shared secret workers and the page must present")))]
 pub struct StudioArgs {
     /// The scene file (RON) to open; Save writes it back (the old file to SCENE.bak).
     #[arg(value_name = "SCENE")]
     pub scene: PathBuf,
-    /// Where to listen (port 0: any free port). Anything but loopback needs --token.
-    #[arg(long, value_name = "ADDR:PORT", default_value = "127.0.0.1:47000")]
-    pub listen: SocketAddr,
-    /// Local worker processes to start (default: one per core).
-    #[arg(long, value_name = "N")]
-    pub local_workers: Option<usize>,
+    /// Where it listens and its local workers.
+    #[command(flatten)]
+    pub listen: ListenArgs,
     /// The service's store (default: a new directory under the system's temporary directory).
     #[arg(long, value_name = "DIR")]
     pub data: Option<PathBuf>,
-    /// Shared secret workers and the page must present.
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// A name of this machine the service answers to without a token, besides
-    /// 127.0.0.1, localhost and [::1] (repeatable). Without a token any other
-    /// `Host` is refused, so that a page elsewhere cannot reach the service by
-    /// DNS rebinding; with --token any name is served.
-    #[arg(long = "allow-host", value_name = "NAME", value_parser = allowed_host)]
-    pub allow_host: Vec<String>,
+    /// Who it serves.
+    #[command(flatten)]
+    pub access: AccessArgs,
     /// Only warnings and errors.
     #[arg(long, short)]
     pub quiet: bool,
@@ -356,21 +409,18 @@ pub struct StudioArgs {
 
 /// How a client reaches the service.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("token", |a| a.help("The service's token (needed beyond loopback)")))]
+#[command(mut_arg("ca", |a| a.help("CA certificate (PEM) to verify an https:// service")))]
 pub struct ServerArgs {
     /// The service's URL.
     #[arg(long, value_name = "URL", default_value = DEFAULT_SERVER)]
     pub server: String,
-    /// The service's token (needed beyond loopback).
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
-    /// CA certificate (PEM) to verify an https:// service.
-    #[arg(long, value_name = "FILE")]
-    pub ca: Option<PathBuf>,
+    /// The service's token.
+    #[command(flatten)]
+    pub token: worker::cli::TokenArg,
+    /// The service's CA.
+    #[command(flatten)]
+    pub ca: worker::cli::CaArg,
 }
 
 /// Arguments of `coordinator submit`.
@@ -454,6 +504,7 @@ pub struct GridArgs {
 
 /// Arguments of `coordinator eval`.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("set", |a| a.help("Set a knob of the scene (repeatable)")))]
 pub struct EvalArgs {
     /// The expression, e.g. "turbulence(x * 4)".
     #[arg(value_name = "EXPR")]
@@ -468,9 +519,9 @@ pub struct EvalArgs {
     /// The frame (t = frame / frame_rate).
     #[arg(long, value_name = "F", default_value_t = 0)]
     pub frame: u32,
-    /// Set a knob of the scene (repeatable).
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
-    pub set: Vec<(String, f64)>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
 }
 
 /// Arguments of `coordinator bake`.
@@ -496,9 +547,9 @@ pub struct BakeArgs {
     /// each local worker on the farm (default 1).
     #[arg(long, value_name = "N", value_parser = worker::cli::threads)]
     pub threads: Option<NonZeroUsize>,
-    /// Set a knob of the scene (repeatable): --set curliness=0.8.
-    #[arg(long = "set", value_name = "KNOB=VALUE", value_parser = knob_setting)]
-    pub set: Vec<(String, f64)>,
+    /// The knobs set.
+    #[command(flatten)]
+    pub knobs: KnobArgs,
     /// Bake in this process with a thread pool, without the farm (no gRPC).
     #[arg(long)]
     pub in_process: bool,
@@ -520,7 +571,7 @@ impl BakeArgs {
             frame: self.frame,
             frames: self.frames,
             threads: self.threads,
-            knobs: self.set,
+            knobs: self.knobs.set,
             farm: (!self.in_process).then(|| self.farm.options()),
         }
     }
@@ -616,9 +667,9 @@ impl Cli {
         let config = Config::load(&scene, out, request, self.frames.is_some())?;
         let farm = (!self.in_process).then(|| FarmOptions {
             preview_every: self.preview_every.map(Duration::from_secs_f64),
-            tls: self.tls_cert.zip(self.tls_key),
-            interleave: self.interleave,
-            verify: self.verify,
+            tls: self.tls.pair(),
+            interleave: self.units.interleave,
+            verify: self.units.verify,
             ..self.farm.options()
         });
         Ok(Config {
@@ -635,16 +686,16 @@ impl ServeArgs {
     pub fn into_config(self) -> ServeConfig {
         ServeConfig {
             data: self.data,
-            listen: self.listen,
-            local_workers: self.local_workers,
+            listen: self.listen.listen,
+            local_workers: self.listen.local_workers,
             threads: self.threads,
-            token: self.token,
-            allow_hosts: self.allow_host,
-            tls: self.tls_cert.zip(self.tls_key),
-            lease: Duration::from_secs_f64(self.lease_timeout),
+            token: self.access.token.token,
+            allow_hosts: self.access.allow_host,
+            tls: self.tls.pair(),
+            lease: self.lease.lease(),
             drain_timeout: Duration::from_secs_f64(self.drain_timeout),
-            verify: self.verify,
-            interleave: self.interleave,
+            verify: self.units.verify,
+            interleave: self.units.interleave,
             accept_older_store: self.accept_older_store,
             output_roots: self.output_root,
             max_queued: self.max_queued,
@@ -660,11 +711,11 @@ impl StudioArgs {
     pub fn into_config(self) -> StudioConfig {
         StudioConfig {
             scene: self.scene,
-            listen: self.listen,
-            local_workers: self.local_workers,
+            listen: self.listen.listen,
+            local_workers: self.listen.local_workers,
             data: self.data,
-            token: self.token,
-            allow_hosts: self.allow_host,
+            token: self.access.token.token,
+            allow_hosts: self.access.allow_host,
             quiet: self.quiet,
         }
     }
@@ -675,8 +726,8 @@ impl ServerArgs {
     pub fn endpoint(&self) -> Endpoint {
         Endpoint {
             url: self.server.clone(),
-            token: self.token.clone(),
-            ca: self.ca.clone(),
+            token: self.token.token.clone(),
+            ca: self.ca.ca.clone(),
         }
     }
 }
@@ -702,32 +753,12 @@ impl SubmitArgs {
     }
 }
 
-fn positive_seconds(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .parse()
-        .map_err(|_| format!("expected a number of seconds, found {s:?}"))?;
-    if v.is_finite() && v > 0.0 && v <= 86_400.0 {
-        Ok(v)
-    } else {
-        Err(format!("expected seconds between 0 and 86400, found {s}"))
-    }
-}
-
-/// `name=value`.
-fn knob_setting(s: &str) -> Result<(String, f64), String> {
-    let (name, value) = s
-        .split_once('=')
-        .ok_or_else(|| format!("expected KNOB=VALUE, found {s:?}"))?;
-    let value: f64 = value
-        .trim()
-        .parse()
-        .map_err(|_| format!("knob {name}: expected a number, found {value:?}"))?;
-    if !value.is_finite() {
-        return Err(format!(
-            "knob {name}: expected a finite number, found {value}"
-        ));
-    }
-    Ok((name.trim().to_string(), value))
+/// `--quality`: one of [`Quality::NAMES`] (listed in the help, each with
+/// its [`Quality::step`], and in a refusal).
+fn quality() -> impl clap::builder::TypedValueParser<Value = Quality> {
+    use clap::builder::{PossibleValue, TypedValueParser as _};
+    let values = Quality::ALL.map(|q| PossibleValue::new(q.name()).help(q.step()));
+    clap::builder::PossibleValuesParser::new(values).try_map(|s| s.parse::<Quality>())
 }
 
 /// `A..B` (B excluded) or `A..=B` (B included), as the inclusive pair (A, last).
@@ -819,6 +850,8 @@ mod tests {
             "b=1",
             "--set",
             "a=0.5",
+            "--set",
+            "b=2",
             "--frames",
             "3..=5",
         ])
@@ -832,7 +865,9 @@ mod tests {
                 height: Some(32),
                 spp: Some(4),
                 quality: Some(Quality::Interactive),
-                knobs: vec![("b".into(), 1.0), ("a".into(), 0.5)],
+                // One value a knob, the last given, in name order: as the
+                // HTTP API's map gives them.
+                knobs: vec![("a".into(), 0.5), ("b".into(), 2.0)],
             }
         );
         assert_eq!(request.frames, FrameRange { first: 3, last: 5 });
@@ -929,7 +964,7 @@ mod tests {
             )
         );
         assert_eq!(a.lease, Duration::from_millis(2500));
-        assert_eq!(render.interleave, 16);
+        assert_eq!(render.units.interleave, 16);
     }
 
     #[test]
@@ -1025,5 +1060,177 @@ mod tests {
                 .unwrap_or_else(|| panic!("{args:?} was accepted"));
             assert!(e.contains(flag), "{args:?}: {e}");
         }
+    }
+
+    #[test]
+    fn serve_and_studio_read_listen_and_access_flags_alike() {
+        let shared = [
+            "--listen",
+            "0.0.0.0:7000",
+            "--local-workers",
+            "2",
+            "--token",
+            "t",
+            "--allow-host",
+            "Farm.LAN",
+        ];
+        let serve = [&["serve", "--data", "d"][..], &shared].concat();
+        let Some(Command::Serve(serve)) = parse(&serve).unwrap().command else {
+            panic!("not a serve")
+        };
+        let studio = [&["studio", "s.ron"][..], &shared].concat();
+        let Some(Command::Studio(studio)) = parse(&studio).unwrap().command else {
+            panic!("not a studio")
+        };
+        let (a, b) = (serve.into_config(), studio.into_config());
+        assert_eq!(
+            (a.listen, a.local_workers, &a.token, &a.allow_hosts),
+            (b.listen, b.local_workers, &b.token, &b.allow_hosts)
+        );
+        assert_eq!(a.listen, "0.0.0.0:7000".parse().unwrap());
+        assert_eq!(a.local_workers, Some(2));
+        assert_eq!(a.token.as_deref(), Some("t"));
+        assert_eq!(a.allow_hosts, ["farm.lan"]);
+        // Each command keeps its own default address.
+        let Some(Command::Studio(studio)) = parse(&["studio", "s.ron"]).unwrap().command else {
+            panic!("not a studio")
+        };
+        assert_eq!(studio.listen.listen, "127.0.0.1:47000".parse().unwrap());
+        let render = parse(&["--scene", "s.ron"]).unwrap();
+        assert_eq!(render.farm.listen.listen, "127.0.0.1:0".parse().unwrap());
+        assert!(render.tls.pair().is_none());
+        let render = parse(&["--scene", "s.ron", "--tls-cert", "c", "--tls-key", "k"]).unwrap();
+        assert_eq!(render.tls.pair(), Some(("c".into(), "k".into())));
+    }
+
+    #[test]
+    fn knobs_and_leases_read_alike_on_every_command() {
+        let knobs = ["--set", "b=1", "--set", "a=0.5", "--set", "b=2"];
+        let render =
+            parse(&[&["--scene", "s.ron", "--lease-timeout", "3"][..], &knobs].concat()).unwrap();
+        assert_eq!(render.farm.lease.lease(), Duration::from_secs(3));
+        let bake = [
+            &["bake", "s.ron", "--out", "f.vdb", "--lease-timeout", "3"][..],
+            &knobs,
+        ];
+        let Some(Command::Bake(bake)) = parse(&bake.concat()).unwrap().command else {
+            panic!("not a bake")
+        };
+        assert_eq!(bake.farm.lease.lease(), Duration::from_secs(3));
+        let eval = [&["eval", "a + b", "--scene", "s.ron"][..], &knobs].concat();
+        let Some(Command::Eval(eval)) = parse(&eval).unwrap().command else {
+            panic!("not an eval")
+        };
+        let given = [("b", 1.0), ("a", 0.5), ("b", 2.0)].map(|(k, v)| (k.to_string(), v));
+        assert_eq!(eval.knobs.set, given);
+        assert_eq!(bake.into_config().knobs, given);
+        assert_eq!(
+            render.request.request(FrameRange::one(0)).overrides.knobs,
+            [("a".to_string(), 0.5), ("b".to_string(), 2.0)]
+        );
+        let Some(Command::Serve(serve)) = parse(&["serve", "--data", "d", "--lease-timeout", "3"])
+            .unwrap()
+            .command
+        else {
+            panic!("not a serve")
+        };
+        assert_eq!(serve.into_config().lease, Duration::from_secs(3));
+        // Each command words `--set` its own way.
+        assert!(help(&["eval"]).contains("Set a knob of the scene (repeatable)\n"));
+        for args in [&[][..], &["bake"], &["submit"]] {
+            assert!(help(args).contains("--set curliness=0.8"), "{args:?}");
+        }
+    }
+
+    /// The help of `args`' command (the subcommand's when given).
+    fn help(args: &[&str]) -> String {
+        use clap::CommandFactory;
+        let mut command = Cli::command();
+        let command = match args {
+            [] => &mut command,
+            [sub, ..] => command.find_subcommand_mut(sub).unwrap(),
+        };
+        command.render_help().to_string()
+    }
+
+    #[test]
+    fn shared_flags_keep_each_commands_help() {
+        // Each help ends as clap ends a doc comment's: no full stop, then
+        // the default or the variable.
+        for (args, words) in [
+            (
+                &[][..],
+                &[
+                    "Where the farm listens for workers. Anything but loopback needs --token \
+                     [default: 127.0.0.1:0]\n",
+                    "Shared secret workers must present (required beyond loopback) \
+                     [env: HYPERTEXTURE_TOKEN]\n",
+                    "TLS certificate (PEM) for the farm's server; needs --tls-key\n",
+                    "[possible values: interactive, high]\n",
+                    "Seconds of silence after which a worker's units go to others [default: 10]\n",
+                ][..],
+            ),
+            (
+                &["serve"],
+                &[
+                    "Where to listen: the workers' gRPC and the HTTP API share this port. \
+                     Anything but loopback needs --token [default: 127.0.0.1:47000]\n",
+                    "0 = remote workers only)\n",
+                    "Shared secret that workers and API clients must present \
+                     (required beyond loopback) [env: HYPERTEXTURE_TOKEN]\n",
+                    "TLS certificate (PEM); needs --tls-key. Covers gRPC and HTTP alike\n",
+                    "--allow-host <NAME>",
+                    "Seconds of silence after which a worker's units go to others [default: 10]\n",
+                ],
+            ),
+            (
+                &["studio"],
+                &[
+                    "Where to listen (port 0: any free port). Anything but loopback needs \
+                     --token [default: 127.0.0.1:47000]\n",
+                    "Local worker processes to start (default: one per core)\n",
+                    "Shared secret workers and the page must present [env: HYPERTEXTURE_TOKEN]\n",
+                    "--allow-host <NAME>",
+                ],
+            ),
+            (
+                &["bake"],
+                &[
+                    "Where the farm listens for workers. Anything but loopback needs --token \
+                     [default: 127.0.0.1:0]\n",
+                    "Set a knob of the scene (repeatable): --set curliness=0.8\n",
+                ],
+            ),
+            (
+                &["submit"],
+                &[
+                    "The service's token (needed beyond loopback) [env: HYPERTEXTURE_TOKEN]\n",
+                    "CA certificate (PEM) to verify an https:// service\n",
+                    "[possible values: interactive, high]\n",
+                ],
+            ),
+        ] {
+            let text = help(args);
+            for w in words {
+                assert!(text.contains(w), "{args:?} lacks {w:?}:\n{text}");
+            }
+            assert!(text.contains("--token <TOKEN>"), "{args:?}");
+        }
+        use clap::CommandFactory;
+        let long = Cli::command().render_long_help().to_string();
+        for w in [
+            "- interactive: The scene's interactive step\n",
+            "- high:        The scene's step\n",
+        ] {
+            assert!(long.contains(w), "{w:?}:\n{long}");
+        }
+    }
+
+    #[test]
+    fn a_quality_is_one_of_the_librarys_names() {
+        let cli = parse(&["--scene", "s.ron", "--quality", "high"]).unwrap();
+        assert_eq!(cli.request.quality, Some(Quality::High));
+        let e = parse(&["--scene", "s.ron", "--quality", "best"]).unwrap_err();
+        assert!(e.contains("interactive") && e.contains("high"), "{e}");
     }
 }

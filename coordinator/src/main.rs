@@ -78,7 +78,7 @@ fn pipeline_command(command: Command) -> Result<ExitCode, String> {
             args.scene.as_deref(),
             args.at,
             args.frame,
-            &args.set,
+            &args.knobs.set,
         )),
         Command::Bake(args) => {
             coordinator::logging::init(args.quiet);

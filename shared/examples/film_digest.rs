@@ -35,10 +35,9 @@ fn run() -> Result<(), String> {
         .ok()
         .filter(|&n| n > 0)
         .ok_or_else(|| format!("SIZE must be a positive integer, not {size:?}; {USAGE}"))?;
-    let quality = match std::env::var("QUALITY").as_deref() {
-        Ok("interactive") => Some(Quality::Interactive),
-        Ok("high") | Err(_) => None,
-        Ok(q) => return Err(format!("QUALITY={q}: interactive or high")),
+    let quality = match std::env::var("QUALITY") {
+        Ok(q) => Some(q.parse::<Quality>().map_err(|e| format!("QUALITY={e}"))?),
+        Err(_) => None,
     };
     for path in scenes {
         let mut scene = Scene::load(

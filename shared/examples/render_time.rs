@@ -52,10 +52,9 @@ fn run() -> Result<(), String> {
             Overrides {
                 width: Some(size),
                 height: Some(size),
-                quality: match std::env::var("QUALITY").as_deref() {
-                    Ok("interactive") => Some(Quality::Interactive),
-                    Ok("high") | Err(_) => None,
-                    Ok(q) => return Err(format!("QUALITY={q}: interactive or high")),
+                quality: match std::env::var("QUALITY") {
+                    Ok(q) => Some(q.parse::<Quality>().map_err(|e| format!("QUALITY={e}"))?),
+                    Err(_) => None,
                 },
                 ..Overrides::default()
             },

@@ -109,11 +109,11 @@ fn plain_worker(argv: &[String]) -> String {
 /// A service listening beyond loopback on the farm's port.
 fn check_listen(args: &ServeArgs) {
     assert!(
-        args.listen.ip().is_unspecified(),
+        args.listen.listen.ip().is_unspecified(),
         "{}: workers elsewhere must reach it",
-        args.listen
+        args.listen.listen
     );
-    assert_eq!(args.listen.port(), PORT);
+    assert_eq!(args.listen.listen.port(), PORT);
 }
 
 fn port_of(url: &str) -> u16 {
@@ -424,7 +424,7 @@ fn systemd_units_match_the_binaries() {
 
     let worker = unit_settings("deploy/systemd/hypertexture-worker.service");
     let url = plain_worker(&exec_start(&worker, "worker"));
-    assert_eq!(port_of(&url), args.listen.port());
+    assert_eq!(port_of(&url), args.listen.listen.port());
     assert_eq!(setting(&worker, "KillSignal"), "SIGTERM");
     assert!(setting(&worker, "EnvironmentFile").starts_with('/'));
 }

@@ -19,19 +19,14 @@ pub struct Cli {
     #[arg(long, value_name = "N", value_parser = threads)]
     pub threads: Option<NonZeroUsize>,
     /// Shared secret the coordinator requires.
-    #[arg(
-        long,
-        env = "HYPERTEXTURE_TOKEN",
-        hide_env_values = true,
-        value_name = "TOKEN"
-    )]
-    pub token: Option<String>,
+    #[command(flatten)]
+    pub token: TokenArg,
     /// Name shown in the coordinator's logs (default: host name and process id).
     #[arg(long, value_name = "NAME")]
     pub name: Option<String>,
-    /// CA certificate (PEM) to verify the coordinator's TLS certificate.
-    #[arg(long, value_name = "FILE")]
-    pub ca: Option<PathBuf>,
+    /// The coordinator's CA.
+    #[command(flatten)]
+    pub ca: CaArg,
     /// Exit when the coordinator says the frame is finished (instead of waiting
     /// for the next render). Used for the coordinator's own local workers.
     #[arg(long)]
@@ -61,7 +56,7 @@ pub struct Cli {
 impl Cli {
     /// The library configuration these arguments ask for.
     pub fn into_config(self) -> Result<WorkerConfig, WorkerError> {
-        let ca = match &self.ca {
+        let ca = match &self.ca.ca {
             Some(path) => Some(read_ca(path).map_err(|source| WorkerError::Ca {
                 path: path.clone(),
                 source,
@@ -74,7 +69,7 @@ impl Cli {
                 || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
                 NonZeroUsize::get,
             ),
-            token: self.token.filter(|t| !t.is_empty()),
+            token: self.token.secret(),
             name: self.name.unwrap_or_else(default_name),
             ca,
             exit_when_done: self.exit_when_done,
@@ -85,6 +80,38 @@ impl Cli {
             asset_cache_bytes: self.asset_cache_mb << 20,
         })
     }
+}
+
+/// `--token`: the farm's shared secret (also from `HYPERTEXTURE_TOKEN`),
+/// flattened into the worker's and the coordinator's commands; each command
+/// words its help with `mut_arg("token", …)`.
+#[derive(Clone, Debug, Default, clap::Args)]
+pub struct TokenArg {
+    /// Shared secret the coordinator requires.
+    #[arg(
+        long,
+        env = "HYPERTEXTURE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+}
+
+impl TokenArg {
+    /// The secret; an empty one is none.
+    pub fn secret(self) -> Option<String> {
+        self.token.filter(|t| !t.is_empty())
+    }
+}
+
+/// `--ca`: the CA certificate (PEM) a client trusts the server's TLS
+/// certificate by (the worker's coordinator, the coordinator's clients'
+/// service).
+#[derive(Clone, Debug, Default, clap::Args)]
+pub struct CaArg {
+    /// CA certificate (PEM) to verify the coordinator's TLS certificate.
+    #[arg(long, value_name = "FILE")]
+    pub ca: Option<PathBuf>,
 }
 
 /// Host name and process id.
@@ -153,8 +180,9 @@ pub fn threads(s: &str) -> Result<NonZeroUsize, String> {
     Ok(n)
 }
 
-/// Seconds: a finite number above 0 and at most a day.
-fn positive_seconds(s: &str) -> Result<f64, String> {
+/// Seconds: a finite number above 0 and at most a day (the time-outs of the
+/// worker's and the coordinator's commands).
+pub fn positive_seconds(s: &str) -> Result<f64, String> {
     let v: f64 = s
         .parse()
         .map_err(|_| format!("expected a number of seconds, found {s:?}"))?;
@@ -162,5 +190,95 @@ fn positive_seconds(s: &str) -> Result<f64, String> {
         Ok(v)
     } else {
         Err(format!("expected seconds between 0 and 86400, found {s}"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<Cli, String> {
+        Cli::try_parse_from(std::iter::once("worker").chain(args.iter().copied()))
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn connection_flags_become_the_config() {
+        let cli = parse(&[
+            "--coordinator",
+            "http://10.0.0.5:50051",
+            "--token",
+            "s3cret",
+            "--threads",
+            "1",
+            "--name",
+            "w1",
+            "--tag",
+            "gpu",
+            "--lease-timeout",
+            "2.5",
+            "--exit-when-done",
+        ])
+        .unwrap();
+        let config = cli.into_config().unwrap();
+        assert_eq!(config.coordinator, "http://10.0.0.5:50051");
+        assert_eq!(config.token.as_deref(), Some("s3cret"));
+        assert_eq!((config.threads, config.name.as_str()), (1, "w1"));
+        assert_eq!(config.tags, ["gpu"]);
+        assert_eq!(config.lease, std::time::Duration::from_millis(2500));
+        assert!(config.exit_when_done && config.ca.is_none());
+    }
+
+    #[test]
+    fn an_empty_token_is_none() {
+        let cli = parse(&["--coordinator", "http://c", "--token", ""]).unwrap();
+        assert_eq!(cli.token.clone().secret(), None);
+        assert_eq!(cli.into_config().unwrap().token, None);
+    }
+
+    #[test]
+    fn a_missing_ca_file_is_named() {
+        let cli = parse(&["--coordinator", "https://c", "--ca", "/nonexistent/ca.pem"]).unwrap();
+        match cli.into_config() {
+            Err(WorkerError::Ca { path, .. }) => {
+                assert_eq!(path, PathBuf::from("/nonexistent/ca.pem"));
+            }
+            other => panic!("expected a CA error, found {other:?}"),
+        }
+    }
+
+    #[test]
+    fn refusals_name_the_flag() {
+        for (args, flag) in [
+            (
+                &["--coordinator", "http://c", "--threads", "0"][..],
+                "--threads",
+            ),
+            (&["--coordinator", "http://c", "--tag", "a b"], "--tag"),
+            (
+                &["--coordinator", "http://c", "--lease-timeout", "0"],
+                "--lease-timeout",
+            ),
+            (&["--token", "t"], "--coordinator"),
+        ] {
+            let e = parse(args)
+                .err()
+                .unwrap_or_else(|| panic!("{args:?} was accepted"));
+            assert!(e.contains(flag), "{args:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn help_words_the_shared_flags_for_the_worker() {
+        use clap::CommandFactory;
+        let help = Cli::command().render_help().to_string();
+        for words in [
+            "--token <TOKEN>",
+            "Shared secret the coordinator requires",
+            "--ca <FILE>",
+            "CA certificate (PEM) to verify the coordinator's TLS certificate",
+        ] {
+            assert!(help.contains(words), "{words:?}:\n{help}");
+        }
     }
 }

@@ -1449,7 +1449,7 @@ async fn start_session(job: &FrameJob, config: &FarmConfig) -> Result<(Farm, usi
     let unit_count = units.len();
     let mut scheduler =
         Scheduler::new(units, width, height, job.request.pixel_format, config.lease).with_frames(
-            crate::farm::scheduler::Frames::consecutive(job.frames.iter().map(|f| f.frame))
+            hypertexture::FrameRange::consecutive(job.frames.iter().map(|f| f.frame))
                 .ok_or_else(|| FarmError::Stopped("a render's frames are consecutive".into()))?,
         );
     scheduler.set_verify(config.verify);
@@ -1559,7 +1559,7 @@ fn write_preview(
     path: PathBuf,
     meta: crate::image::output::ImageMetadata,
 ) -> tokio::task::JoinHandle<()> {
-    let frame = meta.frame;
+    let frame = meta.frame();
     tokio::task::spawn_blocking(move || {
         match crate::image::output::write_frame_image(&image, &path, &meta) {
             Ok(()) => tracing::debug!("preview of frame {frame} → {}", path.display()),

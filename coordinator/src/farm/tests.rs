@@ -102,7 +102,7 @@ fn shared_with_job(sink: Option<Arc<dyn TileSink>>) -> (Arc<Shared>, Vec<WorkUni
         width: 16,
         height: 16,
         format: PixelFormat::Samples,
-        frames: super::scheduler::Frames::one(0),
+        frames: hypertexture::FrameRange::one(0),
         require_tags: Vec::new(),
     };
     shared

@@ -7,7 +7,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use hypertexture::{Film, Overrides, PixelFormat, Quality, RenderRequest, Scene};
+use hypertexture::{Film, FrameRange, Overrides, PixelFormat, RenderRequest, Scene};
 
 use crate::image::canvas::FrameImage;
 
@@ -63,25 +63,14 @@ pub enum OutputError {
 pub struct ImageMetadata {
     /// `hypertexture <version>`.
     pub software: String,
-    /// The scene's name (its file path, or the name a job gave).
-    pub scene_name: String,
-    /// The scene's whole RON text; empty: the image records no scene (it was
-    /// not rendered from one as it is, e.g. recoloured).
-    pub scene_text: String,
-    /// Image width in pixels.
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Samples per pixel given on the command line (`None`: the scene's).
-    pub spp_override: Option<u32>,
-    /// The quality preset given on the command line.
-    pub quality: Option<Quality>,
-    /// Knob overrides, in the order given.
-    pub knobs: Vec<(String, f64)>,
+    /// The request the image was rendered from: the scene's name and whole
+    /// RON text (empty: the image records no scene, it was not rendered from
+    /// one as it is, e.g. recoloured), its overrides with the image's size
+    /// written in ([`RenderRequest::with_size_of`]), and the image's one
+    /// frame.
+    pub request: RenderRequest,
     /// Samples per pixel the image was rendered with.
     pub spp: u32,
-    /// The frame.
-    pub frame: u32,
     /// OpenEXR's `worldToCamera` (row-major, for row vectors).
     pub world_to_camera: Option<[f32; 16]>,
     /// OpenEXR's `worldToNDC` (row-major, for row vectors).
@@ -115,18 +104,13 @@ pub mod keys {
 impl ImageMetadata {
     /// The metadata of frame 0 of `scene`, built from `request`.
     pub fn new(scene: &Scene, request: &RenderRequest) -> ImageMetadata {
-        let overrides = &request.overrides;
         ImageMetadata {
             software: software(),
-            scene_name: request.scene_name.clone(),
-            scene_text: request.scene_text.clone(),
-            width: scene.width(),
-            height: scene.height(),
-            spp_override: overrides.spp,
-            quality: overrides.quality,
-            knobs: overrides.knobs.clone(),
+            request: RenderRequest {
+                frames: FrameRange::one(0),
+                ..request.clone().with_size_of(scene)
+            },
             spp: scene.spp(),
-            frame: 0,
             world_to_camera: Some(scene.camera().world_to_camera()),
             world_to_ndc: Some(scene.camera().world_to_ndc()),
             assets: scene.asset_hashes().to_vec(),
@@ -141,17 +125,13 @@ impl ImageMetadata {
         world_to_camera: Option<[f32; 16]>,
         world_to_ndc: Option<[f32; 16]>,
     ) -> ImageMetadata {
+        let mut request = RenderRequest::new(String::new(), String::new());
+        request.overrides.width = Some(width);
+        request.overrides.height = Some(height);
         ImageMetadata {
             software: software(),
-            scene_name: String::new(),
-            scene_text: String::new(),
-            width,
-            height,
-            spp_override: None,
-            quality: None,
-            knobs: Vec::new(),
+            request,
             spp: 0,
-            frame: 0,
             world_to_camera,
             world_to_ndc,
             assets: Vec::new(),
@@ -161,56 +141,49 @@ impl ImageMetadata {
     /// The scene's fields as (EXR attribute name, value as text), none when
     /// the image records no scene.
     fn scene_fields(&self) -> Vec<(&'static str, String)> {
-        if self.scene_text.is_empty() {
+        if self.request.scene_text.is_empty() {
             return Vec::new();
         }
         vec![
-            (keys::SCENE_NAME, self.scene_name.clone()),
+            (keys::SCENE_NAME, self.request.scene_name.clone()),
             (keys::SCENE_HASH, format!("{:016x}", self.scene_hash())),
-            (keys::FRAME, self.frame.to_string()),
+            (keys::FRAME, self.frame().to_string()),
             (keys::SPP, self.spp.to_string()),
             (keys::OPTIONS, self.options()),
-            (keys::SCENE, self.scene_text.clone()),
+            (keys::SCENE, self.request.scene_text.clone()),
         ]
+    }
+
+    /// The image's frame.
+    pub fn frame(&self) -> u32 {
+        self.request.frames.first
     }
 
     /// The same for `frame`.
     pub fn at_frame(&self, frame: u32) -> ImageMetadata {
-        ImageMetadata {
-            frame,
-            ..self.clone()
-        }
+        let mut meta = self.clone();
+        meta.request.frames = FrameRange::one(frame);
+        meta
     }
 
     /// The hash the farm's workers cache the built scene by (the same inputs).
     pub fn scene_hash(&self) -> u64 {
-        let request = RenderRequest {
-            overrides: Overrides {
-                width: Some(self.width),
-                height: Some(self.height),
-                spp: self.spp_override,
-                quality: self.quality,
-                knobs: self.knobs.clone(),
-            },
-            ..RenderRequest::new(self.scene_text.clone(), self.scene_name.clone())
-        };
-        hypertexture_proto::request::content_hash(&request, &self.assets)
+        hypertexture_proto::request::content_hash(&self.request, &self.assets)
     }
 
     /// The command-line options beside the scene that changed the pixels:
     /// `--spp 4 --quality interactive --set curliness=0.8` (knob values in
     /// Rust's shortest exact form).
     pub fn options(&self) -> String {
+        let overrides = &self.request.overrides;
         let mut words = Vec::new();
-        if let Some(spp) = self.spp_override {
+        if let Some(spp) = overrides.spp {
             words.push(format!("--spp {spp}"));
         }
-        match self.quality {
-            Some(Quality::Interactive) => words.push("--quality interactive".into()),
-            Some(Quality::High) => words.push("--quality high".into()),
-            None => {}
+        if let Some(quality) = overrides.quality {
+            words.push(format!("--quality {quality}"));
         }
-        for (name, value) in &self.knobs {
+        for (name, value) in &overrides.knobs {
             words.push(format!("--set {name}={value:?}"));
         }
         words.join(" ")
@@ -229,18 +202,11 @@ impl ImageMetadata {
                     stored.spp = Some(value.parse().map_err(|_| format!("--spp {value}"))?);
                 }
                 "--quality" => {
-                    stored.quality = Some(match value {
-                        "interactive" => Quality::Interactive,
-                        "high" => Quality::High,
-                        _ => return Err(format!("--quality {value}")),
-                    });
+                    stored.quality = Some(value.parse().map_err(|e| format!("--quality {e}"))?);
                 }
                 "--set" => {
-                    let (name, v) = value
-                        .rsplit_once('=')
-                        .ok_or_else(|| format!("--set {value}"))?;
-                    let v: f64 = v.parse().map_err(|_| format!("--set {value}"))?;
-                    stored.knobs.push((name.to_string(), v));
+                    let knob = Overrides::parse_knob(value).map_err(|e| format!("--set {e}"))?;
+                    stored.knobs.push(knob);
                 }
                 _ => return Err(format!("unknown option {flag}")),
             }
@@ -249,26 +215,10 @@ impl ImageMetadata {
     }
 }
 
-/// What an image written by [`write_image`] says about its render.
-#[derive(Clone, Debug, PartialEq)]
-pub struct StoredRender {
-    /// The scene's name.
-    pub scene_name: String,
-    /// The scene's text.
-    pub scene_text: String,
-    /// The image's width.
-    pub width: u32,
-    /// The image's height.
-    pub height: u32,
-    /// The frame.
-    pub frame: u32,
-    /// The options beside the scene ([`ImageMetadata::parse_options`]: no size).
-    pub options: Overrides,
-}
-
 /// Reads the render stored in a PNG's or EXR's metadata (the scene at most
-/// [`hypertexture::scene::MAX_SCENE_BYTES`]).
-pub fn read_stored_render(path: &Path) -> Result<StoredRender, OutputError> {
+/// [`hypertexture::scene::MAX_SCENE_BYTES`]): the request of
+/// [`ImageMetadata::request`], its size the image's, for full samples.
+pub fn read_stored_render(path: &Path) -> Result<RenderRequest, OutputError> {
     let fail = |message: String| OutputError::Stored {
         path: path.to_path_buf(),
         message,
@@ -308,13 +258,15 @@ pub fn read_stored_render(path: &Path) -> Result<StoredRender, OutputError> {
     };
     let options = ImageMetadata::parse_options(&field(keys::OPTIONS).unwrap_or_default())
         .map_err(|e| fail(format!("`{}`: {e}", keys::OPTIONS)))?;
-    Ok(StoredRender {
-        scene_name: field(keys::SCENE_NAME).unwrap_or_else(|| path.display().to_string()),
-        scene_text,
-        width: number("width")?,
-        height: number("height")?,
-        frame: number(keys::FRAME)?,
-        options,
+    let scene_name = field(keys::SCENE_NAME).unwrap_or_else(|| path.display().to_string());
+    Ok(RenderRequest {
+        overrides: Overrides {
+            width: Some(number("width")?),
+            height: Some(number("height")?),
+            ..options
+        },
+        frames: FrameRange::one(number(keys::FRAME)?),
+        ..RenderRequest::new(scene_text, scene_name)
     })
 }
 
@@ -670,6 +622,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use hypertexture::Quality;
     use hypertexture::Sample;
 
     fn film() -> Film {
@@ -695,15 +648,21 @@ mod tests {
     fn meta() -> ImageMetadata {
         ImageMetadata {
             software: software(),
-            scene_name: "scenes/ünïcode.ron".into(),
-            scene_text: "Scene(image: (width: 5, height: 3)) // ✓".into(),
-            width: 5,
-            height: 3,
-            spp_override: Some(4),
-            quality: Some(Quality::Interactive),
-            knobs: vec![("curliness".into(), 0.1 + 0.2), ("b=c".into(), -1.0)],
+            request: RenderRequest {
+                overrides: Overrides {
+                    width: Some(5),
+                    height: Some(3),
+                    spp: Some(4),
+                    quality: Some(Quality::Interactive),
+                    knobs: vec![("curliness".into(), 0.1 + 0.2), ("b=c".into(), -1.0)],
+                },
+                frames: FrameRange::one(7),
+                ..RenderRequest::new(
+                    "Scene(image: (width: 5, height: 3)) // ✓",
+                    "scenes/ünïcode.ron",
+                )
+            },
             spp: 4,
-            frame: 7,
             world_to_camera: Some(std::array::from_fn(|i| i as f32)),
             world_to_ndc: Some(std::array::from_fn(|i| -(i as f32) / 3.0)),
             assets: Vec::new(),
@@ -861,15 +820,18 @@ mod tests {
             "--spp 4 --quality interactive --set curliness=0.30000000000000004 --set b=c=-1.0"
         );
         let parsed = ImageMetadata::parse_options(&m.options()).unwrap();
-        assert_eq!(parsed.spp, m.spp_override);
-        assert_eq!(parsed.quality, m.quality);
-        assert_eq!(parsed.knobs, m.knobs);
+        let given = &m.request.overrides;
+        assert_eq!(parsed.spp, given.spp);
+        assert_eq!(parsed.quality, given.quality);
+        assert_eq!(parsed.knobs, given.knobs);
         assert_eq!(
             ImageMetadata::parse_options("").unwrap(),
             Overrides::default()
         );
         assert!(ImageMetadata::parse_options("--spp").is_err());
         assert!(ImageMetadata::parse_options("--frobnicate 1").is_err());
+        assert!(ImageMetadata::parse_options("--set k=inf").is_err());
+        assert!(ImageMetadata::parse_options("--quality best").is_err());
     }
 
     #[test]
@@ -894,19 +856,8 @@ mod tests {
             .iter()
             .find(|c| c.keyword == "hypertexture:scene")
             .unwrap();
-        assert_eq!(scene.get_text().unwrap(), meta().scene_text);
-        let stored = read_stored_render(&path).unwrap();
-        assert_eq!(
-            stored,
-            StoredRender {
-                scene_name: meta().scene_name,
-                scene_text: meta().scene_text,
-                width: 5,
-                height: 3,
-                frame: 7,
-                options: ImageMetadata::parse_options(&meta().options()).unwrap(),
-            }
-        );
+        assert_eq!(scene.get_text().unwrap(), meta().request.scene_text);
+        assert_eq!(read_stored_render(&path).unwrap(), meta().request);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -929,7 +880,7 @@ mod tests {
             Some(AttributeValue::Text(t)) => String::from_utf8(t.bytes().to_vec()).unwrap(),
             other => panic!("{key}: {other:?}"),
         };
-        assert_eq!(text(keys::SCENE), meta().scene_text);
+        assert_eq!(text(keys::SCENE), meta().request.scene_text);
         assert_eq!(
             text(keys::SCENE_HASH),
             format!("{:016x}", meta().scene_hash())
@@ -955,8 +906,7 @@ mod tests {
         assert_eq!(names, sorted);
         assert!(names.contains(&"worldToNDC".to_string()), "{names:?}");
         let stored = read_stored_render(&path).unwrap();
-        assert_eq!((stored.width, stored.height, stored.frame), (5, 3, 7));
-        assert_eq!(stored.scene_text, meta().scene_text);
+        assert_eq!(stored, meta().request);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -190,7 +190,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
         Some((a, b)) => (a..=b).collect(),
         None => vec![config.frame],
     };
-    let range = crate::farm::scheduler::Frames::new(frames[0], frames[frames.len() - 1]);
+    let range = hypertexture::FrameRange::new(frames[0], frames[frames.len() - 1]);
     crate::pipeline::destination::check_pattern(&config.out, range, Path::new(""))
         .map_err(|e| CoordinatorError::Bake(format!("--{e}")))?;
     if !(2..=MAX_RESOLUTION).contains(&config.resolution) {
@@ -207,7 +207,7 @@ pub fn run(config: &BakeConfig) -> Result<Vec<BakeSummary>, CoordinatorError> {
     let name = config.scene.display().to_string();
     let request = RenderRequest {
         overrides: Overrides {
-            knobs: config.knobs.clone(),
+            knobs: Overrides::knob_list(config.knobs.iter().cloned()),
             ..Overrides::default()
         },
         ..RenderRequest::new(hypertexture::scene::read_text(&config.scene)?, &name)

@@ -5,7 +5,7 @@
 
 use std::path::{Component, Path, PathBuf};
 
-use crate::farm::scheduler::Frames;
+use hypertexture::FrameRange;
 
 /// The longest run of `#`: a frame number (a `u32`, at most 10 digits) padded
 /// to 9 digits covers every sequence of fewer than a billion frames.
@@ -77,7 +77,7 @@ pub fn expand_pattern(pattern: &str, frame: u32) -> String {
 /// [`MAX_HASH_RUN`] long, and the longest expansion (that of the last frame:
 /// a number never has fewer digits than a smaller one) at most [`PATH_MAX`]
 /// bytes in all and [`NAME_MAX`] a component, made absolute against `base`.
-pub fn check_pattern(pattern: &str, frames: Frames, base: &Path) -> Result<(), OutputError> {
+pub fn check_pattern(pattern: &str, frames: FrameRange, base: &Path) -> Result<(), OutputError> {
     let refuse = |message: String| OutputError::Pattern {
         pattern: pattern.to_string(),
         message,
@@ -94,7 +94,7 @@ pub fn check_pattern(pattern: &str, frames: Frames, base: &Path) -> Result<(), O
             frames.len()
         )));
     }
-    let last = frames.last();
+    let last = frames.last;
     let path = base.join(expand_pattern(pattern, last));
     let bytes = path.as_os_str().len();
     if bytes > PATH_MAX {
@@ -238,18 +238,18 @@ mod tests {
     #[test]
     fn patterns_are_checked_on_their_longest_expansion() {
         let base = Path::new("/tmp");
-        check_pattern("f.#########.png", Frames::new(0, 99_999), base).unwrap();
-        let e = check_pattern("f.##########.png", Frames::one(0), base).unwrap_err();
+        check_pattern("f.#########.png", FrameRange::new(0, 99_999), base).unwrap();
+        let e = check_pattern("f.##########.png", FrameRange::one(0), base).unwrap_err();
         assert!(e.to_string().contains("run of 10 #"), "{e}");
-        let e = check_pattern("f.png", Frames::new(0, 1), base).unwrap_err();
+        let e = check_pattern("f.png", FrameRange::new(0, 1), base).unwrap_err();
         assert!(e.to_string().contains("need a #"), "{e}");
         // 251 + 4 bytes is NAME_MAX exactly; 6-digit frames make it longer.
         let name = format!("{}#.png", "n".repeat(250));
-        check_pattern(&name, Frames::new(0, 9), base).unwrap();
-        let e = check_pattern(&name, Frames::new(0, 10), base).unwrap_err();
+        check_pattern(&name, FrameRange::new(0, 9), base).unwrap();
+        let e = check_pattern(&name, FrameRange::new(0, 10), base).unwrap_err();
         assert!(e.to_string().contains("NAME_MAX allows 255"), "{e}");
         let deep = format!("{}/x.png", vec!["d".repeat(200); 21].join("/"));
-        let e = check_pattern(&deep, Frames::one(0), base).unwrap_err();
+        let e = check_pattern(&deep, FrameRange::one(0), base).unwrap_err();
         assert!(e.to_string().contains("PATH_MAX allows 4095"), "{e}");
     }
 

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use hypertexture::{Film, FrameRange, RenderRequest, Scene, SceneError};
+use hypertexture::{Film, FrameRange, Overrides, RenderRequest, Scene, SceneError};
 
 use crate::farm;
 use crate::image::output::{ImageFormat, ImageMetadata};
@@ -159,21 +159,21 @@ fn read_scene(
         scene.display(),
         stored.scene_name
     );
-    let (o, given) = (stored.options, request.overrides);
+    let (o, given) = (stored.overrides, request.overrides);
     let frames = if sequence || request.frames.first != 0 {
         request.frames
     } else {
-        FrameRange::one(stored.frame)
+        stored.frames
     };
     Ok(RenderRequest {
         scene_text: stored.scene_text,
         scene_name: stored.scene_name,
         overrides: hypertexture::Overrides {
-            width: given.width.or(Some(stored.width)),
-            height: given.height.or(Some(stored.height)),
+            width: given.width.or(o.width),
+            height: given.height.or(o.height),
             spp: given.spp.or(o.spp),
             quality: given.quality.or(o.quality),
-            knobs: o.knobs.into_iter().chain(given.knobs).collect(),
+            knobs: Overrides::knob_list(o.knobs.into_iter().chain(given.knobs)),
         },
         frames,
         ..request
@@ -312,7 +312,7 @@ fn write_frame(
     how: &str,
 ) -> Result<Summary, CoordinatorError> {
     crate::image::output::write_frame_image(image, out, meta)?;
-    let frame = meta.frame;
+    let frame = meta.frame();
     tracing::info!(
         "rendered {} ({}×{}, frame {frame}) with {how} in {:.3} s → {}",
         config.scene.display(),

@@ -183,7 +183,7 @@ fn one_line(s: &str) -> String {
 )]
 struct ApiDoc;
 
-/// Adds the `bearer` security scheme.
+/// Adds the `bearer` security scheme and the quality preset's schema.
 struct BearerScheme;
 
 impl Modify for BearerScheme {
@@ -192,6 +192,11 @@ impl Modify for BearerScheme {
         components.add_security_scheme(
             "bearer",
             SecurityScheme::Http(Http::new(HttpAuthScheme::Bearer)),
+        );
+        // The library's `Quality`, which the job's `quality` field names.
+        components.schemas.insert(
+            crate::service::jobs::QUALITY_SCHEMA.into(),
+            crate::service::jobs::quality_schema().into(),
         );
     }
 }

@@ -881,10 +881,7 @@ mod tests {
             (spec.width, spec.height, spec.spp),
             (Some(320), None, Some(4))
         );
-        assert_eq!(
-            spec.quality,
-            Some(crate::service::jobs::QualitySpec::Interactive)
-        );
+        assert_eq!(spec.quality, Some(hypertexture::Quality::Interactive));
         assert_eq!(
             spec.knobs,
             BTreeMap::from([("amp".to_string(), 2.0), ("curliness".to_string(), 0.8)])

@@ -8,7 +8,7 @@
 
 use std::collections::BTreeMap;
 
-use hypertexture::{FrameRange, Overrides, RenderRequest};
+use hypertexture::{FrameRange, Overrides, Quality, RenderRequest};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
@@ -68,7 +68,8 @@ mod json {
         pub spp: Option<u32>,
         /// `interactive` or `high` (the scene's step when absent).
         #[serde(default)]
-        pub quality: Option<QualitySpec>,
+        #[schema(schema_with = super::optional_quality_schema)]
+        pub quality: Option<Quality>,
         /// Knob overrides, applied in name order.
         #[serde(default)]
         pub knobs: BTreeMap<String, f64>,
@@ -105,8 +106,8 @@ impl From<JobJson> for JobSpec {
                 width: json.width,
                 height: json.height,
                 spp: json.spp,
-                quality: json.quality.map(Into::into),
-                knobs: json.knobs.into_iter().collect(),
+                quality: json.quality,
+                knobs: Overrides::knob_list(json.knobs),
             },
             frames,
             pixel_format: crate::image::output::pixel_format_for([std::path::Path::new(&json.out)]),
@@ -139,40 +140,37 @@ impl From<JobSpec> for JobJson {
             width: overrides.width,
             height: overrides.height,
             spp: overrides.spp,
-            quality: overrides.quality.map(Into::into),
+            quality: overrides.quality,
             knobs: overrides.knobs.into_iter().collect(),
             require_tags: spec.require_tags,
         }
     }
 }
 
-/// The marching step preset as the API, the studio and the command line
-/// spell it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum QualitySpec {
-    /// The scene's interactive step.
-    Interactive,
-    /// The scene's step.
-    High,
+/// The name of [`Quality`]'s schema in the API's document.
+pub const QUALITY_SCHEMA: &str = "QualitySpec";
+
+/// [`Quality`]'s schema in the API's document (the component
+/// [`QUALITY_SCHEMA`]): its names, [`Quality::NAMES`].
+pub fn quality_schema() -> utoipa::openapi::schema::Object {
+    utoipa::openapi::schema::ObjectBuilder::new()
+        .schema_type(utoipa::openapi::schema::Type::String)
+        .description(Some(
+            "The marching step preset: `interactive` (the scene's interactive step) or `high` \
+             (the scene's step).",
+        ))
+        .enum_values(Some(Quality::NAMES))
+        .build()
 }
 
-impl From<QualitySpec> for hypertexture::Quality {
-    fn from(q: QualitySpec) -> Self {
-        match q {
-            QualitySpec::Interactive => hypertexture::Quality::Interactive,
-            QualitySpec::High => hypertexture::Quality::High,
-        }
-    }
-}
-
-impl From<hypertexture::Quality> for QualitySpec {
-    fn from(q: hypertexture::Quality) -> Self {
-        match q {
-            hypertexture::Quality::Interactive => QualitySpec::Interactive,
-            hypertexture::Quality::High => QualitySpec::High,
-        }
-    }
+/// The schema of an optional [`Quality`] field: null or [`QUALITY_SCHEMA`].
+fn optional_quality_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use utoipa::openapi::schema::{Object, OneOfBuilder, Ref, Schema, Type};
+    let one_of = OneOfBuilder::new()
+        .item(Object::with_type(Type::Null))
+        .item(Ref::from_schema_name(QUALITY_SCHEMA))
+        .build();
+    Schema::OneOf(one_of).into()
 }
 
 /// Where a job is in its life.
@@ -447,9 +445,13 @@ mod tests {
     }
 
     #[test]
-    fn qualities_convert_both_ways() {
-        for q in [QualitySpec::Interactive, QualitySpec::High] {
-            assert_eq!(QualitySpec::from(Quality::from(q)), q);
+    fn qualities_are_spelt_as_the_library_names_them() {
+        for q in Quality::ALL {
+            let json = serde_json::to_string(&q).unwrap();
+            assert_eq!(json, format!("\"{q}\""));
+            assert_eq!(serde_json::from_str::<Quality>(&json).unwrap(), q);
         }
+        let schema = serde_json::to_value(quality_schema()).unwrap();
+        assert_eq!(schema["enum"], serde_json::json!(Quality::NAMES));
     }
 }

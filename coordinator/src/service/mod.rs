@@ -35,7 +35,7 @@ use hypertexture::FrameRange;
 use hypertexture::render::interleave::farm_units;
 use serde::{Deserialize, Serialize};
 
-use crate::farm::scheduler::{Accepted, CompletedFrame, Frames, JobId, JobPlan, Resume, Scheduler};
+use crate::farm::scheduler::{Accepted, CompletedFrame, JobId, JobPlan, Resume, Scheduler};
 use crate::farm::{self, Farm, FarmConfig, FarmError, Shared, TileSink, WireJob};
 use crate::pipeline::destination::{self, expand_pattern};
 use crate::service::jobs::{ApiError, Control, JobSpec, JobState, JobView, WorkerView};
@@ -110,7 +110,7 @@ struct JobMeta {
     state: JobState,
     error: Option<String>,
     outputs: Vec<String>,
-    frames: Frames,
+    frames: FrameRange,
     units_per_frame: u64,
     scene_name: String,
     /// What its images record (`None` for a job that has ended).
@@ -219,10 +219,10 @@ fn unix_ms() -> u64 {
 }
 
 /// The frames of a job.
-fn frames_of(spec: &JobSpec) -> Result<Frames, String> {
+fn frames_of(spec: &JobSpec) -> Result<FrameRange, String> {
     match spec.request.frames {
-        FrameRange { first, last } if first <= last && last - first < 100_000 => {
-            Ok(Frames::new(first, last))
+        frames @ FrameRange { first, last } if first <= last && last - first < 100_000 => {
+            Ok(frames)
         }
         FrameRange { first, last } => Err(format!(
             "frames [{first}, {last}]: the first must not be after the last, and a job has at most 100000"
@@ -234,7 +234,7 @@ fn frames_of(spec: &JobSpec) -> Result<Frames, String> {
 struct Checked {
     /// The scene, and the request as the farm sends it.
     built: hypertexture_proto::request::Built,
-    frames: Frames,
+    frames: FrameRange,
     /// What its images record.
     metadata: Arc<crate::image::output::ImageMetadata>,
 }
@@ -264,7 +264,7 @@ fn check_spec(
     destination::check_pattern(&spec.out, frames, base).map_err(|e| bad(e.to_string()))?;
     // Every frame's file has the first one's extension: a `#` run in it
     // would make digits, and no format is named by digits.
-    let first = PathBuf::from(expand_pattern(&spec.out, frames.first()));
+    let first = PathBuf::from(expand_pattern(&spec.out, frames.first));
     crate::image::output::ImageFormat::from_path(&first).map_err(|e| bad(e.to_string()))?;
     roots
         .resolve(&spec.out, &first, base)
@@ -319,8 +319,8 @@ impl Service {
             // The wire form takes the first frame (each assignment sets its
             // own); the files are expanded as each frame is written.
             frames: vec![farm::FrameOut {
-                frame: frames.first(),
-                out: PathBuf::from(expand_pattern(&spec.out, frames.first())),
+                frame: frames.first,
+                out: PathBuf::from(expand_pattern(&spec.out, frames.first)),
             }],
             metadata: checked.metadata.clone(),
             assets: Vec::new(),
@@ -1281,7 +1281,7 @@ mod tests {
         );
         assert_eq!((spec.out.as_str(), spec.priority), ("/tmp/r/f_##.png", 2));
         assert_eq!((stored.interleave, stored.expected_workers), (8, 64));
-        assert_eq!(frames_of(spec), Ok(Frames::one(0)));
+        assert_eq!(frames_of(spec), Ok(FrameRange::one(0)));
         // Written again and read back: the same job.
         let json = stored_spec_json(spec, 8, 64).unwrap();
         let again: StoredSpec = serde_json::from_str(&json).unwrap();
@@ -1322,8 +1322,8 @@ mod tests {
         assert_eq!((built.scene.width(), built.scene.spp()), (40, 2));
         assert_eq!(built.request.overrides.width, Some(40));
         assert_eq!(built.request.overrides.height, Some(built.scene.height()));
-        assert_eq!(checked.frames, Frames::new(3, 4));
-        assert_eq!(checked.metadata.spp_override, Some(2));
+        assert_eq!(checked.frames, FrameRange::new(3, 4));
+        assert_eq!(checked.metadata.request.overrides.spp, Some(2));
         let shared = hypertexture::render::request::shared_scene(built.hash).unwrap();
         assert!(
             Arc::ptr_eq(&shared, &built.scene),

@@ -17,7 +17,10 @@ use crate::render::bake::Lattice;
 use crate::render::film::PixelFormat;
 use crate::scene::{Assets, Overrides, Scene, SceneError};
 
-/// The first and last frame of a request (inclusive).
+/// The first and last frame of a request (inclusive): the frames a job
+/// renders one after another, counted and indexed from 0 as the farm's
+/// scheduler walks them. A `last` before `first` is taken as `first`. Held as
+/// its two ends: a range of 100,000 frames takes the room of one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameRange {
     /// The first frame.
@@ -27,22 +30,71 @@ pub struct FrameRange {
 }
 
 impl FrameRange {
-    /// The single frame `frame`.
-    pub const fn one(frame: u32) -> FrameRange {
+    /// The frames `first..=last` (`last` before `first` is taken as `first`).
+    pub const fn new(first: u32, last: u32) -> FrameRange {
         FrameRange {
-            first: frame,
-            last: frame,
+            first,
+            last: if last < first { first } else { last },
         }
     }
 
-    /// Frames in the range.
-    pub const fn len(self) -> u64 {
-        self.last as u64 - self.first as u64 + 1
+    /// The single frame `frame`.
+    pub const fn one(frame: u32) -> FrameRange {
+        FrameRange::new(frame, frame)
+    }
+
+    /// The frames of `numbers` when they are consecutive and increasing (and
+    /// at least one), else `None`.
+    pub fn consecutive(mut numbers: impl Iterator<Item = u32>) -> Option<FrameRange> {
+        let first = numbers.next()?;
+        let mut last = first;
+        for n in numbers {
+            if last.checked_add(1) != Some(n) {
+                return None;
+            }
+            last = n;
+        }
+        Some(FrameRange { first, last })
+    }
+
+    /// The last frame, at least the first.
+    const fn end(self) -> u32 {
+        if self.last < self.first {
+            self.first
+        } else {
+            self.last
+        }
+    }
+
+    /// Frames in the range (at most 2³², which a 64-bit `usize` holds; a
+    /// narrower one saturates).
+    pub fn len(self) -> usize {
+        usize::try_from(u64::from(self.end() - self.first) + 1).unwrap_or(usize::MAX)
     }
 
     /// Always false: a range holds at least its first frame.
     pub const fn is_empty(self) -> bool {
         false
+    }
+
+    /// The `index`-th frame (from 0).
+    pub fn get(self, index: usize) -> Option<u32> {
+        u32::try_from(index)
+            .ok()
+            .and_then(|i| self.first.checked_add(i))
+            .filter(|&f| f <= self.end())
+    }
+
+    /// The index of frame `frame` (from 0).
+    pub fn index_of(self, frame: u32) -> Option<usize> {
+        self.iter()
+            .contains(&frame)
+            .then(|| (frame - self.first) as usize)
+    }
+
+    /// Every frame, in order.
+    pub fn iter(self) -> std::ops::RangeInclusive<u32> {
+        self.first..=self.end()
     }
 }
 
@@ -148,13 +200,45 @@ mod tests {
     fn frame_ranges_count_their_frames() {
         assert_eq!(FrameRange::one(7).len(), 1);
         assert_eq!(FrameRange { first: 3, last: 9 }.len(), 7);
+        #[cfg(target_pointer_width = "64")]
+        assert_eq!(FrameRange::new(0, u32::MAX).len(), 1 << 32);
+        // A last frame before the first is the first.
+        assert_eq!(FrameRange::new(5, 2), FrameRange::one(5));
+        assert_eq!(FrameRange { first: 5, last: 2 }.len(), 1);
+        assert_eq!(FrameRange { first: 5, last: 2 }.iter().count(), 1);
+    }
+
+    #[test]
+    fn frame_ranges_index_their_frames() {
+        let frames = FrameRange::new(3, 5);
+        assert_eq!(frames.iter().collect::<Vec<_>>(), [3, 4, 5]);
         assert_eq!(
-            FrameRange {
-                first: 0,
-                last: u32::MAX
-            }
-            .len(),
-            1 << 32
+            (frames.get(0), frames.get(2), frames.get(3)),
+            (Some(3), Some(5), None)
+        );
+        assert_eq!(frames.get(usize::MAX), None);
+        assert_eq!(
+            (frames.index_of(3), frames.index_of(5), frames.index_of(2)),
+            (Some(0), Some(2), None)
+        );
+        assert_eq!(frames.index_of(6), None);
+        let top = FrameRange::new(u32::MAX - 1, u32::MAX);
+        assert_eq!((top.get(1), top.get(2)), (Some(u32::MAX), None));
+    }
+
+    #[test]
+    fn consecutive_frames_make_a_range() {
+        assert_eq!(
+            FrameRange::consecutive([4, 5, 6].into_iter()),
+            Some(FrameRange::new(4, 6))
+        );
+        assert_eq!(FrameRange::consecutive([4, 6].into_iter()), None);
+        assert_eq!(FrameRange::consecutive([5, 4].into_iter()), None);
+        assert_eq!(FrameRange::consecutive(std::iter::empty()), None);
+        assert_eq!(
+            FrameRange::consecutive([u32::MAX, 0].into_iter()),
+            None,
+            "no wrap past the last frame number"
         );
     }
 

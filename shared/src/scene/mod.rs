@@ -212,8 +212,45 @@ pub struct Overrides {
     pub spp: Option<u32>,
     /// The marching step preset (`--quality`).
     pub quality: Option<Quality>,
-    /// Knob values (`--set name=value`), applied in order.
+    /// Knob values (`--set name=value`), one per name in name order
+    /// ([`Overrides::knob_list`]), applied in order.
     pub knobs: Vec<(String, f64)>,
+}
+
+impl Overrides {
+    /// Knob values as a request holds them, whatever form they were given
+    /// in (the HTTP API's and a stored job's JSON map, `--set` flags, the
+    /// studio's sliders, an image's stored options): one per name, in name
+    /// order, a later value for a name replacing an earlier one. Applying
+    /// them gives the scene the given values would; equal values give equal
+    /// requests, and so equal content hashes.
+    pub fn knob_list(knobs: impl IntoIterator<Item = (String, f64)>) -> Vec<(String, f64)> {
+        knobs
+            .into_iter()
+            .collect::<BTreeMap<String, f64>>()
+            .into_iter()
+            .collect()
+    }
+
+    /// One knob setting as `--set` and an image's stored options write it,
+    /// `name=value` (the value after the last `=`, a finite number; spaces
+    /// around either are dropped). The refusal names what is wrong.
+    pub fn parse_knob(setting: &str) -> Result<(String, f64), String> {
+        let (name, value) = setting
+            .rsplit_once('=')
+            .ok_or_else(|| format!("expected KNOB=VALUE, found {setting:?}"))?;
+        let name = name.trim();
+        let value: f64 = value
+            .trim()
+            .parse()
+            .map_err(|_| format!("knob {name}: expected a number, found {value:?}"))?;
+        if !value.is_finite() {
+            return Err(format!(
+                "knob {name}: expected a finite number, found {value}"
+            ));
+        }
+        Ok((name.to_string(), value))
+    }
 }
 
 /// Where [`SceneError`] meets the expressions: a compile error located in the
@@ -286,14 +323,62 @@ pub fn knob_values(
     Ok(values)
 }
 
-/// The two sampling presets of Gilet & Dischler's Figures 11–12.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+/// The two sampling presets of Gilet & Dischler's Figures 11–12: the
+/// marching step a request asks for. Spelt `interactive` and `high` by the
+/// command line (`--quality`), the HTTP API and the studio (JSON), and an
+/// image's stored options ([`Quality::NAMES`]; [`std::str::FromStr`] and
+/// [`std::fmt::Display`] are the one parse and display).
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
 pub enum Quality {
     /// Interactive exploration: the scene's `interactive_step` (4 × `step` by default).
     Interactive,
     /// High quality: the scene's `step`.
     #[default]
     High,
+}
+
+impl Quality {
+    /// Every preset, in the order of [`Quality::NAMES`].
+    pub const ALL: [Quality; 2] = [Quality::Interactive, Quality::High];
+    /// The presets' names.
+    pub const NAMES: [&'static str; 2] = ["interactive", "high"];
+
+    /// The preset's name.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Quality::Interactive => Quality::NAMES[0],
+            Quality::High => Quality::NAMES[1],
+        }
+    }
+
+    /// The step the preset marches with, in words (the command line's help).
+    pub const fn step(self) -> &'static str {
+        match self {
+            Quality::Interactive => "The scene's interactive step",
+            Quality::High => "The scene's step",
+        }
+    }
+}
+
+impl std::fmt::Display for Quality {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Quality {
+    type Err = String;
+
+    /// `interactive` or `high`; anything else is refused naming both.
+    fn from_str(s: &str) -> Result<Quality, String> {
+        Quality::ALL
+            .into_iter()
+            .find(|q| q.name() == s)
+            .ok_or_else(|| format!("{s:?}: expected `interactive` or `high`"))
+    }
 }
 
 /// How the shading normal is estimated (see [`desc::GradientDesc`]).
@@ -1008,6 +1093,53 @@ impl Scene {
                 Some(pose) => self.support.map(|b| pose.world_support(b)),
                 None => self.support,
             },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quality_names_parse_and_display_one_way() {
+        for (q, name) in Quality::ALL.into_iter().zip(Quality::NAMES) {
+            assert_eq!(q.to_string(), name);
+            assert_eq!(name.parse::<Quality>(), Ok(q));
+        }
+        let e = "best".parse::<Quality>().unwrap_err();
+        assert!(e.contains("\"best\"") && e.contains("interactive"), "{e}");
+        assert!("High".parse::<Quality>().is_err(), "names are lower case");
+    }
+
+    #[test]
+    fn knob_lists_hold_one_value_a_name_in_name_order() {
+        let given = [("b", 1.0), ("a", 2.0), ("b", 3.0)].map(|(k, v)| (k.to_string(), v));
+        assert_eq!(
+            Overrides::knob_list(given),
+            [("a".to_string(), 2.0), ("b".to_string(), 3.0)]
+        );
+        assert!(Overrides::knob_list(Vec::new()).is_empty());
+    }
+
+    #[test]
+    fn a_knob_setting_is_its_name_and_a_finite_number() {
+        assert_eq!(
+            Overrides::parse_knob(" curliness = 0.8 "),
+            Ok(("curliness".to_string(), 0.8))
+        );
+        assert_eq!(
+            Overrides::parse_knob("b=c=-1.0"),
+            Ok(("b=c".to_string(), -1.0))
+        );
+        for (bad, says) in [
+            ("curliness", "KNOB=VALUE"),
+            ("k=x", "knob k: expected a number"),
+            ("k=inf", "knob k: expected a finite number"),
+            ("k=NaN", "knob k: expected a finite number"),
+        ] {
+            let e = Overrides::parse_knob(bad).unwrap_err();
+            assert!(e.contains(says), "{bad}: {e}");
         }
     }
 }

@@ -98,7 +98,7 @@ mod tests {
         let units = work_units(8, 8, 8, 4096);
         let n = units.len();
         let mut s = Scheduler::new(units, 8, 8, PixelFormat::Samples, Duration::from_secs(5))
-            .with_frames(Frames::new(3, 4));
+            .with_frames(FrameRange::new(3, 4));
         let (a, b) = (s.register("a", 1, now), s.register("b", 1, now));
         let mut first_frame = Vec::new();
         for _ in 0..n {

@@ -40,8 +40,8 @@ mod workers;
 pub use failures::Counted;
 pub use queue::Next;
 pub use state::{
-    Accepted, Check, CheckWhy, CompletedFrame, Frames, GiveUp, JobId, JobPlan, JobProgress,
-    MAX_FAILURES, ONE_SHOT_JOB, Refusal, Resume, Scheduler, UnitFailure, WorkerState, describe,
+    Accepted, Check, CheckWhy, CompletedFrame, GiveUp, JobId, JobPlan, JobProgress, MAX_FAILURES,
+    ONE_SHOT_JOB, Refusal, Resume, Scheduler, UnitFailure, WorkerState, describe,
 };
 pub use tiles::Keep;
 pub use verify::{CheckOutcome, Liar, Verdict};

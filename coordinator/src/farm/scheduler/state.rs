@@ -6,8 +6,8 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
-use hypertexture::PixelFormat;
 use hypertexture::render::interleave::WorkUnit;
+use hypertexture::{FrameRange, PixelFormat};
 use hypertexture_proto::FailureKind;
 
 use crate::image::canvas::{Canvas, FrameImage};
@@ -223,7 +223,7 @@ impl Job {
 
     pub(super) fn frame(&self) -> u32 {
         let frames = &self.plan.frames;
-        frames.get(self.current).unwrap_or(frames.last())
+        frames.get(self.current).unwrap_or(frames.last)
     }
 
     pub(super) fn finished(&self) -> bool {
@@ -379,7 +379,7 @@ impl Scheduler {
     }
 
     /// Renders these frames of the one-shot job (in order, at least one) instead of frame 0.
-    pub fn with_frames(mut self, frames: Frames) -> Scheduler {
+    pub fn with_frames(mut self, frames: FrameRange) -> Scheduler {
         if let Some(job) = self.jobs.get_mut(&ONE_SHOT_JOB) {
             job.plan.frames = frames;
         }
@@ -594,84 +594,6 @@ pub struct CompletedFrame {
     pub render_time: Duration,
 }
 
-/// A job's frames: the consecutive numbers `first..=last`, held as their two
-/// ends, so a job of 100,000 frames takes the room of a job of one and is
-/// added (or restored) as quickly.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Frames {
-    first: u32,
-    last: u32,
-}
-
-impl Frames {
-    /// The frames `first..=last` (`last` before `first` is taken as `first`).
-    pub fn new(first: u32, last: u32) -> Frames {
-        Frames {
-            first,
-            last: last.max(first),
-        }
-    }
-
-    /// The one frame `frame`.
-    pub fn one(frame: u32) -> Frames {
-        Frames::new(frame, frame)
-    }
-
-    /// The frames of `numbers` when they are consecutive and increasing (and
-    /// at least one), else `None`.
-    pub fn consecutive(mut numbers: impl Iterator<Item = u32>) -> Option<Frames> {
-        let first = numbers.next()?;
-        let mut last = first;
-        for n in numbers {
-            if last.checked_add(1) != Some(n) {
-                return None;
-            }
-            last = n;
-        }
-        Some(Frames { first, last })
-    }
-
-    /// How many frames.
-    pub fn len(&self) -> usize {
-        (self.last - self.first) as usize + 1
-    }
-
-    /// Never: a job has at least one frame (for clippy's `len_without_is_empty`).
-    pub fn is_empty(&self) -> bool {
-        false
-    }
-
-    /// The first frame.
-    pub fn first(&self) -> u32 {
-        self.first
-    }
-
-    /// The last frame.
-    pub fn last(&self) -> u32 {
-        self.last
-    }
-
-    /// The `index`-th frame (from 0).
-    pub fn get(&self, index: usize) -> Option<u32> {
-        u32::try_from(index)
-            .ok()
-            .and_then(|i| self.first.checked_add(i))
-            .filter(|&f| f <= self.last)
-    }
-
-    /// The index of frame `frame` (from 0).
-    pub fn index_of(&self, frame: u32) -> Option<usize> {
-        (self.first..=self.last)
-            .contains(&frame)
-            .then(|| (frame - self.first) as usize)
-    }
-
-    /// Every frame, in order.
-    pub fn iter(&self) -> std::ops::RangeInclusive<u32> {
-        self.first..=self.last
-    }
-}
-
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Lease {
     pub(super) job: JobId,
@@ -698,7 +620,7 @@ pub struct JobPlan {
     /// What its tiles carry.
     pub format: PixelFormat,
     /// Its frames, in order (at least one).
-    pub frames: Frames,
+    pub frames: FrameRange,
     /// Tags a worker must carry to render it.
     pub require_tags: Vec<String>,
 }
@@ -720,7 +642,7 @@ impl JobPlan {
             width,
             height,
             format,
-            frames: Frames::one(0),
+            frames: FrameRange::one(0),
             require_tags: Vec::new(),
         }
     }

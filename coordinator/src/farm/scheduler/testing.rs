@@ -4,7 +4,7 @@
 pub(super) use std::time::{Duration, Instant};
 
 pub(super) use hypertexture::render::interleave::{WorkUnit, work_units};
-pub(super) use hypertexture::{PixelFormat, Sample};
+pub(super) use hypertexture::{FrameRange, PixelFormat, Sample};
 pub(super) use hypertexture_proto::{FailureKind, convert};
 
 pub(super) use std::collections::HashMap;
@@ -114,7 +114,7 @@ pub(super) fn plan(id: JobId, priority: i32, tags: &[&str]) -> JobPlan {
         width: 8,
         height: 8,
         format: PixelFormat::Samples,
-        frames: Frames::one(0),
+        frames: FrameRange::one(0),
         require_tags: tags.iter().map(|t| t.to_string()).collect(),
     }
 }

@@ -535,7 +535,7 @@ mod tests {
         let units = work_units(16, 16, 8, 4096);
         let n = units.len();
         let mut s = Scheduler::new(units, 16, 16, PixelFormat::Samples, Duration::from_secs(5))
-            .with_frames(Frames::new(0, 2));
+            .with_frames(FrameRange::new(0, 2));
         let (liar, good) = (s.register("liar", 1, now), s.register("good", 1, now));
         // Frame 0: none of the liar's garbage is sampled, so it goes out.
         render_frame_part(&mut s, &liar, 1e38, n / 2, now);
@@ -595,7 +595,7 @@ mod tests {
             width: 16,
             height: 16,
             format: PixelFormat::Samples,
-            frames: Frames::new(4, 6),
+            frames: FrameRange::new(4, 6),
             require_tags: Vec::new(),
         };
         let mut s = Scheduler::service(Duration::from_secs(5));

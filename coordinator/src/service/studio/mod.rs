@@ -64,13 +64,13 @@ use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
 use hypertexture::desc::KnobDesc;
 use hypertexture::render::interleave::{WorkUnit, farm_units};
-use hypertexture::{Overrides, PixelFormat, RenderRequest};
+use hypertexture::{Overrides, PixelFormat, Quality, RenderRequest};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
 use super::params::{self, Curve, Param};
 use crate::farm::{self, Accepted, JobId, Shared, WireJob};
-use crate::service::jobs::{Control, JobSpec, QualitySpec};
+use crate::service::jobs::{Control, JobSpec};
 use versions::{Edit, Stale, Versions};
 
 mod versions;
@@ -116,7 +116,7 @@ struct LiveFrame {
     remaining: usize,
     started: Instant,
     /// Interactive or high.
-    quality: QualitySpec,
+    quality: Quality,
     /// The frame event and every tile event so far (for browsers that
     /// connect later).
     events: Vec<Arc<Event>>,
@@ -144,7 +144,7 @@ struct Live {
     /// The last edit's error (the last good frame stays).
     error: Option<String>,
     /// The quality of the frame asked last.
-    quality: QualitySpec,
+    quality: Quality,
     /// The sliders of the text's numeric parameters, and its curves.
     params: Vec<Param>,
     curves: Vec<Curve>,
@@ -196,7 +196,7 @@ pub struct Change {
     #[serde(default)]
     pub params: BTreeMap<String, f64>,
     /// `interactive` while a slider moves, `high` once it rests.
-    pub quality: QualitySpec,
+    pub quality: Quality,
     /// The version the edit was made on ([`SceneView`]'s `version`); absent:
     /// the current one. A stale edit is merged or refused as a conflict.
     #[serde(default)]
@@ -385,7 +385,7 @@ fn check(
     text: &str,
     name: &str,
     knobs: &BTreeMap<String, f64>,
-    quality: QualitySpec,
+    quality: Quality,
     files: &Files,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
@@ -404,7 +404,7 @@ fn check(
         .collect();
     let request = RenderRequest {
         overrides: Overrides {
-            quality: Some(quality.into()),
+            quality: Some(quality),
             knobs: overrides(&values, &desc.knobs),
             ..Overrides::default()
         },
@@ -427,16 +427,18 @@ fn check(
     })
 }
 
-/// The knobs whose value is not their default, as `--set` gives them.
+/// The knobs whose value is not their default, as a request holds them
+/// ([`Overrides::knob_list`]).
 fn overrides(
     values: &BTreeMap<String, f64>,
     declared: &BTreeMap<String, KnobDesc>,
 ) -> Vec<(String, f64)> {
-    values
-        .iter()
-        .filter(|(k, v)| declared.get(*k).is_none_or(|d| d.default != **v))
-        .map(|(k, v)| (k.clone(), *v))
-        .collect()
+    Overrides::knob_list(
+        values
+            .iter()
+            .filter(|(k, v)| declared.get(*k).is_none_or(|d| d.default != **v))
+            .map(|(k, v)| (k.clone(), *v)),
+    )
 }
 
 impl Studio {
@@ -478,7 +480,7 @@ impl Studio {
                 knobs: BTreeMap::new(),
                 declared: BTreeMap::new(),
                 error: None,
-                quality: QualitySpec::High,
+                quality: Quality::High,
                 params: Vec::new(),
                 curves: Vec::new(),
                 ranges: BTreeMap::new(),
@@ -525,7 +527,7 @@ impl Studio {
                 text: Some(text),
                 knobs: BTreeMap::new(),
                 params: BTreeMap::new(),
-                quality: QualitySpec::High,
+                quality: Quality::High,
                 base: None,
                 tab: None,
             });
@@ -617,7 +619,7 @@ impl Studio {
             // drawn as they come. A high-quality one is watched while the
             // workers take the machine: its events are small, and the page
             // fetches the pixels when it draws (`GET /studio/tiles`).
-            if frame.quality == QualitySpec::Interactive {
+            if frame.quality == Quality::Interactive {
                 data["pixels"] = base64::engine::general_purpose::STANDARD
                     .encode(&raw.pixels)
                     .into();
@@ -709,7 +711,7 @@ impl Studio {
     pub fn rested(&self, generation: u64) {
         let mut live = self.live();
         if live.generation != generation
-            || live.quality != QualitySpec::Interactive
+            || live.quality != Quality::Interactive
             || live.error.is_some()
         {
             return;
@@ -718,7 +720,7 @@ impl Studio {
             text: None,
             knobs: live.knobs.clone(),
             params: BTreeMap::new(),
-            quality: QualitySpec::High,
+            quality: Quality::High,
             base: None,
             tab: None,
         };
@@ -823,7 +825,7 @@ impl Studio {
         shared: &Arc<Shared>,
         live: &mut Live,
         checked: &Checked,
-        quality: QualitySpec,
+        quality: Quality,
     ) -> Result<(), String> {
         if let Some(old) = live.frame.take() {
             shared.remove_job(old.job);
@@ -1001,7 +1003,7 @@ impl Studio {
             text: Some(text.clone()),
             knobs: BTreeMap::new(),
             params: BTreeMap::new(),
-            quality: QualitySpec::High,
+            quality: Quality::High,
             base: None,
             tab: None,
         })?;
@@ -1159,7 +1161,7 @@ async fn post_scene(
         Ok(b) => b,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let interactive = change.quality == QualitySpec::Interactive;
+    let interactive = change.quality == Quality::Interactive;
     match ctx.studio.edit(change) {
         Ok(view) => {
             if interactive {
@@ -1408,7 +1410,7 @@ mod tests {
             recorded: Vec::new(),
             remaining: 0,
             started: Instant::now(),
-            quality: QualitySpec::High,
+            quality: Quality::High,
             events: Vec::new(),
             pixels: vec![
                 Arc::new(vec![1, 2, 3, 4]),
