@@ -4,7 +4,8 @@
 //! `cargo run --release -p hypertexture --example mesh_field -- OBJ SOFTNESS [VOXEL...]`
 //! (`OBJ` a file, or `icosphere:LEVELS` for a subdivided, displaced
 //! icosphere of 20·4^LEVELS triangles; each `VOXEL` a length, default
-//! softness/8). One core: `taskset -c 0 ...`.
+//! softness/4; `POINTS=n` in the environment measures the error at n points
+//! of the soft region, default 200000). One core: `taskset -c 0 ...`.
 
 use std::time::Instant;
 
@@ -40,8 +41,12 @@ fn run() -> Result<(), String> {
         mesh.triangle_count(),
         t.elapsed().as_secs_f64() * 1e3
     );
+    let points = match std::env::var("POINTS") {
+        Ok(n) => n.parse().map_err(|e| format!("POINTS={n}: {e}"))?,
+        Err(_) => 200_000,
+    };
     let voxels: Vec<f32> = if voxels.is_empty() {
-        vec![softness / 8.0]
+        vec![softness / hypertexture::desc::FIELD_VOXELS_PER_SOFTNESS]
     } else {
         voxels
             .iter()
@@ -67,7 +72,7 @@ fn run() -> Result<(), String> {
             build = build.min(t.elapsed().as_secs_f64() * 1e3);
             runs += 1;
         }
-        let e = band.error(&mesh, softness, 200_000, 1);
+        let e = band.error(&mesh, softness, points, 1);
         println!(
             "voxel {voxel} (s/{:.1}): built in {build:.1} ms (fastest of {runs}), {} bricks, {:.1} MiB; |d - exact|/s max {:.4} rms {:.5}; |project - exact|/s max {:.4} rms {:.5}",
             softness / voxel,
