@@ -2,7 +2,9 @@
 //! out byte-identical to in-process from 1, 2 and 4 workers and with a worker
 //! killed mid-frame; a worker joining mid-frame fetches the mesh by its hash;
 //! a changed mesh is a new scene; bad meshes are clear errors naming the file,
-//! and an open one renders with a warning naming it.
+//! and an open one renders with a warning naming it. The scenes read the
+//! mesh through its distance field (`sdf: Field`, the default), which every
+//! worker builds from the fetched mesh.
 
 use std::path::Path;
 

@@ -832,10 +832,75 @@ pub struct MeshDesc {
     pub centre: V3,
     /// Uniform scale of the mesh about its origin.
     pub scale: f32,
+    /// How D reads the distance to the surface.
+    pub sdf: SdfDesc,
     /// The loaded mesh, attached before the scene is built
     /// ([`SceneDesc::attach_meshes`]).
     #[serde(skip)]
     pub mesh: Option<std::sync::Arc<crate::mesh::Mesh>>,
+    /// The mesh's distance field when `sdf` is a `Field`, built after the
+    /// mesh is attached ([`SceneDesc::attach_mesh_fields`]).
+    #[serde(skip)]
+    pub field: Option<std::sync::Arc<crate::mesh::Band>>,
+}
+
+/// How a mesh's D reads the distance to its surface:
+/// `sdf: Field(voxel: Some(0.005), max_mib: 1024)` (the default, every field
+/// optional) or `sdf: Exact`.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub enum SdfDesc {
+    /// A sparse narrow-band grid of the signed distance and closest point,
+    /// built once per mesh and resolution and read by trilinear
+    /// interpolation ([`crate::mesh::Band`]).
+    Field {
+        /// The voxel's edge in the scene's units (default: softness / 4).
+        #[serde(default)]
+        voxel: Option<Positive>,
+        /// The most memory the field may take, in MiB (default 1024).
+        #[serde(default = "default_field_mib")]
+        max_mib: Positive,
+    },
+    /// The exact closest-triangle search at every sample.
+    Exact,
+}
+
+impl Default for SdfDesc {
+    fn default() -> Self {
+        SdfDesc::Field {
+            voxel: None,
+            max_mib: default_field_mib(),
+        }
+    }
+}
+
+fn default_field_mib() -> Positive {
+    Positive((crate::mesh::DEFAULT_MAX_FIELD_BYTES >> 20) as f32)
+}
+
+/// The voxel of a mesh's field when the scene gives none, as a fraction of
+/// the softness.
+pub const FIELD_VOXELS_PER_SOFTNESS: f32 = 4.0;
+
+impl MeshDesc {
+    /// The field's lengths in the mesh's own coordinates, or `None` for
+    /// `sdf: Exact` (or a hard mesh, softness 0, whose D needs the sign
+    /// alone).
+    pub fn field_spec(&self) -> Option<crate::mesh::BandSpec> {
+        let SdfDesc::Field { voxel, max_mib } = self.sdf else {
+            return None;
+        };
+        if self.softness <= 0.0 {
+            return None;
+        }
+        let voxel = voxel.map_or(self.softness / FIELD_VOXELS_PER_SOFTNESS, |v| v.0) / self.scale;
+        Some(crate::mesh::BandSpec {
+            voxel,
+            outer: self.softness / self.scale,
+            inner: 2.0 * voxel,
+            max_bytes: (f64::from(max_mib.0) * 1048576.0) as u64,
+        })
+    }
 }
 
 #[derive(Deserialize)]
@@ -847,6 +912,8 @@ struct MeshFields {
     centre: V3,
     #[serde(default = "one")]
     scale: Positive,
+    #[serde(default)]
+    sdf: SdfDesc,
 }
 
 fn one() -> Positive {
@@ -864,7 +931,9 @@ impl TryFrom<MeshFields> for MeshDesc {
             softness: f.softness.0,
             centre: f.centre,
             scale: f.scale.0,
+            sdf: f.sdf,
             mesh: None,
+            field: None,
         })
     }
 }
@@ -948,6 +1017,26 @@ impl SceneDesc {
             o.for_each_mesh_mut(&mut attach);
         }
         missing.map_or(Ok(()), Err)
+    }
+
+    /// Gives every attached mesh with `sdf: Field` its distance field (built
+    /// once per process, mesh and resolution: [`crate::mesh::Band::shared`]);
+    /// the first that cannot be built is the error: its path and why.
+    pub fn attach_mesh_fields(&mut self) -> Result<(), (String, String)> {
+        let mut error = None;
+        let mut attach = |m: &mut MeshDesc| {
+            if let (Some(mesh), Some(spec), None) = (&m.mesh, m.field_spec(), &error) {
+                match crate::mesh::Band::shared(mesh, &spec) {
+                    Ok(band) => m.field = Some(band),
+                    Err(e) => error = Some((m.path.clone(), e)),
+                }
+            }
+        };
+        self.object.for_each_mesh_mut(&mut attach);
+        for o in self.objects.values_mut() {
+            o.for_each_mesh_mut(&mut attach);
+        }
+        error.map_or(Ok(()), Err)
     }
 }
 
@@ -1418,5 +1507,43 @@ mod tests {
             vec!["a.obj".to_string(), "b.obj".to_string()]
         );
         assert_eq!(desc.attach_meshes(|_| None), Err("b.obj".to_string()));
+    }
+
+    #[test]
+    fn a_mesh_reads_a_field_unless_told_exact() {
+        let mesh = |object: &str| {
+            let text = MINIMAL.replace("object: Sphere(radius: 0.8, softness: 0.2),", object);
+            let desc = parse(&text, "t.ron").expect("parses");
+            let ObjectDesc::Mesh(m) = desc.object else {
+                panic!("not a mesh")
+            };
+            m
+        };
+        let default = mesh("object: Mesh(path: \"a.obj\", softness: 0.08, scale: 2.0),");
+        assert_eq!(default.sdf, SdfDesc::default());
+        let spec = default.field_spec().expect("a field by default");
+        // Lengths in the mesh's own coordinates: the scene's over the scale.
+        assert_eq!((spec.voxel, spec.outer), (0.01, 0.04));
+        assert_eq!(spec.max_bytes, crate::mesh::DEFAULT_MAX_FIELD_BYTES);
+        let set = mesh(
+            "object: Mesh(path: \"a.obj\", softness: 0.08, sdf: Field(voxel: Some(0.004), max_mib: 16)),",
+        );
+        let spec = set.field_spec().expect("a field");
+        assert_eq!((spec.voxel, spec.max_bytes), (0.004, 16 << 20));
+        let exact = mesh("object: Mesh(path: \"a.obj\", softness: 0.08, sdf: Exact),");
+        assert_eq!((exact.sdf, exact.field_spec()), (SdfDesc::Exact, None));
+        for (bad, says) in [
+            ("sdf: Field(voxel: Some(-0.1))", "a positive number"),
+            ("sdf: Fast", "Fast"),
+            ("sdf: Field(size: 2.0)", "size"),
+        ] {
+            let text = MINIMAL.replace(
+                "object: Sphere(radius: 0.8, softness: 0.2),",
+                &format!("object: Mesh(path: \"a.obj\", softness: 0.08, {bad}),"),
+            );
+            let (line, _, message) = refused(&text);
+            assert_eq!(line, 5, "{bad}: {message}");
+            assert!(message.contains(says), "{bad}: {message}");
+        }
     }
 }

@@ -320,10 +320,18 @@ pub(crate) trait ProjectBlock {
 /// radius 0 and outer radius s, `D = (s² - d²) / s²` (a soft sphere of
 /// softness s swept over the surface), so the mesh's surface is the inner
 /// (D = 1) surface. The mesh is placed at `centre` and scaled by `scale`.
+///
+/// With a distance field ([`crate::mesh::Band`]), d and the closest point are
+/// read from it by trilinear interpolation; outside its band D is 0 or 1
+/// without a distance, and the few queries that need a distance there (a
+/// projection from deep inside, say) fall back to the exact search. Without
+/// one (`sdf: Exact`) every query is the exact search.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SoftMesh {
     /// The mesh and its distance queries.
     pub mesh: std::sync::Arc<crate::mesh::Mesh>,
+    /// The mesh's distance field, or `None` for the exact search.
+    pub field: Option<std::sync::Arc<crate::mesh::Band>>,
     /// Where the mesh's origin goes.
     pub centre: Vec3,
     /// Uniform scale about the mesh's origin.
@@ -334,8 +342,19 @@ pub struct SoftMesh {
     pub falloff: Falloff,
 }
 
+/// Where a point lies for a soft mesh: what D needs.
+enum Near {
+    /// Outside the soft region (D = 0).
+    Outside,
+    /// Inside the mesh (D = 1).
+    Inside,
+    /// The signed distance (scene units) and the closest point.
+    At(crate::mesh::Closest),
+}
+
 impl SoftMesh {
-    /// The mesh with softness `softness`, moved to `centre` and scaled by `scale`.
+    /// The mesh with softness `softness`, moved to `centre` and scaled by
+    /// `scale`, read exactly (no field).
     pub fn new(
         mesh: std::sync::Arc<crate::mesh::Mesh>,
         centre: Vec3,
@@ -344,10 +363,22 @@ impl SoftMesh {
     ) -> Self {
         SoftMesh {
             mesh,
+            field: None,
             centre,
             scale,
             inv_scale: 1.0 / scale,
             falloff: Falloff::new(softness / 2.0, softness),
+        }
+    }
+
+    /// The mesh of a scene's `Mesh(..)`, with its field when it has one.
+    pub fn from_desc(
+        mesh: std::sync::Arc<crate::mesh::Mesh>,
+        desc: &crate::desc::MeshDesc,
+    ) -> Self {
+        SoftMesh {
+            field: desc.field.clone(),
+            ..SoftMesh::new(mesh, desc.centre.0, desc.scale, desc.softness)
         }
     }
 
@@ -356,10 +387,46 @@ impl SoftMesh {
     #[inline]
     fn closest(&self, x: Vec3) -> crate::mesh::Closest {
         let c = self.mesh.closest((x - self.centre) * self.inv_scale);
+        self.to_scene(c)
+    }
+
+    /// A closest point in the mesh's coordinates moved to the scene's.
+    #[inline]
+    fn to_scene(&self, c: crate::mesh::Closest) -> crate::mesh::Closest {
         crate::mesh::Closest {
             point: self.centre + c.point * self.scale,
             distance: c.distance * self.scale,
             outward: c.outward,
+        }
+    }
+
+    /// Where x lies: from the field when there is one (its closest point's
+    /// `outward` is unset, zero), else from the exact search.
+    #[inline]
+    fn near(&self, x: Vec3) -> Near {
+        let Some(field) = &self.field else {
+            return Near::At(self.closest(x));
+        };
+        match field.sample((x - self.centre) * self.inv_scale) {
+            crate::mesh::Sample::Outside => Near::Outside,
+            crate::mesh::Sample::Inside => Near::Inside,
+            crate::mesh::Sample::Near { distance, point } => {
+                Near::At(self.to_scene(crate::mesh::Closest {
+                    point,
+                    distance,
+                    outward: Vec3::ZERO,
+                }))
+            }
+        }
+    }
+
+    /// The closest point and signed distance from the field where it has
+    /// them, else exact.
+    #[inline]
+    fn closest_near(&self, x: Vec3) -> crate::mesh::Closest {
+        match self.near(x) {
+            Near::At(c) => c,
+            Near::Outside | Near::Inside => self.closest(x),
         }
     }
 
@@ -380,7 +447,11 @@ impl SoftMesh {
         if x.cmplt(lo).any() || x.cmpgt(hi).any() {
             return 0.0;
         }
-        let d = self.closest(x).distance;
+        let d = match self.near(x) {
+            Near::Outside => return 0.0,
+            Near::Inside => return 1.0,
+            Near::At(c) => c.distance,
+        };
         if d <= 0.0 {
             1.0
         } else {
@@ -391,25 +462,34 @@ impl SoftMesh {
     /// x projected onto the inner (D = 1) surface: the mesh's nearest point.
     #[inline]
     pub fn project(&self, x: Vec3) -> Vec3 {
-        self.closest(x).point
+        self.closest_near(x).point
     }
 
     /// The nearest point of the outer (D = 0) surface, s outside the mesh.
     #[inline]
     pub fn boundary_point(&self, x: Vec3) -> Vec3 {
-        let c = self.closest(x);
+        let mut c = self.closest_near(x);
         let away = if c.distance > 0.0 {
             x - c.point
         } else {
             c.point - x
         };
+        if away.length_squared() <= 1e-20 && c.outward == Vec3::ZERO {
+            // On the surface: the exact search's pseudo-normal.
+            c = self.closest(x);
+        }
         c.point + direction_or(away, c.outward) * self.falloff.outer()
     }
 
     /// The distance from x to the outer (D = 0) surface, 0 outside it.
     #[inline]
     pub fn exit_distance(&self, x: Vec3) -> f32 {
-        (self.falloff.outer() - self.closest(x).distance).max(0.0)
+        let d = match self.near(x) {
+            Near::Outside => return 0.0,
+            Near::Inside => self.closest(x).distance,
+            Near::At(c) => c.distance,
+        };
+        (self.falloff.outer() - d).max(0.0)
     }
 }
 

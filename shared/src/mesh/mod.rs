@@ -29,10 +29,15 @@
 //! file gives the same triangles in the same order, the same tree, and so the
 //! same bits for every query.
 
+mod band;
 mod bvh;
 mod obj;
 mod topology;
 mod winding;
+
+pub use band::{
+    Band, BandKey, BandSpec, DEFAULT_MAX_FIELD_BYTES, FieldError, Sample, displaced_icosphere_obj,
+};
 
 use std::collections::BTreeMap;
 

@@ -170,12 +170,7 @@ impl Density {
                 falloff: Falloff::new(t.minor_radius, t.softness),
             }),
             ObjectDesc::Mesh(m) => match &m.mesh {
-                Some(mesh) => Density::Mesh(SoftMesh::new(
-                    std::sync::Arc::clone(mesh),
-                    m.centre.0,
-                    m.scale,
-                    m.softness,
-                )),
+                Some(mesh) => Density::Mesh(SoftMesh::from_desc(std::sync::Arc::clone(mesh), m)),
                 // Not attached (`SceneDesc::attach_meshes`): nothing, as a
                 // union of no objects. `Scene::from_text` always attaches.
                 None => Density::Union(Vec::new()),

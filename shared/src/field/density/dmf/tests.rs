@@ -74,6 +74,11 @@ const CASES: &[(&str, &str)] = &[
         "Mesh(path: \"icosphere.obj\", softness: 0.4, centre: (0.1, 0.0, 0.0), scale: 1.2)",
         "NoisyRadius(frequency: 2.0, amplitude: 0.2), Bias(0.6), Fur(frequency: 12.0)",
     ),
+    // The exact closest-triangle search instead of the distance field.
+    (
+        "Mesh(path: \"icosphere.obj\", softness: 0.4, sdf: Exact)",
+        "Fur(frequency: 25.0, curliness: 0.7)",
+    ),
     (
         "Sphere(radius: 0.9, softness: 0.6)",
         "NoisyRadius(frequency: 2.0, amplitude: 0.2), TurbulentRadius(frequency: 3.0, amplitude: 0.3, octaves: 3), Bias(0.6), Gain(0.3), Fur(frequency: 12.0, curliness: 0.4)",
@@ -92,6 +97,11 @@ fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>
         m.mesh = Some(std::sync::Arc::new(
             mesh.expect("the icosphere is a closed mesh"),
         ));
+        // Its distance field, as a scene attaches it (`sdf: Field`, the default).
+        m.field = m.field_spec().map(|spec| {
+            let mesh = m.mesh.as_ref().expect("attached");
+            crate::mesh::Band::shared(mesh, &spec).expect("a small field")
+        });
     });
     let dmfs: Vec<DmfDesc> = ron.from_str(&format!("[{dmfs}]")).expect("valid DMFs");
     let h =
