@@ -70,6 +70,7 @@ pub const PROBE_SCENES: &[(&str, &str)] = probe_scenes![
     "pse/water.ron",
     "pse/wood.ron",
     "mesh/furry_spot.ron",
+    "mesh/furry_teddy.ron",
     "mesh/wool_spot.ron",
     "gilet/cave.ron",
     "gilet/clods.ron",
@@ -144,7 +145,10 @@ fn probe_assets() -> &'static crate::scene::Assets {
         if let Ok(mesh) =
             crate::mesh::Mesh::from_obj("meshes/spot.obj", stand_in.as_bytes(), Default::default())
         {
-            assets.insert("meshes/spot.obj", std::sync::Arc::new(mesh));
+            let mesh = std::sync::Arc::new(mesh);
+            for path in ["meshes/spot.obj", "meshes/teddy.obj"] {
+                assets.insert(path, std::sync::Arc::clone(&mesh));
+            }
         }
         assets
     })
