@@ -16,7 +16,8 @@
 use glam::Vec3;
 
 use crate::field::curve::Curve;
-use crate::field::density::{Density, Field, Points};
+use crate::field::density::Density;
+use crate::field::domain::{Field, Points};
 use crate::field::noise::VNOISE_OFFSET;
 use crate::field::shaping::{Bias, Gain};
 use crate::math::simd::Isa;
