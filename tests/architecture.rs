@@ -815,12 +815,7 @@ fn levels_of(name: &str) -> Option<&'static [&'static [&'static str]]> {
 /// a breach listed here does not fail the check, and a listed one that is
 /// no longer found fails it until it is struck off, so the list only
 /// shrinks.
-///
-/// - The expression language's lane interpreter is one `match` over the
-///   operations: split into functions it ran about 15% slower on the
-///   expression scenes (`pse_bench 256 9`, taking turns with the whole
-///   function), so it stays whole.
-const KNOWN: &[&str] = &["fn run_lanes is"];
+const KNOWN: &[&str] = &[];
 
 fn verdict(rule: &str, found: Vec<String>) {
     let first = |f: &String| f.lines().next().unwrap_or_default().to_string();
