@@ -23,9 +23,9 @@ use crate::desc::distortion::{
     DistortionDesc, GridDesc, Operator, TransferDesc, VectorFieldDesc, transfer_range,
 };
 use crate::field::curve::Curve;
-use crate::field::density::{Density, Field, Points};
+use crate::field::domain::{Field, Points};
 use crate::field::shaping::clamp01;
-use crate::field::soft::boundary_point;
+use crate::field::soft::Primitive;
 use crate::math::simd::{Isa, LANES};
 
 /// Our gradient noise never leaves [−0.65, 0.65] and 99.8 % of it lies within
@@ -167,9 +167,9 @@ impl VectorField {
 
     /// The (unnormalised) direction of the field at x.
     #[inline(always)]
-    fn direction(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
+    fn direction(&self, x: Vec3, object: Option<Primitive>, field: &Field) -> Vec3 {
         match self {
-            VectorField::Boundary => boundary_of(object, x) - x,
+            VectorField::Boundary => object.map_or(x, |p| p.boundary_point(x)) - x,
             VectorField::Radial { centre } => x - *centre,
             VectorField::Constant(v) => *v,
             VectorField::Curl {
@@ -177,7 +177,7 @@ impl VectorField {
                 axis,
                 twist,
             } => {
-                let to = boundary_of(object, x) - x;
+                let to = object.map_or(x, |p| p.boundary_point(x)) - x;
                 let swirl = axis.cross(x - *centre) * *twist;
                 // The swirl scaled like the way out, so it turns the field everywhere.
                 to + swirl * to.length()
@@ -195,17 +195,12 @@ impl VectorField {
         }
     }
 
-    /// V(x) for `object` (fields other than `Constant` were checked at load to
-    /// have a primitive object).
+    /// V(x) for `object`, the primitive O is, if it is one (fields other than
+    /// `Constant` were checked at load to have a primitive object).
     #[inline(always)]
-    pub fn at(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
+    pub fn at(&self, x: Vec3, object: Option<Primitive>, field: &Field) -> Vec3 {
         if let VectorField::Boundary = self {
-            return match object {
-                Density::Sphere(_) | Density::Box(_) | Density::Torus(_) | Density::Mesh(_) => {
-                    boundary_of(object, x) - x
-                }
-                _ => Vec3::ZERO,
-            };
+            return object.map_or(Vec3::ZERO, |p| p.boundary_point(x) - x);
         }
         let v = self.direction(x, object, field);
         let len2 = v.length_squared();
@@ -215,67 +210,19 @@ impl VectorField {
         let u = v / len2.sqrt();
         // Not a primitive (only `Constant`, perturbed or not, passes the load
         // check): the vector as the field gives it.
-        exit_distance(object, x, u).map_or(v, |t| u * t)
+        object.map_or(v, |p| u * p.exit_distance(x, u))
     }
 }
 
-/// The distance from x along the unit vector u to a primitive's outer surface
-/// (0 when x lies outside it), or `None` for an object that is not a primitive.
-/// Exact for spheres and boxes; for a torus, the distance to the nearest point of
-/// its outer surface.
-#[inline]
-fn exit_distance(object: &Density, x: Vec3, u: Vec3) -> Option<f32> {
-    match object {
-        Density::Sphere(s) => {
-            let q = x - s.centre;
-            let r = s.falloff.outer();
-            let c = q.length_squared() - r * r;
-            if c >= 0.0 {
-                return Some(0.0);
-            }
-            let b = q.dot(u);
-            Some(-b + (b * b - c).max(0.0).sqrt())
-        }
-        Density::Box(b) => {
-            let q = x - b.centre;
-            let mut t = f32::INFINITY;
-            for axis in 0..3 {
-                let h = b.falloff[axis].outer();
-                if q[axis].abs() >= h {
-                    return Some(0.0);
-                }
-                if u[axis] != 0.0 {
-                    let wall = if u[axis] > 0.0 { h } else { -h };
-                    t = t.min((wall - q[axis]) / u[axis]);
-                }
-            }
-            Some(t)
-        }
-        Density::Torus(t) => {
-            let nearest = boundary_point::torus(t, x) - x;
-            Some(if t.density(x) > 0.0 {
-                nearest.length()
-            } else {
-                0.0
-            })
-        }
-        // As for a torus: the distance to the nearest point of the outer surface.
-        Density::Mesh(m) => Some(m.exit_distance(x)),
-        _ => None,
-    }
-}
+/// The object O of formula 3 as the distortion reads it: the soft primitive
+/// whose outer surface the vector field follows, if O is one, and O(x), which
+/// a 2D transfer function reads. The density tree implements it.
+pub trait Object {
+    /// The soft primitive O is, or `None` for any other object.
+    fn primitive(&self) -> Option<Primitive<'_>>;
 
-/// The nearest point of a primitive's outer (D = 0) surface; x itself for anything
-/// else (never reached: fields that need it are checked at load).
-#[inline(always)]
-fn boundary_of(object: &Density, x: Vec3) -> Vec3 {
-    match object {
-        Density::Sphere(s) => boundary_point::sphere(s, x),
-        Density::Box(b) => boundary_point::soft_box(b, x),
-        Density::Torus(t) => boundary_point::torus(t, x),
-        Density::Mesh(m) => m.boundary_point(x),
-        _ => x,
-    }
+    /// O(x).
+    fn density(&self, x: Vec3, field: &Field) -> f32;
 }
 
 /// One noise term of formula 5.
@@ -357,14 +304,14 @@ impl Distortion {
     /// The point at which the object is evaluated instead of x:
     /// `x − k · V/|V|` (x itself where V = 0).
     #[inline]
-    pub fn apply(&self, x: Vec3, object: &Density, field: &Field) -> Vec3 {
-        let v = self.field.at(x, object, field);
+    pub fn apply(&self, x: Vec3, object: &impl Object, field: &Field) -> Vec3 {
+        let v = self.field.at(x, object.primitive(), field);
         let len2 = v.length_squared();
         if len2 <= 1e-20 {
             return x;
         }
         let o = if self.needs_density {
-            object.eval(x, field)
+            object.density(x, field)
         } else {
             0.0
         };
@@ -386,15 +333,16 @@ impl Distortion {
     pub(crate) fn apply_lanes(
         &self,
         x: &Points,
-        object: &Density,
+        object: &impl Object,
         field: &Field,
         isa: Isa,
     ) -> Points {
+        let primitive = object.primitive();
         let mut v = Points::default();
         let mut len2 = [0.0f32; LANES];
         let mut live = 0u32;
         for (l, len2) in len2.iter_mut().enumerate() {
-            let vl = self.field.at(x.get(l), object, field);
+            let vl = self.field.at(x.get(l), primitive, field);
             v.set(l, vl);
             *len2 = vl.length_squared();
             // As `apply`: a lane goes on unless `len2 <= 1e-20` (NaN too).
@@ -407,7 +355,7 @@ impl Distortion {
         if self.needs_density {
             for (l, o) in o.iter_mut().enumerate() {
                 if live & (1 << l) != 0 {
-                    *o = object.eval(x.get(l), field);
+                    *o = object.density(x.get(l), field);
                 }
             }
         }
@@ -468,31 +416,11 @@ fn k_bound(terms: &[(f32, f32, Operator)]) -> f32 {
     lo.abs().max(hi.abs())
 }
 
-/// The largest displacement any distortion in a density tree can cause (nested
-/// distortions add up): a ray marcher may treat everything further than this from
-/// the undistorted objects as empty.
-pub fn max_displacement(density: &Density) -> f32 {
-    match density {
-        Density::Sphere(_)
-        | Density::Box(_)
-        | Density::Torus(_)
-        | Density::Mesh(_)
-        | Density::Expression(_) => 0.0,
-        Density::Union(v) | Density::Intersection(v) | Density::Max(v) | Density::Min(v) => {
-            v.iter().map(max_displacement).fold(0.0, f32::max)
-        }
-        Density::Difference(a, b) => max_displacement(a).max(max_displacement(b)),
-        Density::Complement(a) | Density::Moving(a) => max_displacement(a),
-        Density::Hypertexture(h) => {
-            h.distortion().map_or(0.0, Distortion::max_displacement) + max_displacement(h.object())
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::desc::{CurveDesc, Fraction, Interpolation};
+    use crate::field::density::Density;
     use crate::{Overrides, Scene};
 
     fn curve(interpolation: Interpolation, points: &[(f32, f32)]) -> Transfer {

@@ -4,6 +4,8 @@
 //! - [`noise`], [`shaping`]: the base functions noise, turbulence, bias, gain.
 //! - [`soft`]: soft objects and their hard cores, primitives and meshes
 //!   (the triangles from [`crate::mesh`]).
+//! - [`domain`]: where and when the density is evaluated ([`domain::Field`],
+//!   [`domain::Points`]) and where it can be non-zero ([`domain::Support`]).
 //! - [`density`]: the density chain, generalized booleans and the DMFs.
 //! - [`distortion`], [`motion`]: Gilet & Dischler's shape transfer functions
 //!   and vector fields, and motion over frames.
@@ -12,6 +14,7 @@
 pub mod curve;
 pub mod density;
 pub mod distortion;
+pub mod domain;
 pub mod motion;
 pub mod noise;
 pub mod shaping;

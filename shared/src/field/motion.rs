@@ -142,7 +142,7 @@ impl Pose {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::density::Points;
+    use crate::field::domain::Points;
     use crate::math::simd::LANES;
 
     fn motion(ron_text: &str) -> Motion {

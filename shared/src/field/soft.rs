@@ -660,6 +660,77 @@ pub mod boundary_point {
     }
 }
 
+/// A soft primitive of the density tree, borrowed: the soft object whose
+/// outer (D = 0) surface Gilet & Dischler's vector fields follow (section 4.3).
+#[derive(Clone, Copy, Debug)]
+pub enum Primitive<'a> {
+    /// A soft sphere.
+    Sphere(&'a SoftSphere),
+    /// A soft box.
+    Box(&'a SoftBox),
+    /// A soft torus.
+    Torus(&'a SoftTorus),
+    /// A closed triangle mesh.
+    Mesh(&'a SoftMesh),
+}
+
+impl Primitive<'_> {
+    /// The distance from x along the unit vector u to the outer surface (0
+    /// when x lies outside it). Exact for spheres and boxes; for a torus, the
+    /// distance to the nearest point of its outer surface.
+    #[inline]
+    pub fn exit_distance(self, x: Vec3, u: Vec3) -> f32 {
+        match self {
+            Primitive::Sphere(s) => {
+                let q = x - s.centre;
+                let r = s.falloff.outer();
+                let c = q.length_squared() - r * r;
+                if c >= 0.0 {
+                    return 0.0;
+                }
+                let b = q.dot(u);
+                -b + (b * b - c).max(0.0).sqrt()
+            }
+            Primitive::Box(b) => {
+                let q = x - b.centre;
+                let mut t = f32::INFINITY;
+                for axis in 0..3 {
+                    let h = b.falloff[axis].outer();
+                    if q[axis].abs() >= h {
+                        return 0.0;
+                    }
+                    if u[axis] != 0.0 {
+                        let wall = if u[axis] > 0.0 { h } else { -h };
+                        t = t.min((wall - q[axis]) / u[axis]);
+                    }
+                }
+                t
+            }
+            Primitive::Torus(t) => {
+                let nearest = boundary_point::torus(t, x) - x;
+                if t.density(x) > 0.0 {
+                    nearest.length()
+                } else {
+                    0.0
+                }
+            }
+            // As for a torus: the distance to the nearest point of the outer surface.
+            Primitive::Mesh(m) => m.exit_distance(x),
+        }
+    }
+
+    /// The nearest point of the outer (D = 0) surface ([`boundary_point`]).
+    #[inline(always)]
+    pub fn boundary_point(self, x: Vec3) -> Vec3 {
+        match self {
+            Primitive::Sphere(s) => boundary_point::sphere(s, x),
+            Primitive::Box(b) => boundary_point::soft_box(b, x),
+            Primitive::Torus(t) => boundary_point::torus(t, x),
+            Primitive::Mesh(m) => m.boundary_point(x),
+        }
+    }
+}
+
 /// The nearest point of the surface of the box of half sizes `h` about the
 /// origin to `q`: clamped from outside, pushed out through the nearest face
 /// from inside.

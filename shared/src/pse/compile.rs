@@ -1331,7 +1331,7 @@ impl<'a> Compiler<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::density::Field;
+    use crate::field::domain::Field;
     use crate::field::noise::Noise;
     use glam::Vec3;
 
@@ -1369,7 +1369,7 @@ mod tests {
         let f = field(&noise);
         let value = p.eval(super::super::eval::Inputs { x, d: 0.25 }, &f);
         // The lane-parallel register code gives the same bits on every path.
-        let mut points = crate::field::density::Points::default();
+        let mut points = crate::field::domain::Points::default();
         for l in 0..crate::math::simd::LANES {
             points.set(l, x);
         }
@@ -1395,7 +1395,7 @@ mod tests {
         let ctx = plain_context(&knobs, &functions);
         let noise = Noise::default();
         let f = field(&noise);
-        let mut points = crate::field::density::Points::default();
+        let mut points = crate::field::domain::Points::default();
         let at = |l: usize| Vec3::new(l as f32 * 0.3 - 1.0, (l % 3) as f32 * 0.7, 0.2 * l as f32);
         for l in 0..crate::math::simd::LANES {
             points.set(l, at(l));

@@ -6,7 +6,8 @@ use std::any::Any;
 use glam::Vec3;
 
 use super::Program;
-use crate::field::density::{Aabb, Expression, Field, Points};
+use crate::field::density::Expression;
+use crate::field::domain::{Aabb, Field, Points};
 use crate::math::simd::{Isa, Lanes};
 
 impl Expression for Program {

@@ -24,7 +24,8 @@ use std::collections::BTreeMap;
 use glam::Vec3;
 
 use super::eval::{Fn1, Fn2, INPUTS, Op, Program, REG_D, REG_FRAME, REG_T, REG_X, Result3};
-use crate::field::density::{Aabb, Density};
+use crate::field::density::Density;
+use crate::field::domain::Aabb;
 
 /// Where a value can be non-zero: `None` anywhere, or inside a box and, when
 /// known, a ball (an empty box: nowhere, the value is always 0).
@@ -441,7 +442,8 @@ mod tests {
     use glam::Vec3;
 
     use crate::desc::ObjectDesc;
-    use crate::field::density::{Aabb, Density};
+    use crate::field::density::Density;
+    use crate::field::domain::Aabb;
     use crate::pse::{Context, Kind, compile_expression, parse_functions};
 
     fn object(ron_text: &str) -> Density {

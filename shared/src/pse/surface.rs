@@ -10,7 +10,8 @@ use super::ExpressionFailure;
 use super::{Context, Kind, Program, compile_expression, parse_functions};
 use crate::desc::{ObjectDesc, SceneDesc};
 use crate::field::curve::Curve;
-use crate::field::density::{Density, Field};
+use crate::field::density::Density;
+use crate::field::domain::Field;
 use crate::field::noise::Noise;
 
 /// The compiled shading expressions of a scene: what the marcher's two hooks

@@ -4,7 +4,7 @@
 
 use glam::Vec3;
 
-use crate::field::density::{Field, Points};
+use crate::field::domain::{Field, Points};
 use crate::field::shaping::clamp01;
 use crate::math::simd::LANES;
 use crate::scene::Scene;

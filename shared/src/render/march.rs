@@ -43,7 +43,7 @@
 
 use glam::Vec3;
 
-use crate::field::density::{Field, Points, Support};
+use crate::field::domain::{Field, Points, Support};
 use crate::field::shaping::clamp01;
 use crate::math::fastmath;
 use crate::math::simd::{Isa, lane_mask};

@@ -21,7 +21,8 @@ use glam::Vec3;
 
 use crate::desc::{self, BackgroundDesc, ColourIndexDesc, LightDesc, SceneDesc};
 use crate::field::curve::Curve;
-use crate::field::density::{Aabb, Density, Support};
+use crate::field::density::Density;
+use crate::field::domain::{Aabb, Support};
 use crate::field::motion::Motion;
 use crate::field::noise::{Noise, clamped_octaves};
 use crate::math::simd::Isa;
@@ -944,7 +945,7 @@ impl Scene {
 
     /// How far any distortion can carry density beyond the undistorted objects.
     pub fn max_displacement(&self) -> f32 {
-        crate::field::distortion::max_displacement(&self.density)
+        self.density.max_displacement()
     }
 
     /// The hypertexture H(x) for `frame`, in [0, 1].
@@ -990,7 +991,7 @@ impl Scene {
         &self,
         object_x: Vec3,
         f: f32,
-        field: &crate::field::density::Field,
+        field: &crate::field::domain::Field,
     ) -> f32 {
         match self.colour_index {
             ColourIndex::Density => f,
@@ -1013,10 +1014,10 @@ impl Scene {
     /// point's sum is then taken in `turbulence`'s order.
     pub(crate) fn colour_keys(
         &self,
-        object_x: &crate::field::density::Points,
+        object_x: &crate::field::domain::Points,
         f: &crate::math::simd::Lanes,
         len: usize,
-        field: &crate::field::density::Field,
+        field: &crate::field::domain::Field,
     ) -> crate::math::simd::Lanes {
         let ColourIndex::Strata {
             frequency,
@@ -1082,15 +1083,15 @@ impl Scene {
 
     /// The evaluation context of `frame`.
     #[inline]
-    pub(crate) fn field(&self, frame: u32) -> crate::field::density::Field<'_> {
+    pub(crate) fn field(&self, frame: u32) -> crate::field::domain::Field<'_> {
         self.field_at(frame as f32)
     }
 
     /// The evaluation context at `time` frames (a frame plus a shutter offset).
     #[inline]
-    pub(crate) fn field_at(&self, time: f32) -> crate::field::density::Field<'_> {
+    pub(crate) fn field_at(&self, time: f32) -> crate::field::domain::Field<'_> {
         let pose = self.motion.map(|m| m.at(time));
-        crate::field::density::Field {
+        crate::field::domain::Field {
             noise: &self.noise,
             offset: self.flow * time,
             frame: time as u32,

@@ -6,47 +6,9 @@
 use glam::Vec3;
 
 use super::{Density, Hypertexture};
+use crate::field::distortion::Distortion;
+use crate::field::domain::{Aabb, Support, hull};
 use crate::field::motion::Pose;
-
-/// An axis-aligned box `(min, max)`.
-pub type Aabb = (Vec3, Vec3);
-
-/// Where the density can be non-zero, as the marcher uses it: a box and,
-/// where one is known, a ball (see [`Density::support_ball`]).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Support {
-    /// The box of [`Density::support`].
-    pub aabb: Aabb,
-    /// The ball of [`Density::support_ball`] `(centre, radius)`.
-    pub ball: Option<(Vec3, f32)>,
-}
-
-/// A bound on |noise| that holds for every seed, √(3/4) widened by 1% for
-/// rounding. With W_c = ω(u_c)ω(v_c)ω(w_c) the weight and d_c the offset of
-/// corner c (the weights are ≥ 0 and sum to 1: ω(t) + ω(1 − t) = 1 on each
-/// axis) and |Γ_c| = 1:
-/// |noise| ≤ Σ W_c |Γ_c·d_c| ≤ Σ W_c |d_c| ≤ √(Σ W_c |d_c|²) (Jensen)
-/// = √(g(u) + g(v) + g(w)) with g(t) = ω(t)t² + ω(1 − t)(1 − t)², and
-/// g(t) − ¼ = (2t − 1)²((2t − 1)² − 2)/4 ≤ 0 on [0, 1].
-pub const NOISE_BOUND: f32 = 0.875;
-
-pub(super) fn hull(a: Aabb, b: Aabb) -> Aabb {
-    (a.0.min(b.0), a.1.max(b.1))
-}
-
-/// The points x whose scaling about `centre` by some factor in `[lo, hi]` lands
-/// in `b` (lo > 0): each coordinate is linear in 1/s, so the ends bound it.
-pub(super) fn unscale(b: Aabb, centre: Vec3, lo: f32, hi: f32, axes: Vec3) -> Option<Aabb> {
-    if !(lo > 0.0 && hi.is_finite()) {
-        return None;
-    }
-    let scaled = |s: f32| {
-        let k = Vec3::ONE + axes * (1.0 / s - 1.0);
-        let (p, q) = (centre + (b.0 - centre) * k, centre + (b.1 - centre) * k);
-        (p.min(q), p.max(q))
-    };
-    Some(hull(scaled(lo), scaled(hi)))
-}
 
 impl Pose {
     /// The object-space support `s` where the pose puts it: a world box around
@@ -169,5 +131,29 @@ impl Hypertexture {
             b = w.preimage(b)?;
         }
         Some(b)
+    }
+}
+
+impl Density {
+    /// The largest displacement any distortion in the tree can cause (nested
+    /// distortions add up): a ray marcher may treat everything further than
+    /// this from the undistorted objects as empty.
+    pub fn max_displacement(&self) -> f32 {
+        match self {
+            Density::Sphere(_)
+            | Density::Box(_)
+            | Density::Torus(_)
+            | Density::Mesh(_)
+            | Density::Expression(_) => 0.0,
+            Density::Union(v) | Density::Intersection(v) | Density::Max(v) | Density::Min(v) => {
+                v.iter().map(Density::max_displacement).fold(0.0, f32::max)
+            }
+            Density::Difference(a, b) => a.max_displacement().max(b.max_displacement()),
+            Density::Complement(a) | Density::Moving(a) => a.max_displacement(),
+            Density::Hypertexture(h) => {
+                h.distortion().map_or(0.0, Distortion::max_displacement)
+                    + h.object().max_displacement()
+            }
+        }
     }
 }

@@ -2,7 +2,8 @@
 //! the density and its gradient with respect to the world point in one pass.
 //! Each DMF's dual form is in its own file of [`super::dmf`].
 
-use super::{Density, Field, Hypertexture};
+use super::{Density, Hypertexture};
+use crate::field::domain::Field;
 use crate::math::dual::{Dual, DualPoint};
 
 /// The tree differentiated ([`crate::math::dual`]): the density and its gradient with

@@ -9,68 +9,11 @@
 use glam::Vec3;
 
 use super::dmf::Settling;
-use super::{Density, Field, Hypertexture};
+use super::{Density, Hypertexture};
+use crate::field::domain::{Field, Points, zip};
 use crate::field::motion::Pose;
 use crate::field::soft::{Falloff, ProjectBlock, boolean};
 use crate::math::simd::{Isa, LANES, Lanes, lane_mask};
-
-/// [`LANES`] points, one coordinate per array: the batch the vectorised paths
-/// evaluate (several samples along a ray, or the gradient's neighbours).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Points {
-    /// x of each point.
-    pub x: Lanes,
-    /// y of each point.
-    pub y: Lanes,
-    /// z of each point.
-    pub z: Lanes,
-}
-
-impl Points {
-    /// Point `l`.
-    #[inline(always)]
-    pub fn get(&self, l: usize) -> Vec3 {
-        Vec3::new(self.x[l], self.y[l], self.z[l])
-    }
-
-    /// Sets point `l`.
-    #[inline(always)]
-    pub fn set(&mut self, l: usize, p: Vec3) {
-        self.x[l] = p.x;
-        self.y[l] = p.y;
-        self.z[l] = p.z;
-    }
-
-    /// The points `c + (x − c)·s` lane by lane: a warp's scaling about `centre`.
-    #[inline(always)]
-    pub(crate) fn scale_about(&self, centre: Vec3, s: &Lanes) -> Points {
-        let mut out = Points::default();
-        for (l, &s) in s.iter().enumerate() {
-            out.set(l, centre + (self.get(l) - centre) * s);
-        }
-        out
-    }
-
-    /// The points `f(point)`, lane by lane.
-    #[inline(always)]
-    pub(crate) fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Points {
-        let mut out = Points::default();
-        for l in 0..LANES {
-            out.set(l, f(self.get(l)));
-        }
-        out
-    }
-
-    /// The points `f(point, other point)`, lane by lane.
-    #[inline(always)]
-    pub(crate) fn map_with(&self, other: &Points, f: impl Fn(Vec3, Vec3) -> Vec3) -> Points {
-        let mut out = Points::default();
-        for l in 0..LANES {
-            out.set(l, f(self.get(l), other.get(l)));
-        }
-        out
-    }
-}
 
 /// `f(point)` lane by lane.
 #[inline(always)]
@@ -78,27 +21,6 @@ fn each(x: &Points, f: impl Fn(Vec3) -> f32) -> Lanes {
     let mut out = [0.0; LANES];
     for (l, o) in out.iter_mut().enumerate() {
         *o = f(x.get(l));
-    }
-    out
-}
-
-/// `f(a)` lane by lane: always inlined, where `[f32; N]::map` is left a
-/// call compiled without the path's instruction set.
-#[inline(always)]
-pub(super) fn map(a: &Lanes, f: impl Fn(f32) -> f32) -> Lanes {
-    let mut out = [0.0; LANES];
-    for l in 0..LANES {
-        out[l] = f(a[l]);
-    }
-    out
-}
-
-/// `f(a, b)` lane by lane.
-#[inline(always)]
-pub(super) fn zip(a: &Lanes, b: &Lanes, f: impl Fn(f32, f32) -> f32) -> Lanes {
-    let mut out = [0.0; LANES];
-    for l in 0..LANES {
-        out[l] = f(a[l], b[l]);
     }
     out
 }

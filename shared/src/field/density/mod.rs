@@ -6,22 +6,24 @@
 //! octave counts, squared radii) was computed then.
 
 //!
-//! - `mod.rs` (here): [`Field`], the tree [`Density`] and [`Hypertexture`], and
-//!   the scalar evaluation, the reference every other path reproduces.
+//! - `mod.rs` (here): the tree [`Density`] and [`Hypertexture`], and the
+//!   scalar evaluation, the reference every other path reproduces, at a point
+//!   and a moment of [`crate::field::domain`].
 //! - [`dmf`]: the density modulation functions, one file each, with all their
 //!   forms (scalar, dual, lanes, bounds) side by side.
-//! - [`lanes`]: [`Points`] and [`Density::eval_lanes`], [`crate::math::simd::LANES`] points at once, with
+//! - [`lanes`]: [`Density::eval_lanes`], [`crate::math::simd::LANES`] points at once, with
 //!   the one `#[target_feature]` copy per instruction set.
 //! - [`dual`]: [`Density::eval_dual`], the density with its gradient.
-//! - [`bounds`]: [`Aabb`], [`Support`], where the density can be non-zero.
+//! - [`bounds`]: [`Density::support`], [`Density::support_ball`], where the
+//!   density can be non-zero, and how far a distortion carries it.
 
 use glam::Vec3;
 
 use crate::desc::{DmfDesc, HardCore, ObjectDesc};
-use crate::field::distortion::Distortion;
-use crate::field::motion::Pose;
-use crate::field::noise::Noise;
-use crate::field::soft::{Falloff, SoftBox, SoftMesh, SoftSphere, SoftTorus, boolean};
+use crate::field::distortion::{self, Distortion};
+use crate::field::domain::{Aabb, Field, Points};
+use crate::field::soft::{Falloff, Primitive, SoftBox, SoftMesh, SoftSphere, SoftTorus, boolean};
+use crate::math::dual::DualPoint;
 use crate::math::simd::{Isa, Lanes};
 
 pub mod bounds;
@@ -29,58 +31,7 @@ pub mod dmf;
 pub mod dual;
 pub mod lanes;
 
-pub use bounds::{Aabb, NOISE_BOUND, Support};
-use dmf::{Dmf, Modulation, Warp};
-pub use lanes::Points;
-
-/// Where and when the field is evaluated: the noise tables and the drift of the
-/// noise domain for the current frame.
-#[derive(Clone, Copy, Debug)]
-pub struct Field<'a> {
-    /// The scene's noise tables.
-    pub noise: &'a Noise,
-    /// Noise is evaluated at `x - offset` (`offset = frame · flow`).
-    pub offset: Vec3,
-    /// The frame number (`frame` in expressions).
-    pub frame: u32,
-    /// The time in frames: `frame`, or within a frame while the shutter of
-    /// motion blur is open (`t = time / frame_rate` in expressions).
-    pub time: f32,
-    /// Frames per second (`t = frame / frame_rate` in expressions).
-    pub frame_rate: f32,
-    /// Where the moving object is at this moment ([`Density::Moving`]).
-    pub pose: Option<Pose>,
-    /// Where the density can be non-zero at this moment, in world space, or
-    /// `None`: anywhere (the marcher skips the samples outside it).
-    pub support: Option<Support>,
-}
-
-impl Field<'_> {
-    /// The object-space point of the world point x (x itself for a still object).
-    #[inline]
-    pub fn object_point(&self, x: Vec3) -> Vec3 {
-        self.pose.map_or(x, |p| p.to_object(x))
-    }
-
-    /// The world direction of an object-space direction.
-    #[inline]
-    pub fn world_vector(&self, v: Vec3) -> Vec3 {
-        self.pose.map_or(v, |p| p.to_world_vector(v))
-    }
-}
-
-impl Field<'_> {
-    #[inline]
-    fn noise(&self, frequency: f32, x: Vec3) -> f32 {
-        self.noise.noise((x - self.offset) * frequency)
-    }
-
-    #[inline]
-    fn turbulence(&self, frequency: f32, x: Vec3, octaves: u32) -> f32 {
-        self.noise
-            .turbulence((x - self.offset) * frequency, octaves)
-    }
-}
+use dmf::{Dmf, InnerSurface, Modulation, Warp};
 
 /// A node of the object density tree.
 #[derive(Clone, Debug, PartialEq)]
@@ -274,6 +225,45 @@ impl Density {
     /// defined for this node.
     pub fn can_project(desc: &ObjectDesc) -> bool {
         desc.is_primitive()
+    }
+}
+
+/// The object O a distortion shifts: a soft primitive's outer surface for
+/// its vector field, and the density.
+impl distortion::Object for Density {
+    #[inline(always)]
+    fn primitive(&self) -> Option<Primitive<'_>> {
+        match self {
+            Density::Sphere(s) => Some(Primitive::Sphere(s)),
+            Density::Box(b) => Some(Primitive::Box(b)),
+            Density::Torus(t) => Some(Primitive::Torus(t)),
+            Density::Mesh(m) => Some(Primitive::Mesh(m)),
+            _ => None,
+        }
+    }
+
+    #[inline(always)]
+    fn density(&self, x: Vec3, field: &Field) -> f32 {
+        self.eval(x, field)
+    }
+}
+
+/// The object D a value DMF reads: the projection onto its inner surface
+/// ([`Density::project`] in every form).
+impl InnerSurface for Density {
+    #[inline(always)]
+    fn project(&self, x: Vec3) -> Vec3 {
+        Density::project(self, x)
+    }
+
+    #[inline(always)]
+    fn project_dual(&self, x: &DualPoint) -> DualPoint {
+        Density::project_dual(self, x)
+    }
+
+    #[inline(always)]
+    fn project_lanes_in_place(&self, x: &mut Points, live: u32) {
+        Density::project_lanes_in_place(self, x, live)
     }
 }
 

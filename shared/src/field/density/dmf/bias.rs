@@ -3,10 +3,10 @@
 
 use glam::Vec3;
 
-use super::ValueDmf;
+use super::{InnerSurface, ValueDmf};
 use crate::desc::DmfDesc;
-use crate::field::density::lanes::Points;
-use crate::field::density::{Density, Field};
+use crate::field::domain::Field;
+use crate::field::domain::Points;
 use crate::field::shaping::Bias;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, Lanes};
@@ -20,11 +20,17 @@ impl ValueDmf for Bias {
     }
 
     #[inline]
-    fn apply(&self, d: f32, _x: Vec3, _object: &Density, _field: &Field) -> f32 {
+    fn apply(&self, d: f32, _x: Vec3, _object: &impl InnerSurface, _field: &Field) -> f32 {
         Bias::apply(self, d)
     }
 
-    fn apply_dual(&self, d: Dual, _x: &DualPoint, _object: &Density, _field: &Field) -> Dual {
+    fn apply_dual(
+        &self,
+        d: Dual,
+        _x: &DualPoint,
+        _object: &impl InnerSurface,
+        _field: &Field,
+    ) -> Dual {
         Bias::apply_dual(self, d)
     }
 
@@ -33,7 +39,7 @@ impl ValueDmf for Bias {
         &self,
         d: &Lanes,
         _x: &Points,
-        _object: &Density,
+        _object: &impl InnerSurface,
         _field: &Field,
         _isa: Isa,
         live: u32,

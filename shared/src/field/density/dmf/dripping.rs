@@ -5,9 +5,10 @@ use glam::Vec3;
 
 use super::{Settling, WarpDmf};
 use crate::desc::DmfDesc;
-use crate::field::density::Field;
-use crate::field::density::bounds::{Aabb, NOISE_BOUND, hull, unscale};
-use crate::field::density::lanes::Points;
+use crate::field::domain::Field;
+use crate::field::domain::Points;
+use crate::field::domain::{Aabb, hull, unscale};
+use crate::field::noise::NOISE_BOUND;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, LANES};
 

@@ -4,9 +4,9 @@ use glam::Vec3;
 
 use super::{Settling, WarpDmf, bounds_left};
 use crate::desc::{DmfDesc, Octaves};
-use crate::field::density::Field;
-use crate::field::density::bounds::NOISE_BOUND;
-use crate::field::density::lanes::{Points, map, zip};
+use crate::field::domain::Field;
+use crate::field::domain::{Points, map, zip};
+use crate::field::noise::NOISE_BOUND;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, LANES};
 

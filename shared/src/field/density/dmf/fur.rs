@@ -3,10 +3,10 @@
 
 use glam::Vec3;
 
-use super::ValueDmf;
+use super::{InnerSurface, ValueDmf};
 use crate::desc::DmfDesc;
-use crate::field::density::lanes::{Points, zip};
-use crate::field::density::{Density, Field};
+use crate::field::domain::Field;
+use crate::field::domain::{Points, zip};
 use crate::field::noise::VNOISE_OFFSET;
 use crate::field::shaping::{Bias, Gain};
 use crate::math::dual::{Dual, DualPoint};
@@ -53,7 +53,7 @@ impl ValueDmf for Fur {
     /// paper's noise ranges over [-1, 1]; clamping it instead would leave half the
     /// surface bald).
     #[inline]
-    fn apply(&self, d: f32, x: Vec3, object: &Density, field: &Field) -> f32 {
+    fn apply(&self, d: f32, x: Vec3, object: &impl InnerSurface, field: &Field) -> f32 {
         let x = if self.curliness > 0.0 {
             let q = x - field.offset;
             x + field.noise.vnoise(q) * (self.curl_gain.apply(1.0 - d) * self.curliness)
@@ -65,7 +65,13 @@ impl ValueDmf for Fur {
     }
 
     /// Through the curl, the projection onto the inner surface and the noise there.
-    fn apply_dual(&self, d: Dual, x: &DualPoint, object: &Density, field: &Field) -> Dual {
+    fn apply_dual(
+        &self,
+        d: Dual,
+        x: &DualPoint,
+        object: &impl InnerSurface,
+        field: &Field,
+    ) -> Dual {
         let x = if self.curliness > 0.0 {
             let q = x.offset(-field.offset);
             let vnoise = DualPoint {
@@ -87,7 +93,7 @@ impl ValueDmf for Fur {
         &self,
         d: &Lanes,
         x: &Points,
-        object: &Density,
+        object: &impl InnerSurface,
         field: &Field,
         isa: Isa,
         live: u32,

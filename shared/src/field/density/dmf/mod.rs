@@ -11,10 +11,9 @@
 
 use glam::Vec3;
 
-use super::bounds::{Aabb, NOISE_BOUND, unscale};
-use super::lanes::Points;
-use super::{Density, Field};
 use crate::desc::{DmfDesc, Octaves};
+use crate::field::domain::{Aabb, Field, Points, unscale};
+use crate::field::noise::NOISE_BOUND;
 use crate::math::dual::{Dual, DualPoint};
 use crate::math::simd::{Isa, Lanes};
 
@@ -73,10 +72,11 @@ pub trait ValueDmf: Sized {
     fn from_desc(desc: &DmfDesc, step: f32) -> Option<Self>;
 
     /// f(d) at x: the scalar reference.
-    fn apply(&self, d: f32, x: Vec3, object: &Density, field: &Field) -> f32;
+    fn apply(&self, d: f32, x: Vec3, object: &impl InnerSurface, field: &Field) -> f32;
 
     /// f(d) at x with its gradient.
-    fn apply_dual(&self, d: Dual, x: &DualPoint, object: &Density, field: &Field) -> Dual;
+    fn apply_dual(&self, d: Dual, x: &DualPoint, object: &impl InnerSurface, field: &Field)
+    -> Dual;
 
     /// f at each lane, inlined into a SIMD path's copy: implementations are
     /// `#[inline(always)]`. Only the lanes whose bit is set in `live` are
@@ -86,11 +86,27 @@ pub trait ValueDmf: Sized {
         &self,
         d: &Lanes,
         x: &Points,
-        object: &Density,
+        object: &impl InnerSurface,
         field: &Field,
         isa: Isa,
         live: u32,
     ) -> Lanes;
+}
+
+/// What a value DMF reads of the object D it modulates: the point x
+/// projected onto D's inner (D = 1) surface, where the fur grows from (only
+/// primitives project: checked at load for every DMF that needs it). The
+/// density tree implements it.
+pub trait InnerSurface {
+    /// x projected perpendicularly onto the inner surface.
+    fn project(&self, x: Vec3) -> Vec3;
+
+    /// [`InnerSurface::project`] with its Jacobian.
+    fn project_dual(&self, x: &DualPoint) -> DualPoint;
+
+    /// [`InnerSurface::project`] at the lanes set in `live` (bit l for lane
+    /// l), in place; the other points are left.
+    fn project_lanes_in_place(&self, x: &mut Points, live: u32);
 }
 
 /// Which lanes' D is settled, for [`WarpDmf::apply_lanes`].
@@ -226,7 +242,13 @@ macro_rules! modulations {
 
             /// [`ValueDmf::apply`].
             #[inline]
-            pub(crate) fn apply(&self, d: f32, x: Vec3, object: &Density, field: &Field) -> f32 {
+            pub(crate) fn apply(
+                &self,
+                d: f32,
+                x: Vec3,
+                object: &impl InnerSurface,
+                field: &Field,
+            ) -> f32 {
                 match self {
                     $(Modulation::$name(m) => <$ty as ValueDmf>::apply(m, d, x, object, field),)*
                 }
@@ -237,7 +259,7 @@ macro_rules! modulations {
                 &self,
                 d: Dual,
                 x: &DualPoint,
-                object: &Density,
+                object: &impl InnerSurface,
                 field: &Field,
             ) -> Dual {
                 match self {
@@ -251,7 +273,7 @@ macro_rules! modulations {
                 &self,
                 d: &Lanes,
                 x: &Points,
-                object: &Density,
+                object: &impl InnerSurface,
                 field: &Field,
                 isa: Isa,
                 live: u32,

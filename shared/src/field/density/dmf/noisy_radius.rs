@@ -4,9 +4,9 @@ use glam::Vec3;
 
 use super::{Settling, WarpDmf};
 use crate::desc::DmfDesc;
-use crate::field::density::Field;
-use crate::field::density::bounds::NOISE_BOUND;
-use crate::field::density::lanes::{Points, map};
+use crate::field::domain::Field;
+use crate::field::domain::{Points, map};
+use crate::field::noise::NOISE_BOUND;
 use crate::math::dual::DualPoint;
 use crate::math::simd::Isa;
 

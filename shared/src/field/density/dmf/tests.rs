@@ -8,7 +8,8 @@ use glam::Vec3;
 
 use super::{Dmf, Modulation, Warp};
 use crate::desc::{DmfDesc, HardCore, ObjectDesc};
-use crate::field::density::{Density, Field, Hypertexture, Points};
+use crate::field::density::{Density, Hypertexture};
+use crate::field::domain::{Field, Points};
 use crate::field::noise::Noise;
 use crate::math::dual::DualPoint;
 use crate::math::random::SplitMix64;
