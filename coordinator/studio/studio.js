@@ -476,7 +476,7 @@ function setSlider(input, value) {
   input.setAttribute('aria-valuetext', format(value));
 }
 
-const GROUPS = { object: 'Object', modulation: 'Modulation', distortion: 'Distortion',
+const GROUPS = { march: 'March', object: 'Object', modulation: 'Modulation', distortion: 'Distortion',
   camera: 'Camera', lights: 'Lights', shading: 'Shading' };
 
 /** `camera.eye[1]` → `eye y`; `modulation[0].Fur.frequency` → `Fur frequency`. */
@@ -534,14 +534,26 @@ function showScene(view, { text, sliders }) {
     params.innerHTML = '';
     for (const key of Object.keys(paramValues)) delete paramValues[key];
     let group = null;
+    let box = params;
     for (const p of view.params) {
       if (p.group !== group) {
         group = p.group;
-        const h = document.createElement('h3');
-        h.textContent = GROUPS[group] || group;
-        params.appendChild(h);
+        if (group === 'camera') {
+          // The camera is steered in the image; its values fold away.
+          box = document.createElement('details');
+          box.id = 'camera-values';
+          const summary = document.createElement('summary');
+          summary.textContent = 'Camera values (drag the image to orbit, shift-drag to pan, wheel to dolly, F to frame)';
+          box.appendChild(summary);
+          params.appendChild(box);
+        } else {
+          box = params;
+          const h = document.createElement('h3');
+          h.textContent = GROUPS[group] || group;
+          params.appendChild(h);
+        }
       }
-      const input = slider(params, 'param-' + p.id, paramLabel(p.id, p.group), p.min, p.max, p.step,
+      const input = slider(box, 'param-' + p.id, paramLabel(p.id, p.group), p.min, p.max, p.step,
         (i) => paramMoved({ [p.id]: Number(Number(i.value).toPrecision(6)) }, i));
       input.dataset.param = p.id;
     }
@@ -765,6 +777,127 @@ function movePoint(c, i, x, y) {
   paramMoved(change, null);
 }
 
+// ---- The camera in the image: orbit, pan, dolly, frame --------------------------
+
+/** The camera's vectors from the scene's numbers (null when the text does
+ * not write them all). */
+function cameraNow() {
+  const get = (name) => {
+    const v = [0, 1, 2].map((i) => studio.view?.params.find((p) => p.id === `camera.${name}[${i}]`)?.value);
+    return v.every((x) => x !== undefined) ? v.map((x, i) => paramValues[`camera.${name}[${i}]`] ?? x) : null;
+  };
+  const eye = get('eye'), lookAt = get('look_at'), up = get('up');
+  return eye && lookAt && up ? { eye, lookAt, up } : null;
+}
+
+const add = (a, b) => a.map((x, i) => x + b[i]);
+const sub = (a, b) => a.map((x, i) => x - b[i]);
+const scale = (a, k) => a.map((x) => x * k);
+const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const unit = (a) => scale(a, 1 / Math.hypot(...a));
+
+/** `v` turned by `angle` about the unit axis `k` (Rodrigues). */
+function rotate(v, k, angle) {
+  const c = Math.cos(angle), s = Math.sin(angle);
+  return add(add(scale(v, c), scale(cross(k, v), s)), scale(k, dot(k, v) * (1 - c)));
+}
+
+/** Sends the camera's eye and look_at (the up vector stays the scene's). */
+function moveCamera(eye, lookAt) {
+  const values = {};
+  const round = (v) => Number(v.toPrecision(6));
+  eye.forEach((v, i) => { values[`camera.eye[${i}]`] = round(v); });
+  lookAt.forEach((v, i) => { values[`camera.look_at[${i}]`] = round(v); });
+  for (const [id, v] of Object.entries(values)) {
+    const input = document.getElementById('param-' + id);
+    if (input) setSlider(input, v);
+  }
+  paramMoved(values, null);
+}
+
+/** Orbits the eye about look_at: across the image turns about the up
+ * vector, up and down about the camera's right, stopping short of the
+ * poles so that the up vector never flips. */
+function orbit(cam, dx, dy) {
+  const up = unit(cam.up);
+  let offset = sub(cam.eye, cam.lookAt);
+  offset = rotate(offset, up, -dx * 0.01);
+  const right = unit(cross(offset, up));
+  const turned = rotate(offset, right, dy * 0.01);
+  const pole = Math.abs(dot(unit(turned), up));
+  if (pole < 0.995) offset = turned;
+  moveCamera(add(cam.lookAt, offset), cam.lookAt);
+}
+
+/** Pans eye and look_at together in the image's plane. */
+function pan(cam, dx, dy) {
+  const forward = sub(cam.lookAt, cam.eye);
+  const distance = Math.hypot(...forward);
+  const right = unit(cross(forward, cam.up));
+  const upward = unit(cross(right, forward));
+  const k = distance / Math.max(1, image.getBoundingClientRect().height);
+  const shift = add(scale(right, -dx * k), scale(upward, dy * k));
+  moveCamera(add(cam.eye, shift), add(cam.lookAt, shift));
+}
+
+/** Dollies the eye toward look_at (`steps` < 0) or away. */
+function dolly(cam, steps) {
+  const offset = sub(cam.eye, cam.lookAt);
+  moveCamera(add(cam.lookAt, scale(offset, Math.exp(steps * 0.1))), cam.lookAt);
+}
+
+/** Frames the march's bounds: look_at at their centre, the eye along its
+ * present direction far enough for the bounding sphere to fill the view. */
+function frameBounds(cam) {
+  const min = [0, 1, 2].map((i) => studio.view?.params.find((p) => p.id === `march.bounds.min[${i}]`)?.value);
+  const max = [0, 1, 2].map((i) => studio.view?.params.find((p) => p.id === `march.bounds.max[${i}]`)?.value);
+  if (![...min, ...max].every((x) => x !== undefined)) return;
+  const centre = scale(add(min, max), 0.5);
+  const radius = Math.hypot(...sub(max, min)) / 2;
+  const fov = studio.view.params.find((p) => p.id.endsWith('fov_y'))?.value ?? 50;
+  const distance = (radius / Math.sin((fov * Math.PI) / 360)) * 1.05;
+  moveCamera(add(centre, scale(unit(sub(cam.eye, cam.lookAt)), distance)), centre);
+}
+
+let steering = null;   // the pointer dragging in the image
+image.addEventListener('pointerdown', (e) => {
+  if (!cameraNow()) return;
+  e.preventDefault();
+  image.setPointerCapture(e.pointerId);
+  steering = { pointer: e.pointerId, x: e.clientX, y: e.clientY, pan: e.shiftKey || e.button === 1 };
+});
+image.addEventListener('pointermove', (e) => {
+  if (!steering || steering.pointer !== e.pointerId) return;
+  const cam = cameraNow();
+  const dx = e.clientX - steering.x, dy = e.clientY - steering.y;
+  if (!cam || (dx === 0 && dy === 0)) return;
+  steering.x = e.clientX;
+  steering.y = e.clientY;
+  if (steering.pan) pan(cam, dx, dy);
+  else orbit(cam, dx, dy);
+});
+const stopSteering = () => { steering = null; };
+image.addEventListener('pointerup', stopSteering);
+image.addEventListener('pointercancel', stopSteering);
+image.addEventListener('wheel', (e) => {
+  const cam = cameraNow();
+  if (!cam) return;
+  e.preventDefault();
+  dolly(cam, Math.sign(e.deltaY));
+}, { passive: false });
+image.tabIndex = 0;
+image.addEventListener('keydown', (e) => {
+  const cam = cameraNow();
+  if (!cam) return;
+  const keys = { ArrowLeft: [-10, 0], ArrowRight: [10, 0], ArrowUp: [0, -10], ArrowDown: [0, 10] };
+  if (e.key === 'f' || e.key === 'F') frameBounds(cam);
+  else if (keys[e.key]) (e.shiftKey ? pan : orbit)(cam, ...keys[e.key]);
+  else if (e.key === '+' || e.key === '-') dolly(cam, e.key === '+' ? -1 : 1);
+  else return;
+  e.preventDefault();
+});
+
 // ---- Sending changes ----------------------------------------------------------
 
 let inFlight = false;
@@ -929,6 +1062,12 @@ $('reload').addEventListener('click', () => {
     showScene(view, { text: true, sliders: true });
     $('action-result').textContent = 'reloaded the file';
   }, (e) => { $('action-result').textContent = e.message; });
+});
+
+$('enlarge').addEventListener('click', () => {
+  const on = document.body.classList.toggle('enlarged');
+  $('enlarge').setAttribute('aria-pressed', String(on));
+  $('enlarge').textContent = on ? 'Shrink' : 'Enlarge';
 });
 
 $('final').addEventListener('click', () => {

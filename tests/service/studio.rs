@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use crate::support::browser::{Browser, chromium_or_skip};
 use crate::support::{
-    RUN_SECS, Running, decode_png, in_process_file, median, output_within, root, scratch,
+    RUN_SECS, Running, decode_png, in_process_file, median, output_within, root, scratch, until,
 };
 use serde_json::{Value, json};
 
@@ -411,9 +411,10 @@ fn two_final_renders_give_two_files_and_the_page_shows_the_last() {
 /// Two tabs share one state: a slider moved in one moves in the other, text
 /// and value; a text edit in the other keeps it; a range the server widens
 /// reaches every tab; a stale edit of the same value is a conflict (409),
-/// of another value merged.
+/// of another value merged. A drag in the image orbits the camera, which the
+/// other tab follows; F frames the bounds.
 #[test]
-fn two_tabs_stay_in_sync_and_never_undo_each_other() {
+fn two_tabs_stay_in_sync_and_the_camera_moves_in_the_image() {
     let Some(chromium) = chromium_or_skip() else {
         return;
     };
@@ -486,6 +487,70 @@ fn two_tabs_stay_in_sync_and_never_undo_each_other() {
         "document.getElementById('text').value.includes('gain: 0.8')",
         60,
     );
+
+    // The camera in the image: a drag across it orbits the eye about
+    // look_at (its distance and the up vector kept), and B follows.
+    let camera = |url: &str| {
+        let view = crate::support::http::get(url, "/studio/scene").json();
+        let value = |id: String| {
+            view["params"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|p| p["id"] == id.as_str())
+                .unwrap_or_else(|| panic!("{id}"))["value"]
+                .as_f64()
+                .unwrap()
+        };
+        let v = |name: &str| [0, 1, 2].map(|i| value(format!("camera.{name}[{i}]")));
+        (v("eye"), v("look_at"), v("up"))
+    };
+    let distance = |a: [f64; 3], b: [f64; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    let (eye, look_at, up) = camera(&url);
+    let centre = a.eval(
+        "(() => { const r = document.getElementById('image').getBoundingClientRect(); \
+         return [r.x + r.width / 2, r.y + r.height / 2]; })()",
+    );
+    let (x, y) = (centre[0].as_f64().unwrap(), centre[1].as_f64().unwrap());
+    let mouse = |a: &mut Browser, kind: &str, x: f64, buttons: u32| {
+        a.call(
+            "Input.dispatchMouseEvent",
+            json!({ "type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        );
+    };
+    mouse(&mut a, "mousePressed", x, 1);
+    for step in 1..=4 {
+        mouse(&mut a, "mouseMoved", x + 10.0 * f64::from(step), 1);
+    }
+    mouse(&mut a, "mouseReleased", x + 40.0, 0);
+    until(60, "the orbit reaches the server", || camera(&url).0 != eye);
+    std::thread::sleep(Duration::from_millis(500));
+    let (orbited, kept, same_up) = camera(&url);
+    assert_eq!((kept, same_up), (look_at, up), "look_at and up stay");
+    let (before, after) = (distance(eye, look_at), distance(orbited, look_at));
+    assert!(
+        (before - after).abs() < 1e-3 * before,
+        "an orbit keeps the distance: {before} → {after}"
+    );
+    assert!(
+        (orbited[1] - eye[1]).abs() < 1e-3,
+        "across the image turns about up"
+    );
+    b.wait_until(
+        &format!(
+            "studio.view.params.find((p) => p.id === 'camera.eye[0]').value === {:?}",
+            orbited[0]
+        ),
+        60,
+    );
+    // F frames the march's bounds: look_at at their centre.
+    a.eval("document.getElementById('image').focus()");
+    a.key("f", 70);
+    until(60, "the frame key reaches the server", || {
+        camera(&url).1 == [0.0, 0.0, 0.0]
+    });
     drop((a, b));
     let _ = studio.child.kill();
     let _ = studio.child.wait();
@@ -493,9 +558,10 @@ fn two_tabs_stay_in_sync_and_never_undo_each_other() {
 
 /// A curve is drawn as the renderer evaluates it: the `Step` alpha map of
 /// Gilet & Dischler's isolines stays 0 up to its second key, then 1 (read
-/// from the page's pixels: never the ramp its two points would make).
+/// from the page's pixels: never the ramp its two points would make). At
+/// 1280 × 800 with the curves in view, the image stays on screen.
 #[test]
-fn a_step_curve_is_drawn_as_a_step() {
+fn a_step_curve_is_drawn_as_a_step_and_the_image_stays_in_view() {
     let Some(chromium) = chromium_or_skip() else {
         return;
     };
@@ -513,10 +579,27 @@ fn a_step_curve_is_drawn_as_a_step() {
     let port = studio.port();
     studio.wait_for("serving on", 30);
     let mut browser = open_page(&chromium, &dir, port);
+    // A window of 1280 × 800 with the curves scrolled into view: the image
+    // stays on screen, whole.
+    browser.call(
+        "Emulation.setDeviceMetricsOverride",
+        json!({ "width": 1280, "height": 800, "deviceScaleFactor": 1, "mobile": false }),
+    );
     let rect = browser.eval(
         "(() => { const e = document.getElementById('curve-alpha_map.points'); \
          e.scrollIntoView(); const r = e.getBoundingClientRect(); \
          return [r.x + scrollX, r.y + scrollY, r.width, r.height]; })()",
+    );
+    let image = browser.eval(
+        "(() => { const r = document.getElementById('image').getBoundingClientRect(); \
+         return [r.top, r.bottom, r.width, scrollY, innerHeight]; })()",
+    );
+    let [top, bottom, width, scrolled, height] =
+        [0, 1, 2, 3, 4].map(|i| image[i].as_f64().expect("the image's box"));
+    assert!(scrolled > 0.0, "the curves are below the fold: {image}");
+    assert!(
+        top >= 0.0 && bottom <= height && width >= 256.0,
+        "the image is on screen: {image}"
     );
     let [x, y, w, h] = [0, 1, 2, 3].map(|i| rect[i].as_f64().expect("the curve's box"));
     let shot = browser.call(

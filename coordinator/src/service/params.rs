@@ -258,9 +258,11 @@ fn literal(value: f64, integer: bool) -> String {
     }
 }
 
-/// Which of a scene's top-level fields get sliders. Sizes, bounds, steps and
-/// seeds are not modelling parameters; curves get handles instead.
+/// Which of a scene's top-level fields get sliders: the modelling ones and
+/// the march (its bounds, step, opacity and threshold). The image's size and
+/// seeds are not looks; curves get handles instead.
 const SLIDER_FIELDS: &[&str] = &[
+    "march",
     "object",
     "modulation",
     "distortion",
@@ -491,7 +493,7 @@ fn range(path: &str, value: f64, integer: bool) -> (f64, f64) {
     let fixed = match key {
         "bias" | "gain" => Some((0.01, 0.99)),
         "fov_y" => Some((5.0, 150.0)),
-        "ambient" | "diffuse" | "specular" => Some((0.0, 1.0)),
+        "ambient" | "diffuse" | "specular" | "threshold" => Some((0.0, 1.0)),
         "colour" if component => Some((0.0, 1.0)),
         "direction" | "up" => Some((-1.0, 1.0)),
         "shift" => Some((-1.0, 1.0)),
@@ -618,13 +620,14 @@ mod tests {
             "lights.ambient[0]",
             "lights.sources[0].Directional.direction[0]",
             "lights.sources[0].Directional.colour[2]",
+            "march.bounds.min[0]",
+            "march.step.Diagonal[0]",
+            "march.opacity",
+            "march.threshold",
         ] {
             assert!(ids.contains(&id), "{id} in {ids:?}");
         }
-        assert!(
-            !ids.iter()
-                .any(|i| i.starts_with("image") || i.starts_with("march"))
-        );
+        assert!(!ids.iter().any(|i| i.starts_with("image")));
         for p in &params {
             assert!(p.min <= p.value && p.value <= p.max, "{p:?}");
             assert!(p.step > 0.0);
