@@ -154,6 +154,19 @@ fn probe_assets() -> &'static crate::scene::Assets {
     })
 }
 
+/// A probe scene's text with its meshes read exactly (`sdf: Exact`): a mesh's
+/// distance field costs every process hundreds of milliseconds to build,
+/// against the probe's few, and its trilinear read is the same scalar
+/// arithmetic on every path; the exact search is the arithmetic that
+/// differs between instruction sets.
+fn exact_meshes(text: &str) -> std::borrow::Cow<'_, str> {
+    if text.contains("Mesh(path:") {
+        text.replace("Mesh(path:", "Mesh(sdf: Exact, path:").into()
+    } else {
+        text.into()
+    }
+}
+
 /// The bytes the digest hashes for one probe scene: each probe pixel's channels
 /// (little-endian f32 bits) and its 8-bit sRGB encoding.
 fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, ProbeError> {
@@ -167,7 +180,7 @@ fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, Pro
             quality: Some(Quality::Interactive),
             ..Overrides::default()
         };
-        Scene::from_text_with(text, path, overrides, Some(probe_assets()))
+        Scene::from_text_with(&exact_meshes(text), path, overrides, Some(probe_assets()))
             .map_err(|error| ProbeError { path, error })
     };
     let mut scene = build(None)?;
@@ -194,6 +207,23 @@ pub fn arithmetic_digest() -> Result<u64, ProbeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn mesh_scenes_are_probed_on_the_exact_distance() {
+        let meshes: Vec<_> = PROBE_SCENES
+            .iter()
+            .filter(|(_, text)| text.contains("Mesh("))
+            .collect();
+        assert!(!meshes.is_empty());
+        for (path, text) in meshes {
+            let probed = exact_meshes(text);
+            assert_eq!(
+                probed.matches("Mesh(sdf: Exact, path:").count(),
+                text.matches("Mesh(").count(),
+                "{path}"
+            );
+        }
+    }
 
     #[test]
     fn every_path_gives_the_same_digest() {
