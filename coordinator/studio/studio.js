@@ -116,6 +116,7 @@ $('login').addEventListener('submit', (e) => {
 
 function startFrame(f) {
   pending = null;
+  if (f.frame !== undefined) showFrameNumber(f.frame);
   studio.generation = f.generation;
   studio.quality = f.quality;
   studio.units = f.units;
@@ -479,16 +480,22 @@ function setSlider(input, value) {
 const GROUPS = { march: 'March', object: 'Object', modulation: 'Modulation', distortion: 'Distortion',
   camera: 'Camera', lights: 'Lights', shading: 'Shading' };
 
-/** `camera.eye[1]` → `eye y`; `modulation[0].Fur.frequency` → `Fur frequency`. */
+/** Readable labels: `camera.eye[1]` → `eye y`; `modulation[0].Fur.frequency`
+ * → `Fur frequency` (the second modulation: `#2 Fur frequency`);
+ * `lights.sources[0].Directional.direction[0]` → `light 1 direction x`;
+ * `march.bounds.min[2]` → `bounds min z`. */
 function paramLabel(id, group) {
-  let rest = id.slice(group.length).replace(/^\./, '');
+  let rest = id.slice(group.length).replace(/^\./, '')
+    .replace(/^sources\[(\d+)\]\.\w+\./, (_, n) => `light ${Number(n) + 1} `)
+    .replace(/^\[(\d+)\]\./, (_, n) => (n === '0' ? '' : `#${Number(n) + 1} `))
+    .replace(/^projection\.\w+\.fov_y$/, 'field of view');
   const component = /\[(\d)\]$/.exec(rest);
   if (component) {
     const key = rest.slice(0, component.index).split('.').pop();
     const names = /colour|ambient/.test(key) ? 'rgb' : 'xyz';
     rest = rest.slice(0, component.index) + ' ' + (names[Number(component[1])] ?? component[1]);
   }
-  return rest.replace(/\[(\d+)\]/g, ' $1').replace(/\./g, ' ').trim() || group;
+  return rest.replace(/\[(\d+)\]/g, ' $1').replace(/[._]/g, ' ').replace(/\s+/g, ' ').trim() || group;
 }
 
 function curveLabel(id) {
@@ -499,6 +506,7 @@ function curveLabel(id) {
 function showScene(view, { text, sliders }) {
   studio.view = view;
   studio.version = Math.max(studio.version, view.version);
+  if (view.frame !== undefined && !pending) showFrameNumber(view.frame);
   $('scene-name').textContent = view.name;
   $('save').disabled = !view.savable;
   $('error').textContent = view.error || '';
@@ -776,6 +784,42 @@ function movePoint(c, i, x, y) {
   placeCurve(c);
   paramMoved(change, null);
 }
+
+// ---- The frame of a sequence: a slider and Play ----------------------------------
+
+const frameInput = $('frame-number');
+let playing = null;    // the timer that steps the frames while playing
+
+/** Shows frame `n` on the slider (widened to hold it), unless held. */
+function showFrameNumber(n) {
+  studio.frame = n;
+  if (n > Number(frameInput.max)) frameInput.max = n;
+  if (held(frameInput)) return;
+  frameInput.value = n;
+  $('frame-shown').textContent = n;
+}
+
+function frameMoved(n) {
+  const asked = performance.now();
+  showFrameNumber(n);
+  send({ ...current('interactive'), frame: n }, asked, true);
+}
+
+frameInput.addEventListener('input', () => frameMoved(Number(frameInput.value)));
+$('play').addEventListener('click', () => {
+  if (playing !== null) {
+    clearInterval(playing);
+    playing = null;
+  } else {
+    // The next frame once the one shown is drawn whole.
+    playing = setInterval(() => {
+      if (inFlight || gated() || queued || !studio.drawn) return;
+      frameMoved((Number(frameInput.value) + 1) % (Number(frameInput.max) + 1));
+    }, 40);
+  }
+  $('play').textContent = playing === null ? 'Play' : 'Pause';
+  $('play').setAttribute('aria-pressed', String(playing !== null));
+});
 
 // ---- The camera in the image: orbit, pan, dolly, frame --------------------------
 

@@ -4,8 +4,8 @@
 
 use std::time::Instant;
 
-use hypertexture::PixelFormat;
 use hypertexture::render::interleave::WorkUnit;
+use hypertexture::{FrameRange, PixelFormat};
 use hypertexture_proto::convert::WireError;
 
 use super::scheduler::{JobId, JobPlan, JobProgress, Resume};
@@ -130,18 +130,21 @@ impl Shared {
         view
     }
 
-    /// Adds a one-frame job (frame 0) of `units` that goes before every
+    /// Adds a job of one frame, `frame`, of `units` that goes before every
     /// other and whose units are not rendered twice (the studio's live
     /// frames: their first coarse image waits for nothing).
     pub fn add_live_frame(
         &self,
-        id: JobId,
+        (id, frame): (JobId, u32),
         units: Vec<WorkUnit>,
         (width, height): (u32, u32),
         format: PixelFormat,
         wire: WireJob,
     ) -> Result<(), WireError> {
-        let plan = JobPlan::one_frame(id, i32::MAX, units, (width, height), format);
+        let plan = JobPlan {
+            frames: FrameRange::one(frame),
+            ..JobPlan::one_frame(id, i32::MAX, units, (width, height), format)
+        };
         self.add_job(plan, Resume::default(), wire)
     }
 }

@@ -64,7 +64,7 @@ use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
 use hypertexture::desc::KnobDesc;
 use hypertexture::render::interleave::{WorkUnit, farm_units};
-use hypertexture::{Overrides, PixelFormat, Quality, RenderRequest};
+use hypertexture::{FrameRange, Overrides, PixelFormat, Quality, RenderRequest};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
@@ -154,6 +154,8 @@ struct Live {
     generation: u64,
     /// The versions of the text and knob values (every tab's edits).
     versions: Versions,
+    /// The frame of the sequence shown (what `frame` means in the scene).
+    frame_number: u32,
 }
 
 /// The studio of a service.
@@ -205,6 +207,9 @@ pub struct Change {
     /// tell its own edits from others'.
     #[serde(default)]
     pub tab: Option<String>,
+    /// The frame of the sequence to show; absent: the one shown.
+    #[serde(default)]
+    pub frame: Option<u32>,
 }
 
 /// A knob as the page shows it.
@@ -235,6 +240,8 @@ pub struct SceneView {
     generation: u64,
     /// The version of the text and knob values shown.
     version: u64,
+    /// The frame of the sequence shown.
+    frame: u32,
 }
 
 /// An error answered as `{"error": …}`.
@@ -385,7 +392,7 @@ fn check(
     text: &str,
     name: &str,
     knobs: &BTreeMap<String, f64>,
-    quality: Quality,
+    (quality, frame): (Quality, u32),
     files: &Files,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
@@ -410,6 +417,7 @@ fn check(
         },
         // A live frame is drawn in the page: 8-bit colour is all it needs.
         pixel_format: PixelFormat::Srgb8,
+        frames: FrameRange::one(frame),
         ..RenderRequest::new(text, name)
     };
     // Only the files read beside the scene file are used: a scene whose
@@ -487,6 +495,7 @@ impl Studio {
                 frame: None,
                 generation: 0,
                 versions: Versions::new(&text_read),
+                frame_number: 0,
             }),
             raw,
             raw_rx: Mutex::new(Some(raw_rx)),
@@ -530,6 +539,7 @@ impl Studio {
                 quality: Quality::High,
                 base: None,
                 tab: None,
+                frame: None,
             });
         }
     }
@@ -723,6 +733,7 @@ impl Studio {
             quality: Quality::High,
             base: None,
             tab: None,
+            frame: None,
         };
         if let Err(e) = self.change_live(&mut live, change) {
             tracing::warn!("the high-quality frame of {}: {e}", self.name);
@@ -742,14 +753,17 @@ impl Studio {
                 return Err(e);
             }
         };
+        let frame_number = checked.built.request.frames.first;
         let same = live.frame.is_some()
             && live.text == checked.text
             && live.knobs == checked.knobs
-            && live.quality == change.quality;
+            && live.quality == change.quality
+            && live.frame_number == frame_number;
         live.error = None;
         if !same {
             self.start_frame(shared, live, &checked, change.quality)?;
         }
+        live.frame_number = frame_number;
         live.text = checked.text;
         live.knobs = checked.knobs;
         live.shown = checked.shown;
@@ -790,7 +804,8 @@ impl Studio {
         };
         let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
         self.read_files(&text, &mut files)?;
-        check(&text, &self.name, &knobs, change.quality, &files)
+        let frame = change.frame.unwrap_or(live.frame_number);
+        check(&text, &self.name, &knobs, (change.quality, frame), &files)
     }
 
     /// Makes `files` hold the files `text` names, read beside the opened
@@ -838,7 +853,7 @@ impl Studio {
         let frame_job = farm::FrameJob {
             request: checked.built.request.clone(),
             frames: vec![farm::FrameOut {
-                frame: 0,
+                frame: checked.built.request.frames.first,
                 out: PathBuf::new(),
             }],
             // A live frame is drawn in the page, never written to a file.
@@ -855,6 +870,7 @@ impl Studio {
             "interleave": interleave,
             "units": units.len(),
             "quality": quality,
+            "frame": checked.built.request.frames.first,
         });
         let event = self.send(Event {
             name: "frame",
@@ -876,7 +892,7 @@ impl Studio {
         });
         shared
             .add_live_frame(
-                job,
+                (job, checked.built.request.frames.first),
                 frame_units,
                 (width, height),
                 PixelFormat::Srgb8,
@@ -906,6 +922,7 @@ impl Studio {
             error: live.error.clone(),
             generation: live.generation,
             version: live.versions.current().number,
+            frame: live.frame_number,
         }
     }
 
@@ -1006,6 +1023,7 @@ impl Studio {
             quality: Quality::High,
             base: None,
             tab: None,
+            frame: None,
         })?;
         *known = Some(text);
         Ok(view)
