@@ -5,7 +5,8 @@
 //! The page must show the frame byte-identical to the in-process render;
 //! a slider moved from the keyboard changes the image; a syntax error shows
 //! its line:column while the image stays; fixing it brings the image back.
-//! A screenshot taken while a frame refines is written to docs/studio.png.
+//! A screenshot taken while a frame refines is written beside the test's
+//! scene (`refining.png`), for a look when the test fails.
 //!
 //! Without Chromium (`/usr/bin/chromium`, or `$CHROMIUM`) the test is
 //! skipped with a message, except in CI (`CI` set), where it fails:
@@ -99,7 +100,7 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
         let png = base64::engine::general_purpose::STANDARD
             .decode(shot["data"].as_str().expect("png data"))
             .expect("base64");
-        std::fs::write(root().join("docs/studio.png"), png).expect("docs/studio.png");
+        std::fs::write(dir.join("refining.png"), png).expect("refining.png");
     }
 
     // A syntax error: its line:column shows, the image stays.
