@@ -311,9 +311,13 @@ fn stored_tiles(db: &Path) -> Vec<(u64, u32, u32, Vec<u8>)> {
 fn a_flipped_byte_in_a_stored_tile_is_dropped_and_rendered_again() {
     let dir = scratch("store-rot");
     let data = dir.join("data");
-    let expected = reference("tribble", &dir, "ref.png", &SMALL);
+    // A frame of 64 units that takes a one-thread worker seconds, so the
+    // kill lands while most of its units are still to come: a frame once
+    // written keeps no tiles.
+    let slow = ["--width", "64", "--height", "64", "--spp", "256"];
+    let expected = reference("tribble", &dir, "ref.png", &slow);
     let (s, url) = serve(&data, &["--local-workers", "0", "--verify", "0"]);
-    let id = submit(&url, "tribble", &dir.join("t.png"), &SMALL);
+    let id = submit(&url, "tribble", &dir.join("t.png"), &slow);
     // A worker delivers a few units, then stops for good (SIGKILL).
     let mut w = Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "w"]);
     poll_job(&url, id, 60, |j| j["units_done"].as_u64().unwrap() >= 4);
