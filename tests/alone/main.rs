@@ -10,3 +10,4 @@ mod support;
 
 mod netns;
 mod speedup;
+mod thousand;

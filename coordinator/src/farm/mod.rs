@@ -12,6 +12,7 @@
 
 pub mod cert;
 pub mod gate;
+pub mod limits;
 pub mod local;
 pub mod panics;
 pub mod progress;
@@ -233,6 +234,8 @@ pub struct SessionReport {
     pub workers: Vec<crate::farm::scheduler::WorkerState>,
     /// Bytes of tiles received.
     pub tile_bytes: u64,
+    /// Sampled units rendered twice and compared (`--verify`).
+    pub verified: u64,
 }
 
 /// What the farm reports when a single frame is done ([`render`]).
@@ -1223,6 +1226,7 @@ impl Farm {
         sink: Option<Arc<dyn TileSink>>,
     ) -> Result<Farm, FarmError> {
         let (listener, addr) = bind(&config).await?;
+        crate::farm::limits::raise_open_files();
         let arithmetic_digest = tokio::task::spawn_blocking(arithmetic_digest)
             .await
             .map_err(|e| FarmError::Server(format!("the known-answer probe failed: {e}")))??;
@@ -1411,6 +1415,7 @@ pub async fn render_frames(
         .shared
         .tile_bytes
         .load(std::sync::atomic::Ordering::Relaxed);
+    let verified = farm.shared.lock().scheduler.verified();
     // Local workers see `finished` on their next call and exit; give them a
     // moment. After a failure they are told nothing more: stop them now.
     let grace = if outcome.is_ok() {
@@ -1424,6 +1429,7 @@ pub async fn render_frames(
         render_time,
         workers,
         tile_bytes,
+        verified,
     })
 }
 

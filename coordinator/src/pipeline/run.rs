@@ -426,11 +426,13 @@ fn log_session(session: &farm::SessionReport, frames: usize) {
     }
     let n = session.workers.len();
     tracing::info!(
-        "{} frame{} on {n} worker{} in {:.3} s",
+        "{} frame{} on {n} worker{} in {:.3} s; {} unit{} rendered twice and compared",
         frames,
         if frames == 1 { "" } else { "s" },
         if n == 1 { "" } else { "s" },
-        session.render_time.as_secs_f64()
+        session.render_time.as_secs_f64(),
+        session.verified,
+        if session.verified == 1 { "" } else { "s" },
     );
 }
 

@@ -199,9 +199,17 @@ fn probe_render(path: &'static str, text: &str, isa: Isa) -> Result<Vec<u8>, Pro
     Ok(bytes)
 }
 
-/// [`digest`] on the fastest path this CPU has (the one scenes render on).
+/// [`digest`] on the fastest path this CPU has (the one scenes render on),
+/// computed once per process: every worker a process runs (the
+/// coordinator's in-process fallback, a test's thousand clients) registers
+/// with the same digest.
 pub fn arithmetic_digest() -> Result<u64, ProbeError> {
-    digest(Isa::detect())
+    static DIGEST: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    if let Some(&d) = DIGEST.get() {
+        return Ok(d);
+    }
+    let d = digest(Isa::detect())?;
+    Ok(*DIGEST.get_or_init(|| d))
 }
 
 #[cfg(test)]

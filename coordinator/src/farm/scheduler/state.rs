@@ -324,6 +324,9 @@ pub struct Scheduler {
     pub(super) verify: f64,
     /// Keys the choice of units rendered twice.
     pub(super) verify_key: u64,
+    /// Sampled units whose second rendering has been compared with the
+    /// first (by another worker's tile or the coordinator's own).
+    pub(super) verified: u64,
     /// Claims and disputes for the coordinator to check, oldest first.
     pub(super) urgent: VecDeque<Check>,
     /// Held tiles whose second rendering agreed, not yet taken for the store.
@@ -373,6 +376,7 @@ impl Scheduler {
                 use std::hash::BuildHasher;
                 std::collections::hash_map::RandomState::new().hash_one(Instant::now())
             },
+            verified: 0,
             urgent: VecDeque::new(),
             confirmed: Vec::new(),
         }

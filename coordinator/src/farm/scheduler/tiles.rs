@@ -194,6 +194,9 @@ impl Scheduler {
     fn second_rendering(&mut self, d: &Delivery<'_>, now: Instant) -> bool {
         self.leases.remove(&d.assignment);
         let job = self.jobs.get_mut(&d.job).expect("checked above");
+        if job.held.contains_key(&d.index) {
+            self.verified += 1;
+        }
         match job.held.get(&d.index) {
             Some((_, first)) if first.as_slice() == d.values => {
                 // The two renderings agree: the tile is stored now.

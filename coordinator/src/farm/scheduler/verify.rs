@@ -135,6 +135,11 @@ impl Scheduler {
         None
     }
 
+    /// Sampled units whose two renderings have been compared so far.
+    pub fn verified(&self) -> u64 {
+        self.verified
+    }
+
     /// Whether a claim or a dispute waits for the coordinator's check.
     pub fn has_checks(&self) -> bool {
         !self.urgent.is_empty() || self.jobs.values().any(|j| !j.to_check.is_empty())
@@ -177,6 +182,9 @@ impl Scheduler {
                     self.count_failure(check.job, index, *worker, name, *kind, reason, true);
             }
             (CheckWhy::Sample | CheckWhy::Dispute, CheckOutcome::Rendered(bytes)) => {
+                if check.why == CheckWhy::Sample {
+                    self.verified += 1;
+                }
                 self.decide(check.job, index, &bytes, now, &mut verdict);
             }
             (
@@ -408,6 +416,7 @@ mod tests {
             );
         }
         assert!(s.finished());
+        assert_eq!(s.verified(), n as u64, "every unit compared once");
         assert_eq!(s.take_completed().len(), 1);
         assert!(s.blocklisted(ONE_SHOT_JOB).is_empty());
 
