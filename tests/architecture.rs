@@ -78,7 +78,7 @@ const LAYERS: &[(&str, &[&[&str]])] = &[
     (
         "worker",
         &[
-            &["body", "cache", "cpu", "logging", "signal"],
+            &["body", "cache", "cpu", "idle", "logging", "signal"],
             &["crate"],
             &["connection"],
             &["assets", "tiles", "withdrawals"],

@@ -41,6 +41,50 @@ fn bad_addresses_fail_cleanly() {
     }
 }
 
+/// A Slurm task whose coordinator is not there (the frame it was started
+/// for is done): the worker leaves with status 0 once it has been idle for
+/// `--idle-exit`, and its log, a pipe as Slurm's `--output` is a file,
+/// holds no colour code.
+#[test]
+fn a_worker_that_never_reaches_its_coordinator_leaves_when_idle_with_plain_logs() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let started = std::time::Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_worker"))
+        .args([
+            "--coordinator",
+            &url,
+            "--exit-when-done",
+            "--idle-exit",
+            "1",
+        ])
+        .env_remove("HYPERTEXTURE_TOKEN")
+        .env_remove("NO_COLOR")
+        .env_remove("RUST_LOG")
+        .env("SLURM_JOB_ID", "41")
+        .env("SLURM_ARRAY_JOB_ID", "40")
+        .env("SLURM_ARRAY_TASK_ID", "1")
+        .env("SLURM_CPUS_PER_TASK", "1")
+        .output()
+        .expect("the worker binary runs");
+    let secs = started.elapsed().as_secs_f64();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("cannot reach") && err.contains("--idle-exit"),
+        "{err}"
+    );
+    assert!(secs < 20.0, "left after {secs:.1} s:\n{err}");
+    assert!(
+        !out.stderr.contains(&0x1b),
+        "colour codes in a pipe:\n{err}"
+    );
+}
+
 /// A hostile coordinator: it hands out the jobs of its script in order (one
 /// unit each), serves the files they name and counts each fetch, accepts
 /// every tile and records every failure a worker reports.

@@ -80,6 +80,62 @@ fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// SIGTERM mid-frame (Kubernetes scaling down, `scancel`): the worker
+/// finishes the unit it renders, delivers it, hands back the one it holds
+/// ahead with its goodbye and exits 0. Nothing waits for a lease: with
+/// leases of a minute, the frame is done by another worker well before one
+/// could run out.
+#[test]
+fn a_worker_stopped_mid_frame_delivers_or_hands_back_its_units_at_once() {
+    let dir = scratch("farm-sigterm");
+    let reference = dir.join("reference.png");
+    in_process_at("fur", 256, &reference);
+    let out = dir.join("farm.png");
+    let (mut coord, url) = remote_only(
+        "fur",
+        256,
+        &out,
+        &["--lease-timeout", "60", "--worker-timeout", "60"],
+    );
+    let mut leaving =
+        Running::worker(&["--coordinator", &url, "--threads", "1", "--name", "leaving"]);
+    leaving.wait_for("registered", 30);
+    coord.wait_for("worker leaving joined", 30);
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    assert!(!out.exists(), "the frame was done before SIGTERM");
+    let stopped = std::time::Instant::now();
+    leaving.signal(15);
+    let (status, log) = leaving.finish(30);
+    assert!(
+        status.success(),
+        "worker after SIGTERM:\n{}",
+        log.join("\n")
+    );
+    assert!(
+        log.iter().any(|l| l.contains("leaving after")),
+        "no goodbye:\n{}",
+        log.join("\n")
+    );
+    let _rest = Running::worker(&["--coordinator", &url, "--threads", "2", "--name", "rest"]);
+    let (status, log) = coord.finish(120);
+    assert!(status.success(), "coordinator failed:\n{}", log.join("\n"));
+    let secs = stopped.elapsed().as_secs_f64();
+    eprintln!("sigterm: the frame was done {secs:.1} s after SIGTERM (leases of 60 s)");
+    assert!(
+        secs < 50.0,
+        "the frame took {secs:.1} s after SIGTERM: a lease ran out?\n{}",
+        log.join("\n")
+    );
+    same_bytes(&reference, &out);
+    assert!(
+        !log.iter()
+            .any(|l| l.contains("worker leaving stopped answering")),
+        "{}",
+        log.join("\n")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn a_wrong_token_is_refused_and_no_worker_means_a_clean_failure() {
     let mut coord = Running::coordinator(&[

@@ -410,6 +410,7 @@ pub fn in_process_worker(
         shares_process: true,
         tags: Vec::new(),
         asset_cache_bytes: worker::cache::DEFAULT_ASSET_CACHE_MB << 20,
+        idle_exit: None,
     };
     let task = runtime.spawn(worker::run(config, stopped));
     (runtime, stop, task)

@@ -10,18 +10,20 @@ use crate::{WorkerConfig, WorkerError};
 /// Join a hypertexture render farm: dial the coordinator, render the pixel sets it
 /// hands out, send the tiles back. Stateless: the scene arrives with the work.
 #[derive(Debug, Parser)]
-#[command(version, about, long_about = None)]
+#[command(version, about, long_about = None, after_help = SLURM_HELP)]
 pub struct Cli {
     /// The coordinator's address, e.g. http://10.0.0.5:50051 (https:// with --ca).
     #[arg(long, value_name = "URL")]
     pub coordinator: String,
-    /// Render threads (default: every core; at most 4 × the cores, and 1024).
+    /// Render threads (default: SLURM_CPUS_PER_TASK under Slurm, else every
+    /// core; at most 4 × the cores, and 1024).
     #[arg(long, value_name = "N", value_parser = threads)]
     pub threads: Option<NonZeroUsize>,
     /// Shared secret the coordinator requires.
     #[command(flatten)]
     pub token: TokenArg,
-    /// Name shown in the coordinator's logs (default: host name and process id).
+    /// Name shown in the coordinator's logs (default: the Slurm job, e.g.
+    /// slurm-1234_3, under Slurm; else host name and process id).
     #[arg(long, value_name = "NAME")]
     pub name: Option<String>,
     /// The coordinator's CA.
@@ -35,6 +37,11 @@ pub struct Cli {
     /// the worker leaves (exit status 1), as its units' leases run out there.
     #[arg(long, value_name = "SECS", default_value_t = 10.0, value_parser = positive_seconds)]
     pub lease_timeout: f64,
+    /// Leave (exit status 0, after a goodbye) once there has been nothing to
+    /// render for this long: the coordinator had no unit for this worker, or
+    /// could not be reached, including one never reached (default: stay).
+    #[arg(long, value_name = "SECS", value_parser = positive_seconds)]
+    pub idle_exit: Option<f64>,
     /// A tag for jobs that require it (repeatable), e.g. --tag gpu --tag big-memory:
     /// jobs submitted with --require-tag go only to workers carrying all their tags.
     #[arg(long = "tag", value_name = "NAME", value_parser = tag)]
@@ -53,9 +60,48 @@ pub struct Cli {
     pub quiet: bool,
 }
 
+/// `worker --help`'s last paragraph: where the defaults come from under Slurm.
+const SLURM_HELP: &str = "Under Slurm (SLURM_JOB_ID set), --name defaults to slurm-JOB \
+(slurm-ARRAYJOB_TASK for an array task, with -PROCID added when the step has several tasks) \
+and --threads to SLURM_CPUS_PER_TASK. A flag given always wins over the environment.";
+
 impl Cli {
-    /// The library configuration these arguments ask for.
+    /// The library configuration these arguments ask for, with the defaults
+    /// of this process's environment ([`Cli::into_config_with`]).
     pub fn into_config(self) -> Result<WorkerConfig, WorkerError> {
+        self.into_config_with(|name| std::env::var(name).ok())
+    }
+
+    /// The library configuration these arguments ask for; a flag left out
+    /// takes its default from the environment `env` looks up (Slurm's
+    /// variables, [`slurm_name`] and [`slurm_threads`]), then from the machine.
+    pub fn into_config_with(
+        self,
+        env: impl Fn(&str) -> Option<String>,
+    ) -> Result<WorkerConfig, WorkerError> {
+        let threads = match self.threads {
+            Some(n) => n.get(),
+            None => match slurm_threads(&env)? {
+                Some(n) => n,
+                None => std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+            },
+        };
+        let name = self
+            .name
+            .clone()
+            .or_else(|| slurm_name(&env))
+            .unwrap_or_else(default_name);
+        let idle_exit = self.idle_exit.map(std::time::Duration::from_secs_f64);
+        self.into_config_of(threads, name, idle_exit)
+    }
+
+    /// The configuration with the defaults already settled.
+    fn into_config_of(
+        self,
+        threads: usize,
+        name: String,
+        idle_exit: Option<std::time::Duration>,
+    ) -> Result<WorkerConfig, WorkerError> {
         let ca = match &self.ca.ca {
             Some(path) => Some(read_ca(path).map_err(|source| WorkerError::Ca {
                 path: path.clone(),
@@ -65,12 +111,9 @@ impl Cli {
         };
         Ok(WorkerConfig {
             coordinator: self.coordinator,
-            threads: self.threads.map_or_else(
-                || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
-                NonZeroUsize::get,
-            ),
+            threads,
             token: self.token.secret(),
-            name: self.name.unwrap_or_else(default_name),
+            name,
             ca,
             exit_when_done: self.exit_when_done,
             lease: std::time::Duration::from_secs_f64(self.lease_timeout),
@@ -78,6 +121,7 @@ impl Cli {
             shares_process: false,
             tags: self.tag,
             asset_cache_bytes: self.asset_cache_mb << 20,
+            idle_exit,
         })
     }
 }
@@ -112,6 +156,43 @@ pub struct CaArg {
     /// CA certificate (PEM) to verify the coordinator's TLS certificate.
     #[arg(long, value_name = "FILE")]
     pub ca: Option<PathBuf>,
+}
+
+/// The name of a worker started by Slurm: `slurm-` and the job
+/// (`SLURM_JOB_ID`), or for an array task Slurm's own `ARRAYJOB_TASK`
+/// (`SLURM_ARRAY_JOB_ID`, `SLURM_ARRAY_TASK_ID`); `-PROCID` added when the
+/// step runs several tasks (`SLURM_NTASKS` above 1, `SLURM_PROCID`). `None`
+/// outside Slurm.
+pub fn slurm_name(env: impl Fn(&str) -> Option<String>) -> Option<String> {
+    let var = |name: &str| env(name).filter(|v| !v.trim().is_empty());
+    let job = var("SLURM_JOB_ID")?;
+    let mut name = match (var("SLURM_ARRAY_JOB_ID"), var("SLURM_ARRAY_TASK_ID")) {
+        (Some(array), Some(task)) => format!("slurm-{}_{}", array.trim(), task.trim()),
+        _ => format!("slurm-{}", job.trim()),
+    };
+    let several = var("SLURM_NTASKS").is_some_and(|n| n.trim().parse::<u64>().is_ok_and(|n| n > 1));
+    if let (true, Some(proc_id)) = (several, var("SLURM_PROCID")) {
+        name.push('-');
+        name.push_str(proc_id.trim());
+    }
+    Some(name)
+}
+
+/// The render threads Slurm gave this task: `SLURM_CPUS_PER_TASK`, checked
+/// like `--threads`; `None` when it is not set (Slurm leaves it out unless
+/// the job asked for `--cpus-per-task`).
+pub fn slurm_threads(env: impl Fn(&str) -> Option<String>) -> Result<Option<usize>, WorkerError> {
+    match env("SLURM_CPUS_PER_TASK").filter(|v| !v.trim().is_empty()) {
+        None => Ok(None),
+        Some(v) => {
+            threads(v.trim())
+                .map(|n| Some(n.get()))
+                .map_err(|message| WorkerError::Environment {
+                    name: "SLURM_CPUS_PER_TASK",
+                    message,
+                })
+        }
+    }
 }
 
 /// Host name and process id.
@@ -229,6 +310,120 @@ mod tests {
         assert!(config.exit_when_done && config.ca.is_none());
     }
 
+    /// The environment of a Slurm task: `vars` as (name, value) pairs.
+    fn slurm(vars: &[(&'static str, &'static str)]) -> impl Fn(&str) -> Option<String> + use<> {
+        let vars = vars.to_vec();
+        move |name: &str| {
+            vars.iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, v)| v.to_string())
+        }
+    }
+
+    #[test]
+    fn under_slurm_the_name_and_threads_come_from_the_job() {
+        let array = slurm(&[
+            ("SLURM_JOB_ID", "1237"),
+            ("SLURM_ARRAY_JOB_ID", "1234"),
+            ("SLURM_ARRAY_TASK_ID", "3"),
+            ("SLURM_CPUS_PER_TASK", "2"),
+            ("SLURM_NTASKS", "1"),
+            ("SLURM_PROCID", "0"),
+        ]);
+        let config = parse(&["--coordinator", "http://c"])
+            .unwrap()
+            .into_config_with(&array)
+            .unwrap();
+        assert_eq!((config.name.as_str(), config.threads), ("slurm-1234_3", 2));
+        let step = slurm(&[
+            ("SLURM_JOB_ID", "77"),
+            ("SLURM_NTASKS", "4"),
+            ("SLURM_PROCID", "2"),
+        ]);
+        assert_eq!(slurm_name(&step).as_deref(), Some("slurm-77-2"));
+        assert_eq!(
+            slurm_name(slurm(&[("SLURM_JOB_ID", "77")])).as_deref(),
+            Some("slurm-77")
+        );
+        assert_eq!(slurm_name(slurm(&[])), None, "outside Slurm");
+        assert_eq!(slurm_threads(slurm(&[])).unwrap(), None);
+    }
+
+    #[test]
+    fn a_flag_given_wins_over_slurm() {
+        let env = slurm(&[("SLURM_JOB_ID", "9"), ("SLURM_CPUS_PER_TASK", "2")]);
+        let config = parse(&[
+            "--coordinator",
+            "http://c",
+            "--name",
+            "mine",
+            "--threads",
+            "1",
+        ])
+        .unwrap()
+        .into_config_with(&env)
+        .unwrap();
+        assert_eq!((config.name.as_str(), config.threads), ("mine", 1));
+        let outside = parse(&["--coordinator", "http://c"])
+            .unwrap()
+            .into_config_with(slurm(&[]))
+            .unwrap();
+        assert!(!outside.name.starts_with("slurm-"), "{}", outside.name);
+        assert_eq!(
+            outside.threads,
+            std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
+        );
+    }
+
+    #[test]
+    fn a_bad_slurm_cpus_per_task_is_named() {
+        for bad in ["0", "many", "999999"] {
+            let env = slurm(&[("SLURM_JOB_ID", "9"), ("SLURM_CPUS_PER_TASK", bad)]);
+            let e = parse(&["--coordinator", "http://c"])
+                .unwrap()
+                .into_config_with(&env)
+                .unwrap_err();
+            let text = e.to_string();
+            assert!(
+                matches!(
+                    e,
+                    WorkerError::Environment {
+                        name: "SLURM_CPUS_PER_TASK",
+                        ..
+                    }
+                ),
+                "{bad}: {text}"
+            );
+            assert!(text.contains("SLURM_CPUS_PER_TASK"), "{text}");
+        }
+        // The flag given, the variable is not read.
+        let env = slurm(&[("SLURM_CPUS_PER_TASK", "0")]);
+        let config = parse(&["--coordinator", "http://c", "--threads", "1"])
+            .unwrap()
+            .into_config_with(&env)
+            .unwrap();
+        assert_eq!(config.threads, 1);
+    }
+
+    #[test]
+    fn idle_exit_is_seconds_or_none() {
+        let config = parse(&["--coordinator", "http://c", "--idle-exit", "1.5"])
+            .unwrap()
+            .into_config()
+            .unwrap();
+        assert_eq!(
+            config.idle_exit,
+            Some(std::time::Duration::from_millis(1500))
+        );
+        let config = parse(&["--coordinator", "http://c"])
+            .unwrap()
+            .into_config()
+            .unwrap();
+        assert_eq!(config.idle_exit, None);
+        let e = parse(&["--coordinator", "http://c", "--idle-exit", "0"]).unwrap_err();
+        assert!(e.contains("--idle-exit"), "{e}");
+    }
+
     #[test]
     fn an_empty_token_is_none() {
         let cli = parse(&["--coordinator", "http://c", "--token", ""]).unwrap();
@@ -277,6 +472,9 @@ mod tests {
             "Shared secret the coordinator requires",
             "--ca <FILE>",
             "CA certificate (PEM) to verify the coordinator's TLS certificate",
+            "--idle-exit <SECS>",
+            "SLURM_CPUS_PER_TASK",
+            "A flag given always wins over the environment",
         ] {
             assert!(help.contains(words), "{words:?}:\n{help}");
         }

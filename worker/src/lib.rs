@@ -12,7 +12,10 @@
 //! renders, tile n − 1 travels and its reply brings unit n + 1. A background
 //! task heartbeats so the coordinator knows it is alive. When the coordinator
 //! goes away the worker reconnects with exponential backoff; when asked to stop
-//! (SIGTERM) it finishes the current unit, says goodbye and returns.
+//! (SIGTERM) it finishes and delivers the unit rendering, says goodbye (the
+//! coordinator puts the unit assigned ahead back in the queue at once, with no
+//! lease to wait out) and returns. With `idle_exit` it also returns after that
+//! long with nothing to render, its coordinator reached or not.
 //!
 //! The modules, from the outside in: [`run`] (`run.rs`) connects, registers
 //! and reconnects; `connection` holds the coordinator's address, TLS, token
@@ -20,7 +23,8 @@
 //! and goodbye; `session` the work loop over one registration, one unit
 //! ahead; `tiles` the SubmitTiles stream; `withdrawals` the units taken
 //! back; `assets` the meshes fetched; `render` a unit's render on the pool;
-//! `cpu` the CPU clocks; `signal` the stop signals. This file holds the
+//! `cpu` the CPU clocks; `idle` the time without work (`--idle-exit`);
+//! `signal` the stop signals. This file holds the
 //! configuration, the error, the built scenes ([`UnitRenderer`] and the
 //! scene cache, by content hash).
 
@@ -32,6 +36,7 @@ pub mod logging;
 mod assets;
 mod connection;
 mod cpu;
+mod idle;
 mod register;
 mod render;
 mod run;
@@ -87,6 +92,10 @@ pub struct WorkerConfig {
     pub tags: Vec<String>,
     /// The most bytes of meshes kept between assignments ([`cache::AssetCache`]).
     pub asset_cache_bytes: u64,
+    /// Return (with a goodbye when registered) after this long with nothing
+    /// to render: no unit from the coordinator, or no coordinator reached,
+    /// whether it never was or has gone (`None`: stay).
+    pub idle_exit: Option<Duration>,
 }
 
 /// A failure a test asks a worker to have, to exercise what follows it.
@@ -127,6 +136,15 @@ pub enum WorkerError {
         path: std::path::PathBuf,
         /// What the OS said.
         source: std::io::Error,
+    },
+    /// A variable of the environment that a flag left out defaults to
+    /// cannot be used.
+    #[error("{name} in the environment: {message}")]
+    Environment {
+        /// The variable.
+        name: &'static str,
+        /// What is wrong with its value.
+        message: String,
     },
     /// The coordinator refused this worker for good (wrong token, other protocol
     /// version, other arithmetic).

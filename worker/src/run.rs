@@ -12,6 +12,7 @@ use tonic::transport::Endpoint;
 use crate::connection::{
     self, Auth, Backoff, Client, endpoint, error_chain, is_refusal, said, shown, sleep_or_stop,
 };
+use crate::idle::Idle;
 use crate::register::{arithmetic_digest, goodbye, heartbeat, register};
 use crate::render::RenderPool;
 use crate::session::{Leave, serve};
@@ -35,8 +36,9 @@ pub async fn run(
     let mut report = WorkerReport::default();
     let mut scenes = SceneCache::new(config.asset_cache_bytes);
     let mut unreachable = Unreachable::new(&config);
+    let mut idle = Idle::new(config.idle_exit);
     loop {
-        if *stop.borrow() {
+        if *stop.borrow() || idle.expired() {
             return Ok(report);
         }
         if let Some(e) = unreachable.gone() {
@@ -45,7 +47,7 @@ pub async fn run(
         let (mut client, registered) = match coordinator.register(&mut unreachable).await? {
             Registered::Yes(registered) => *registered,
             Registered::RetryIn(wait) => {
-                if sleep_or_stop(wait, &mut stop).await {
+                if sleep_or_stop(idle.cap(wait), &mut stop).await {
                     return Ok(report);
                 }
                 continue;
@@ -58,12 +60,17 @@ pub async fn run(
             heartbeat: Duration::from_millis(u64::from(registered.heartbeat_ms.max(50))),
         };
         let left = registration
-            .serve(&mut client, &mut scenes, &mut report, &mut stop)
+            .serve(
+                &mut client,
+                (&mut scenes, &mut idle),
+                &mut report,
+                &mut stop,
+            )
             .await?;
         match left {
             Leave::Done => return Ok(report),
             Leave::Reconnect => {
-                if sleep_or_stop(unreachable.lost(), &mut stop).await {
+                if sleep_or_stop(idle.cap(unreachable.lost()), &mut stop).await {
                     return Ok(report);
                 }
             }
@@ -151,7 +158,7 @@ impl Registration<'_> {
     async fn serve(
         &self,
         client: &mut Client,
-        scenes: &mut SceneCache,
+        (scenes, idle): (&mut SceneCache, &mut Idle),
         report: &mut WorkerReport,
         stop: &mut watch::Receiver<bool>,
     ) -> Result<Leave, WorkerError> {
@@ -170,7 +177,7 @@ impl Registration<'_> {
             self.config,
             client,
             self.worker_id,
-            (self.pool, &withdrawn),
+            (self.pool, &withdrawn, idle),
             scenes,
             report,
             stop,

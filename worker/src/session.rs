@@ -13,6 +13,7 @@ use tonic::{Code, Status};
 use crate::assets::fetch_assets;
 use crate::connection::{Client, is_refusal, said, shown, sleep_or_stop};
 use crate::cpu::CallsCpu;
+use crate::idle::Idle;
 use crate::render::{RenderPool, Rendering, start_render};
 use crate::tiles::{Sending, TileStream, send_tile};
 use crate::withdrawals::Withdrawn;
@@ -67,7 +68,7 @@ pub(crate) async fn serve(
     config: &WorkerConfig,
     client: &mut Client,
     worker_id: &str,
-    (pool, withdrawn): (&RenderPool, &Arc<Withdrawn>),
+    (pool, withdrawn, idle): (&RenderPool, &Arc<Withdrawn>, &mut Idle),
     scenes: &mut SceneCache,
     report: &mut WorkerReport,
     stop: &mut watch::Receiver<bool>,
@@ -82,6 +83,7 @@ pub(crate) async fn serve(
         worker_id,
         pool,
         withdrawn,
+        idle,
         scenes,
         report,
         stop,
@@ -102,6 +104,8 @@ struct Session<'a> {
     worker_id: &'a str,
     pool: &'a RenderPool,
     withdrawn: &'a Arc<Withdrawn>,
+    /// How long there has been nothing to render (`--idle-exit`).
+    idle: &'a mut Idle,
     scenes: &'a mut SceneCache,
     report: &'a mut WorkerReport,
     stop: &'a mut watch::Receiver<bool>,
@@ -211,15 +215,21 @@ impl Session<'_> {
             Delivered::Nothing => ask(self.client, self.worker_id, self.scenes.known()).await,
         };
         match asked {
-            Ok(Asked::Assignment(a)) => Ok(Step::Go(a)),
-            Ok(Asked::Wait(d)) => Ok(if sleep_or_stop(d, self.stop).await {
-                Step::Leave(Leave::Done)
-            } else {
-                Step::Again
-            }),
+            Ok(Asked::Assignment(a)) => {
+                self.idle.worked();
+                Ok(Step::Go(a))
+            }
+            Ok(Asked::Wait(d)) => Ok(
+                if self.idle.expired() || sleep_or_stop(self.idle.cap(d), self.stop).await {
+                    Step::Leave(Leave::Done)
+                } else {
+                    Step::Again
+                },
+            ),
             Ok(Asked::Finished) => Ok(
                 if self.config.exit_when_done
-                    || sleep_or_stop(Duration::from_secs(1), self.stop).await
+                    || self.idle.expired()
+                    || sleep_or_stop(self.idle.cap(Duration::from_secs(1)), self.stop).await
                 {
                     Step::Leave(Leave::Done)
                 } else {
@@ -295,6 +305,7 @@ impl Session<'_> {
         let rendered = rendering
             .await
             .unwrap_or_else(|_| Err("the render task ended without a result".into()));
+        self.idle.worked();
         let (unit, pixels, cpu) = match rendered {
             Ok(Some(tile)) => tile,
             Ok(None) => {

@@ -19,5 +19,6 @@ pub(crate) fn config(coordinator: &str) -> WorkerConfig {
         shares_process: false,
         tags: Vec::new(),
         asset_cache_bytes: 0,
+        idle_exit: None,
     }
 }

@@ -200,6 +200,7 @@ impl InProcessPlan {
                     shares_process: true,
                     tags: Vec::new(),
                     asset_cache_bytes: worker::cache::DEFAULT_ASSET_CACHE_MB << 20,
+                    idle_exit: None,
                 };
                 tokio::spawn(worker::run(cfg, stopped.clone()))
             })
