@@ -197,6 +197,11 @@ fn container(workload: &Yaml, secret: &str) -> (Yaml, Vec<String>) {
         workload["spec"]["selector"]["matchLabels"]["app"], pod["metadata"]["labels"]["app"],
         "selector matches the pod labels"
     );
+    pod_container(pod, secret)
+}
+
+/// A pod template's single container, with its image, command line and token checked.
+fn pod_container(pod: &Yaml, secret: &str) -> (Yaml, Vec<String>) {
     let containers = pod["spec"]["containers"].as_vec().unwrap();
     assert_eq!(containers.len(), 1);
     let c = containers[0].clone();
@@ -281,14 +286,8 @@ fn kubernetes_manifests_match_the_binaries() {
         args.drain_timeout
     );
 
-    // Probes on the farm's port (TCP: HTTP requests need the bearer token).
-    for probe in ["readinessProbe", "livenessProbe"] {
-        let target = &c[probe]["tcpSocket"]["port"];
-        assert!(
-            target.as_str() == Some(port_name) || target.as_i64() == Some(i64::from(PORT)),
-            "{probe} checks the farm's port"
-        );
-    }
+    // Probes on the farm's port, over HTTP (kubernetes_probes_answer_on_a_running_serve).
+    coordinator_probes(&c, port_name);
 
     // The Service: ClusterIP in front of the coordinator's pod and port.
     assert_eq!(service["spec"]["type"].as_str(), Some("ClusterIP"));
@@ -304,9 +303,10 @@ fn kubernetes_manifests_match_the_binaries() {
     let service_port_number = service_port["port"].as_i64().unwrap();
 
     // Workers: plain long-lived workers that dial the Service.
-    let (_, argv) = container(workers, secret_name);
+    let (worker, argv) = container(workers, secret_name);
     let url = plain_worker(&argv);
     assert_eq!(url, format!("http://{service_name}:{service_port_number}"));
+    threads_match_resources(&worker, &argv);
 
     // KEDA scales that Deployment on the coordinator's queue gauge, down to zero.
     let keda = &load("deploy/k8s/keda-scaledobject.yaml")[0];
@@ -621,9 +621,10 @@ fn containers_run_unprivileged() {
     for (path, kind) in [
         ("deploy/k8s/coordinator.yaml", "StatefulSet"),
         ("deploy/k8s/workers.yaml", "Deployment"),
+        ("deploy/k8s/keda-scaledjob.yaml", "ScaledJob"),
     ] {
         let docs = load(path);
-        let pod = &one(&docs, kind)["spec"]["template"]["spec"];
+        let pod = &pod_template(one(&docs, kind))["spec"];
         let pod_context = &pod["securityContext"];
         assert_eq!(pod_context["runAsNonRoot"].as_bool(), Some(true), "{path}");
         assert!(
@@ -654,4 +655,528 @@ fn containers_run_unprivileged() {
             assert!(context["capabilities"]["add"].is_badvalue(), "{path}");
         }
     }
+}
+
+/// A workload's pod template: a Deployment's or StatefulSet's, or the Job
+/// template of a KEDA ScaledJob.
+fn pod_template(workload: &Yaml) -> &Yaml {
+    match workload["kind"].as_str() {
+        Some("ScaledJob") => &workload["spec"]["jobTargetRef"]["template"],
+        _ => &workload["spec"]["template"],
+    }
+}
+
+/// The coordinator's Service as workers dial it: `http://NAME:PORT`.
+fn service_url() -> String {
+    let docs = load("deploy/k8s/coordinator.yaml");
+    let service = one(&docs, "Service");
+    format!(
+        "http://{}:{}",
+        service["metadata"]["name"].as_str().unwrap(),
+        service["spec"]["ports"][0]["port"].as_i64().unwrap()
+    )
+}
+
+/// CPUs of a Kubernetes quantity: "2", 2 or "500m".
+fn cpus(quantity: &Yaml) -> f64 {
+    match quantity {
+        Yaml::Integer(n) => *n as f64,
+        Yaml::String(s) => match s.strip_suffix('m') {
+            Some(milli) => milli.parse::<f64>().map(|m| m / 1000.0).ok(),
+            None => s.parse().ok(),
+        }
+        .unwrap_or_else(|| panic!("{s}: not a CPU quantity")),
+        other => panic!("not a CPU quantity: {other:?}"),
+    }
+}
+
+/// A worker container's --threads equals its CPU request and limit.
+fn threads_match_resources(container: &Yaml, argv: &[String]) {
+    let threads = match parse(argv) {
+        Parsed::Worker(cli) => cli.threads.expect("--threads given").get(),
+        other => panic!("expected a worker, found {other:?}"),
+    };
+    for side in ["requests", "limits"] {
+        let cpu = cpus(&container["resources"][side]["cpu"]);
+        assert_eq!(
+            cpu, threads as f64,
+            "resources.{side}.cpu {cpu} != --threads {threads}"
+        );
+        assert!(
+            !container["resources"][side]["memory"].is_badvalue(),
+            "resources.{side}.memory"
+        );
+    }
+}
+
+/// The value after `flag` in `argv`.
+fn flag_value<'a>(argv: &'a [String], flag: &str) -> Option<&'a str> {
+    argv.iter()
+        .position(|a| a == flag)
+        .and_then(|i| argv.get(i + 1))
+        .map(String::as_str)
+}
+
+/// A probe's target: its httpGet path on the farm's port, or its exec command.
+enum Probe {
+    Http(String),
+    Exec(Vec<String>),
+}
+
+/// The coordinator's probe `name`, on the farm's port (`port_name` or the number).
+fn probe(c: &Yaml, name: &str, port_name: &str) -> Probe {
+    let p = &c[name];
+    assert!(!p.is_badvalue(), "no {name}");
+    if !p["exec"].is_badvalue() {
+        return Probe::Exec(strings(&p["exec"]["command"]));
+    }
+    let get = &p["httpGet"];
+    let port = &get["port"];
+    assert!(
+        port.as_str() == Some(port_name) || port.as_i64() == Some(i64::from(PORT)),
+        "{name} checks the farm's port"
+    );
+    Probe::Http(get["path"].as_str().expect("an httpGet path").to_string())
+}
+
+/// The coordinator's probes: startup and liveness GET a path on the farm's
+/// port; readiness asks `/readyz` there with the token from the environment
+/// (a `bash -c` script). Returns the paths and the readiness script.
+fn coordinator_probes(c: &Yaml, port_name: &str) -> (Vec<String>, String) {
+    let paths: Vec<String> = ["startupProbe", "livenessProbe"]
+        .into_iter()
+        .map(|name| match probe(c, name, port_name) {
+            Probe::Http(path) => path,
+            Probe::Exec(_) => panic!("{name}: expected httpGet"),
+        })
+        .collect();
+    let Probe::Exec(command) = probe(c, "readinessProbe", port_name) else {
+        panic!("readinessProbe: expected exec (it needs the token)");
+    };
+    assert_eq!(command[..2], ["bash", "-c"], "{command:?}");
+    let script = command[2].clone();
+    for needle in [
+        format!("/dev/tcp/127.0.0.1/{PORT}"),
+        "GET /readyz ".to_string(),
+        "Bearer %s".to_string(),
+        "\"$HYPERTEXTURE_TOKEN\"".to_string(),
+    ] {
+        assert!(script.contains(&needle), "{needle} not in {script}");
+    }
+    (paths, script)
+}
+
+/// The coordinator's probes, run against a real `serve` with a token: its
+/// startup and liveness paths answer 200 without the token, and its
+/// readiness script (the manifest's own, on the test's port) passes with
+/// the token and fails with a wrong one.
+#[test]
+fn kubernetes_probes_answer_on_a_running_serve() {
+    let docs = load("deploy/k8s/coordinator.yaml");
+    let set = one(&docs, "StatefulSet");
+    let (c, _) = container(set, "hypertexture-token");
+    let (paths, script) = coordinator_probes(&c, c["ports"][0]["name"].as_str().unwrap());
+    // The script's bash, head and grep: Debian's essential packages.
+    let dockerfile = read("deploy/Dockerfile");
+    let base = dockerfile.lines().rev().find(|l| l.starts_with("FROM "));
+    assert!(
+        base.is_some_and(|l| l.starts_with("FROM debian:")),
+        "the image's base: {base:?}"
+    );
+
+    let dir = crate::support::scratch("k8s-probes");
+    let data = dir.join("data");
+    let (_serve, url) =
+        crate::support::service::serve_without_workers(&data, &dir, &["--token", "sesame"]);
+    for path in &paths {
+        let answer = crate::support::http::get(&url, path);
+        assert_eq!(answer.status, 200, "GET {path}: {}", answer.body);
+    }
+    let port = port_of(&url);
+    let script = script.replace(
+        &format!("/dev/tcp/127.0.0.1/{PORT}"),
+        &format!("/dev/tcp/127.0.0.1/{port}"),
+    );
+    let readiness = |token: &str| {
+        crate::support::output_within(
+            std::process::Command::new("bash")
+                .args(["-c", &script])
+                .env("HYPERTEXTURE_TOKEN", token),
+            10,
+        )
+    };
+    let ready = readiness("sesame");
+    assert!(
+        ready.status.success(),
+        "readiness with the token: {}",
+        String::from_utf8_lossy(&ready.stderr)
+    );
+    assert!(
+        !readiness("wrong").status.success(),
+        "readiness passes without the right token"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The KEDA ScaledJob: each Job one plain worker dialling the Service, that
+/// leaves when idle (--idle-exit), with the Deployment's threads, resources
+/// and grace period, scaled on the same trigger as the ScaledObject.
+#[test]
+fn kubernetes_scaledjob_matches_the_binaries() {
+    let scaled = &load("deploy/k8s/keda-scaledjob.yaml")[0];
+    assert_eq!(scaled["apiVersion"].as_str(), Some("keda.sh/v1alpha1"));
+    assert_eq!(scaled["kind"].as_str(), Some("ScaledJob"));
+    let spec = &scaled["spec"];
+    assert_eq!(spec["minReplicaCount"].as_i64(), Some(0));
+    assert!(spec["maxReplicaCount"].as_i64().unwrap() >= 1);
+    let job = &spec["jobTargetRef"];
+    assert_eq!(job["parallelism"].as_i64(), Some(1), "one worker a Job");
+    assert_eq!(job["completions"].as_i64(), Some(1), "one worker a Job");
+    let pod = pod_template(scaled);
+    assert!(
+        matches!(
+            pod["spec"]["restartPolicy"].as_str(),
+            Some("Never" | "OnFailure")
+        ),
+        "a Job's pod restartPolicy"
+    );
+
+    let (c, argv) = pod_container(pod, "hypertexture-token");
+    assert_eq!(plain_worker(&argv), service_url());
+    threads_match_resources(&c, &argv);
+    let idle: f64 = flag_value(&argv, "--idle-exit")
+        .expect("a Job's worker leaves when idle: --idle-exit SECS")
+        .parse()
+        .expect("--idle-exit SECS");
+    assert!(idle > 0.0);
+
+    // The same worker as the Deployment's, leaving as gracefully.
+    let deployment_docs = load("deploy/k8s/workers.yaml");
+    let deployment = one(&deployment_docs, "Deployment");
+    let (worker, _) = container(deployment, "hypertexture-token");
+    assert_eq!(c["resources"], worker["resources"]);
+    let grace = |pod: &Yaml| pod["spec"]["terminationGracePeriodSeconds"].as_i64();
+    assert!(grace(pod).is_some_and(|g| g > 0));
+    assert_eq!(grace(pod), grace(pod_template(deployment)));
+
+    // Scaled on the queue exactly as the ScaledObject scales the Deployment.
+    let object = &load("deploy/k8s/keda-scaledobject.yaml")[0];
+    assert_eq!(spec["triggers"], object["spec"]["triggers"]);
+}
+
+/// Whether `selector`'s matchLabels all hold among `labels`.
+fn selects(selector: &Yaml, labels: &Yaml) -> bool {
+    selector["matchLabels"]
+        .as_hash()
+        .unwrap()
+        .iter()
+        .all(|(k, v)| &labels[k.as_str().unwrap()] == v)
+}
+
+/// The disruption budgets: the coordinator is never evicted, the workers of
+/// the Deployment a fraction at a time, and the ScaledJob's pods (Jobs,
+/// which allow only an integer minAvailable) have none.
+#[test]
+fn kubernetes_disruption_budgets_cover_the_coordinator_and_workers() {
+    let budgets = load("deploy/k8s/pdb.yaml");
+    for b in &budgets {
+        assert_eq!(b["apiVersion"].as_str(), Some("policy/v1"));
+        assert_eq!(b["kind"].as_str(), Some("PodDisruptionBudget"));
+    }
+    let budget_of = |labels: &Yaml| -> Option<&Yaml> {
+        let mut found = budgets
+            .iter()
+            .filter(|b| selects(&b["spec"]["selector"], labels));
+        let budget = found.next();
+        assert!(found.next().is_none(), "two budgets select {labels:?}");
+        budget
+    };
+    let labels =
+        |path: &str, kind: &str| pod_template(one(&load(path), kind))["metadata"]["labels"].clone();
+
+    let coordinator = budget_of(&labels("deploy/k8s/coordinator.yaml", "StatefulSet"))
+        .expect("a budget for the coordinator");
+    assert_eq!(coordinator["spec"]["maxUnavailable"].as_i64(), Some(0));
+
+    let workers = budget_of(&labels("deploy/k8s/workers.yaml", "Deployment"))
+        .expect("a budget for the workers");
+    let most = &workers["spec"]["maxUnavailable"];
+    let fraction_or_count = match most {
+        Yaml::String(s) => s
+            .strip_suffix('%')
+            .and_then(|p| p.parse::<u32>().ok())
+            .is_some_and(|p| p > 0 && p < 100),
+        Yaml::Integer(n) => *n >= 1,
+        _ => false,
+    };
+    assert!(fraction_or_count, "maxUnavailable {most:?}");
+
+    assert!(
+        budget_of(&labels("deploy/k8s/keda-scaledjob.yaml", "ScaledJob")).is_none(),
+        "a budget selects the ScaledJob's pods"
+    );
+}
+
+/// The custom resources' kinds, for which kubernetes-validate has no schema.
+const CUSTOM_KINDS: [&str; 3] = ["ScaledObject", "ScaledJob", "ServiceMonitor"];
+
+/// The Kubernetes manifests (deploy/k8s/*.yaml), by path from the root.
+fn manifests() -> Vec<String> {
+    let dir = crate::support::root().join("deploy/k8s");
+    let mut paths: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|name| name.ends_with(".yaml"))
+        .map(|name| format!("deploy/k8s/{name}"))
+        .collect();
+    paths.sort();
+    paths
+}
+
+/// `kubernetes-validate --strict FILE`: whether it passed, and its output.
+fn validate_strictly(file: &std::path::Path) -> (bool, String) {
+    let out = std::process::Command::new("kubernetes-validate")
+        .arg("--strict")
+        .arg(file)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map(|child| crate::support::collect_within(child, 120))
+        .unwrap_or_else(|e| {
+            panic!(
+                "kubernetes-validate: {e} (scripts/test-deps/kubernetes-validate.sh installs it)"
+            )
+        });
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+/// Every manifest passes `kubernetes-validate --strict` (unknown fields are
+/// errors): each built-in resource against its schema, the custom ones
+/// reported as without a schema (their fields are checked by
+/// kubernetes_custom_resources_use_known_fields). The ScaledJob's
+/// jobTargetRef, a batch/v1 JobSpec, is validated as a Job. A misspelt field
+/// fails, so the strict schemas are the ones applied.
+#[test]
+fn kubernetes_manifests_validate_strictly() {
+    for path in manifests() {
+        let (ok, out) = validate_strictly(&crate::support::root().join(&path));
+        assert!(ok && !out.contains("ERROR"), "{path}:\n{out}");
+        for doc in load(&path) {
+            let kind = doc["kind"].as_str().unwrap();
+            let expected = if CUSTOM_KINDS.contains(&kind) {
+                format!("Couldn't find schema for kind {kind}")
+            } else {
+                let name = doc["metadata"]["name"].as_str().unwrap();
+                format!("passed for resource {}/{name}", kind.to_lowercase())
+            };
+            assert!(out.contains(&expected), "{path}: {expected} not in\n{out}");
+        }
+    }
+
+    let dir = crate::support::scratch("k8s-validate");
+    let scaled = &load("deploy/k8s/keda-scaledjob.yaml")[0];
+    let mut spec = String::new();
+    yaml_rust2::YamlEmitter::new(&mut spec)
+        .dump(&scaled["spec"]["jobTargetRef"])
+        .unwrap();
+    let spec: String = spec
+        .lines()
+        .filter(|l| *l != "---")
+        .map(|l| format!("  {l}\n"))
+        .collect();
+    let job = dir.join("job.yaml");
+    std::fs::write(
+        &job,
+        format!("apiVersion: batch/v1\nkind: Job\nmetadata:\n  name: worker\nspec:\n{spec}"),
+    )
+    .unwrap();
+    let (ok, out) = validate_strictly(&job);
+    assert!(
+        ok && out.contains("passed for resource job/worker"),
+        "the ScaledJob's jobTargetRef as a Job:\n{out}"
+    );
+
+    let misspelt = dir.join("misspelt.yaml");
+    let text = read("deploy/k8s/workers.yaml");
+    assert!(text.contains("terminationGracePeriodSeconds:"));
+    std::fs::write(
+        &misspelt,
+        text.replace("terminationGracePeriodSeconds:", "terminationGracePeriod:"),
+    )
+    .unwrap();
+    let (ok, out) = validate_strictly(&misspelt);
+    assert!(
+        !ok && out.contains("'terminationGracePeriod' was unexpected"),
+        "--strict lets an unknown field through:\n{out}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Whether every key of the mapping `y` is one of `known`.
+fn only_known(y: &Yaml, known: &[&str], what: &str) {
+    let map = y
+        .as_hash()
+        .unwrap_or_else(|| panic!("{what}: not a mapping"));
+    for key in map.keys() {
+        let key = key.as_str().unwrap();
+        assert!(known.contains(&key), "{what}: unknown field {key}");
+    }
+}
+
+/// The fields of KEDA's triggers (keda.sh/v1alpha1).
+const TRIGGER_FIELDS: &[&str] = &[
+    "type",
+    "name",
+    "metadata",
+    "authenticationRef",
+    "metricType",
+    "useCachedMetrics",
+];
+/// The metadata of KEDA's prometheus scaler.
+const PROMETHEUS_FIELDS: &[&str] = &[
+    "serverAddress",
+    "query",
+    "queryParameters",
+    "threshold",
+    "activationThreshold",
+    "namespace",
+    "customHeaders",
+    "ignoreNullValues",
+    "unsafeSsl",
+];
+/// The spec of KEDA's ScaledObject.
+const SCALED_OBJECT_FIELDS: &[&str] = &[
+    "scaleTargetRef",
+    "pollingInterval",
+    "cooldownPeriod",
+    "initialCooldownPeriod",
+    "idleReplicaCount",
+    "minReplicaCount",
+    "maxReplicaCount",
+    "fallback",
+    "advanced",
+    "triggers",
+];
+/// The spec of KEDA's ScaledJob.
+const SCALED_JOB_FIELDS: &[&str] = &[
+    "jobTargetRef",
+    "pollingInterval",
+    "successfulJobsHistoryLimit",
+    "failedJobsHistoryLimit",
+    "envSourceContainerName",
+    "minReplicaCount",
+    "maxReplicaCount",
+    "rollout",
+    "scalingStrategy",
+    "triggers",
+];
+/// A ScaledJob's scalingStrategy.
+const SCALING_STRATEGY_FIELDS: &[&str] = &[
+    "strategy",
+    "customScalingQueueLengthDeduction",
+    "customScalingRunningJobPercentage",
+    "pendingPodConditions",
+    "multipleScalersCalculation",
+];
+/// The spec of the Prometheus Operator's ServiceMonitor (monitoring.coreos.com/v1).
+const SERVICE_MONITOR_FIELDS: &[&str] = &[
+    "jobLabel",
+    "targetLabels",
+    "podTargetLabels",
+    "endpoints",
+    "selector",
+    "namespaceSelector",
+    "sampleLimit",
+];
+/// A ServiceMonitor's endpoint.
+const ENDPOINT_FIELDS: &[&str] = &[
+    "port",
+    "targetPort",
+    "path",
+    "scheme",
+    "params",
+    "interval",
+    "scrapeTimeout",
+    "tlsConfig",
+    "authorization",
+    "honorLabels",
+    "honorTimestamps",
+    "metricRelabelings",
+    "relabelings",
+];
+
+/// A KEDA spec's prometheus triggers use only the scaler's fields.
+fn known_triggers(spec: &Yaml, kind: &str) {
+    for t in spec["triggers"].as_vec().unwrap() {
+        only_known(t, TRIGGER_FIELDS, &format!("{kind} trigger"));
+        assert_eq!(t["type"].as_str(), Some("prometheus"));
+        only_known(
+            &t["metadata"],
+            PROMETHEUS_FIELDS,
+            &format!("{kind} prometheus"),
+        );
+    }
+}
+
+/// A ServiceMonitor's spec uses only the operator's fields.
+fn known_service_monitor(spec: &Yaml) {
+    only_known(spec, SERVICE_MONITOR_FIELDS, "ServiceMonitor");
+    for endpoint in spec["endpoints"].as_vec().unwrap() {
+        only_known(endpoint, ENDPOINT_FIELDS, "endpoint");
+        let authorization = &endpoint["authorization"];
+        only_known(authorization, &["type", "credentials"], "authorization");
+        only_known(
+            &authorization["credentials"],
+            &["name", "key", "optional"],
+            "credentials",
+        );
+    }
+}
+
+/// The custom resources, for which kubernetes-validate has no schema, use
+/// only the fields of their published definitions: KEDA's ScaledObject and
+/// ScaledJob (keda.sh/v1alpha1) with the prometheus scaler, and the
+/// Prometheus Operator's ServiceMonitor (monitoring.coreos.com/v1).
+#[test]
+fn kubernetes_custom_resources_use_known_fields() {
+    let mut seen = Vec::new();
+    for doc in manifests().iter().flat_map(|p| load(p)) {
+        let kind = doc["kind"].as_str().unwrap().to_string();
+        if !CUSTOM_KINDS.contains(&kind.as_str()) {
+            continue;
+        }
+        only_known(&doc, &["apiVersion", "kind", "metadata", "spec"], &kind);
+        let spec = &doc["spec"];
+        match kind.as_str() {
+            "ScaledObject" => {
+                only_known(spec, SCALED_OBJECT_FIELDS, &kind);
+                only_known(
+                    &spec["scaleTargetRef"],
+                    &["apiVersion", "kind", "name", "envSourceContainerName"],
+                    "scaleTargetRef",
+                );
+                known_triggers(spec, &kind);
+            }
+            "ScaledJob" => {
+                only_known(spec, SCALED_JOB_FIELDS, &kind);
+                let strategy = &spec["scalingStrategy"];
+                only_known(strategy, SCALING_STRATEGY_FIELDS, "scalingStrategy");
+                assert!(matches!(
+                    strategy["strategy"].as_str(),
+                    Some("default" | "custom" | "accurate" | "eager")
+                ));
+                known_triggers(spec, &kind);
+            }
+            _ => known_service_monitor(spec),
+        }
+        seen.push(kind);
+    }
+    seen.sort();
+    assert_eq!(seen, ["ScaledJob", "ScaledObject", "ServiceMonitor"]);
 }
