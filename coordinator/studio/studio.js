@@ -278,6 +278,7 @@ function draw() {
     `${studio.quality} · ${studio.received}/${studio.units} units${studio.complete ? ' · done' + seconds : ''}`;
   drawSets();
   drawCompare();
+  drawBounds();
 }
 
 function schedule() {
@@ -1223,6 +1224,7 @@ function showHistory(view) {
     $('redo').title = `Ctrl+Shift+Z or Ctrl+Y: ${view.redo} step${view.redo === 1 ? '' : 's'} forward`;
   }
   if (view.snapshots) showSnapshots(view.snapshots);
+  drawBounds();
 }
 
 studio.snapshots = [];
@@ -1287,6 +1289,7 @@ async function openCompare(s) {
   $('split').hidden = false;
   $('compare-bar').hidden = false;
   image.hidden = true;
+  $('bounds').setAttribute('hidden', '');
   $('compare-info').textContent = `A: ${s.name} (version ${s.version}) · B: the current image`;
   drawCompare();
 }
@@ -1298,6 +1301,7 @@ function closeCompare() {
   $('split').hidden = true;
   $('compare-bar').hidden = true;
   image.hidden = false;
+  drawBounds();
 }
 $('compare-close').addEventListener('click', closeCompare);
 
@@ -1365,6 +1369,88 @@ compareCanvas.addEventListener('keydown', (e) => {
   e.preventDefault();
 });
 window.addEventListener('resize', () => { if (compare) placeSplit(); });
+
+// ---- The march's bounds over the image ------------------------------------------
+// The box the rays are marched through, drawn over the image (Bounds, or
+// always while the server warns that an object goes on past it).
+
+let boundsShown = false;
+
+/** The 12 edges of the bounds projected into the image (pixel coordinates),
+ * through the camera the renderer uses; null when the text does not write
+ * the bounds or a perspective camera. */
+function boundsEdges(view) {
+  const value = (id) => paramValues[id] ?? view.params.find((p) => p.id === id)?.value;
+  const vec = (name) => [0, 1, 2].map((i) => value(`${name}[${i}]`));
+  const min = vec('march.bounds.min'), max = vec('march.bounds.max');
+  const eye = vec('camera.eye'), lookAt = vec('camera.look_at'), upIn = vec('camera.up');
+  const fov = view.params.find((p) => p.id.endsWith('fov_y'))?.value;
+  if (![...min, ...max, ...eye, ...lookAt, ...upIn, fov].every((x) => x !== undefined)) return null;
+  const forward = unit(sub(lookAt, eye));
+  const right = unit(cross(forward, upIn));
+  const up = cross(right, forward);
+  const half = Math.tan((fov * Math.PI) / 360);
+  const aspect = studio.width / studio.height;
+  const project = (p) => {
+    const d = sub(p, eye);
+    return [dot(d, right), dot(d, up), dot(d, forward)];
+  };
+  const toPixel = ([x, y, z]) => [
+    ((x / (z * half * aspect)) + 1) / 2 * studio.width,
+    (1 - y / (z * half)) / 2 * studio.height,
+  ];
+  const corner = (i) => [0, 1, 2].map((a) => ((i >> a) & 1 ? max[a] : min[a]));
+  const edges = [];
+  for (let i = 0; i < 8; i++) {
+    for (const a of [0, 1, 2]) {
+      const j = i | (1 << a);
+      if (j === i) continue;
+      let p = project(corner(i)), q = project(corner(j));
+      // The part in front of the eye.
+      const near = 1e-3;
+      if (p[2] < near && q[2] < near) continue;
+      const cut = (a0, b0) => {
+        const t = (near - a0[2]) / (b0[2] - a0[2]);
+        return a0.map((v, k) => v + (b0[k] - v) * t);
+      };
+      if (p[2] < near) p = cut(p, q);
+      else if (q[2] < near) q = cut(q, p);
+      edges.push([toPixel(p), toPixel(q)]);
+    }
+  }
+  return edges;
+}
+
+function drawBounds() {
+  const view = studio.view;
+  const svg = $('bounds');
+  const warned = Boolean(view?.warning);
+  $('warning').textContent = view?.warning || '';
+  $('warning').hidden = !warned;
+  const edges = view && (boundsShown || warned) && studio.width ? boundsEdges(view) : null;
+  studio.boundsDrawn = edges ? edges.length : 0;
+  // An SVG element has no `hidden` property: the attribute is set.
+  const off = !edges || compare !== null;
+  svg.toggleAttribute('hidden', off);
+  if (off) return;
+  svg.setAttribute('viewBox', `0 0 ${studio.width} ${studio.height}`);
+  svg.classList.toggle('warned', warned);
+  svg.innerHTML = edges.map(([[x1, y1], [x2, y2]]) =>
+    `<line x1="${x1}" y1="${y1}" x2="${x2}" y2="${y2}"></line>`).join('');
+  const r = image.getBoundingClientRect(), stage = $('stage').getBoundingClientRect();
+  const scale = Math.min(r.width / studio.width, r.height / studio.height);
+  svg.style.left = `${r.left - stage.left + (r.width - studio.width * scale) / 2}px`;
+  svg.style.top = `${r.top - stage.top + (r.height - studio.height * scale) / 2}px`;
+  svg.style.width = `${studio.width * scale}px`;
+  svg.style.height = `${studio.height * scale}px`;
+}
+
+$('show-bounds').addEventListener('click', () => {
+  boundsShown = !boundsShown;
+  $('show-bounds').setAttribute('aria-pressed', String(boundsShown));
+  drawBounds();
+});
+window.addEventListener('resize', drawBounds);
 
 call('GET', '/studio/scene').then((view) => {
   showScene(view, { text: true, sliders: true });

@@ -78,6 +78,7 @@ use crate::service::jobs::{Control, JobSpec};
 use snapshots::{Render, Snapshot, SnapshotView, Snapshots};
 use versions::{Edit, Origin, Stale, Versions};
 
+mod bounds;
 mod snapshots;
 mod versions;
 
@@ -164,6 +165,8 @@ struct Live {
     frame_number: u32,
     /// The named snapshots, with their images.
     snapshots: Snapshots,
+    /// Why the shown scene's objects are cut by the march's bounds, if they are.
+    warning: Option<String>,
 }
 
 /// The studio of a service.
@@ -275,6 +278,8 @@ pub struct SceneView {
     undo: usize,
     redo: usize,
     snapshots: Vec<SnapshotView>,
+    /// An object of the scene goes on past the march's bounds (cut flat).
+    warning: Option<String>,
 }
 
 /// An error answered as `{"error": …}`.
@@ -565,6 +570,7 @@ impl Studio {
                 versions: Versions::new(&text_read),
                 frame_number: 0,
                 snapshots: Snapshots::default(),
+                warning: None,
             }),
             raw,
             raw_rx: Mutex::new(Some(raw_rx)),
@@ -847,6 +853,7 @@ impl Studio {
         live.error = None;
         if !same {
             self.start_frame(shared, live, &checked, change.quality)?;
+            live.warning = bounds::warning(&checked.built.scene, frame_number);
         }
         live.frame_number = frame_number;
         live.text = checked.text;
@@ -991,6 +998,7 @@ impl Studio {
             undo: live.versions.steps().0,
             redo: live.versions.steps().1,
             snapshots: live.snapshots.views(),
+            warning: live.warning.clone(),
         }
     }
 
