@@ -787,6 +787,60 @@ fn a_snapshot_is_shown_against_the_current_image_in_a_split_view() {
     let _ = studio.child.wait();
 }
 
+/// A sphere swapped in for the fur's torus keeps the torus's flat bounds:
+/// the page warns that the march cuts it at -y and +y and draws the bounds
+/// over the image; bounds widened in the text clear the warning. The
+/// screenshot of the warning is written beside the test's scene
+/// (`bounds.png`).
+#[test]
+fn a_sphere_in_the_torus_bounds_is_warned_of_and_the_bounds_are_drawn() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-bounds");
+    let scene = small_copy(&dir, "scenes/fur.ron", 48);
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let torus = text
+        .lines()
+        .find(|l| l.contains("object: Torus("))
+        .expect("fur.ron's torus");
+    let swapped = text.replace(torus, "    object: Sphere(radius: 1.0, softness: 0.2),");
+    std::fs::write(&scene, &swapped).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut a = open_page(&chromium, &dir.join("a"), port);
+    a.wait_until(
+        "document.getElementById('warning').textContent.includes('at -y, +y') && \
+         !document.getElementById('warning').hidden && studio.boundsDrawn === 12 && \
+         !document.getElementById('bounds').hasAttribute('hidden')",
+        60,
+    );
+    let shot = a.call("Page.captureScreenshot", json!({ "format": "png" }));
+    write_screenshot(&shot, &dir.join("bounds.png"));
+    let generation = a.eval("studio.generation");
+    a.eval(
+        "(() => { const t = document.getElementById('text'); \
+         t.value = t.value.replace('min: (-1.6, -0.6, -1.6), max: (1.6, 0.6, 1.6)', \
+         'min: (-1.6, -1.6, -1.6), max: (1.6, 1.6, 1.6)'); \
+         t.dispatchEvent(new Event('input')); })()",
+    );
+    a.wait_until(
+        &format!(
+            "studio.generation > {generation} && {COMPLETE_HIGH} && \
+             studio.view.warning === null && document.getElementById('warning').hidden && \
+             document.getElementById('bounds').hasAttribute('hidden')"
+        ),
+        120,
+    );
+    // The Bounds button draws them without a warning.
+    a.eval("document.getElementById('show-bounds').click()");
+    a.wait_until("studio.boundsDrawn === 12", 30);
+    drop(a);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// A curve is drawn as the renderer evaluates it: the `Step` alpha map of
 /// Gilet & Dischler's isolines stays 0 up to its second key, then 1 (read
 /// from the page's pixels: never the ramp its two points would make). At
