@@ -277,6 +277,8 @@ function draw() {
   $('frame-info').textContent =
     `${studio.quality} · ${studio.received}/${studio.units} units${studio.complete ? ' · done' + seconds : ''}`;
   drawSets();
+  drawCompare();
+  drawBounds();
 }
 
 function schedule() {
@@ -351,6 +353,7 @@ function listen() {
     m.quality ??= pending.quality;
   });
   source.addEventListener('tile', (e) => receive(JSON.parse(e.data)));
+  source.addEventListener('snapshots', (e) => showSnapshots(JSON.parse(e.data).snapshots));
   // Another tab's edit: its text, values and ranges (this tab's own edits
   // come back in the answer to its request).
   source.addEventListener('scene', (e) => {
@@ -505,6 +508,7 @@ function curveLabel(id) {
 /** Shows the scene; `text`: replace the text box, `sliders`: set the sliders. */
 function showScene(view, { text, sliders }) {
   studio.view = view;
+  showHistory(view);
   studio.version = Math.max(studio.version, view.version);
   if (view.frame !== undefined && !pending) showFrameNumber(view.frame);
   $('scene-name').textContent = view.name;
@@ -981,7 +985,9 @@ function flush() {
   if (!inFlight && !gated() && queued) {
     const [c, a, f] = queued;
     queued = null;
-    send(c, a, f);
+    // A slider's change waiting behind this tab's own is made on the
+    // version that answer brought (the sliders show it), not the one before.
+    send(f ? { ...c, base: studio.version } : c, a, f);
   }
 }
 
@@ -1057,7 +1063,7 @@ function send(change, asked, fromSlider) {
 
 /** The sliders' values as a change at `quality`. */
 function current(quality) {
-  return { knobs: { ...knobValues }, params: { ...paramValues }, quality, base: studio.version };
+  return { knobs: { ...knobValues }, params: { ...paramValues }, quality, base: studio.version, gesture };
 }
 
 function moved(name, input) {
@@ -1082,7 +1088,7 @@ $('text').addEventListener('input', () => {
   editTimer = setTimeout(() => {
     editTimer = null;
     for (const key of Object.keys(paramValues)) delete paramValues[key];
-    send({ text: $('text').value, quality: 'interactive', base: studio.textBase }, asked, false);
+    send({ text: $('text').value, quality: 'interactive', base: studio.textBase, gesture: typing() }, asked, false);
   }, 150);
 });
 
@@ -1150,6 +1156,301 @@ function watchFinal(job, number) {
     $('action-result').textContent = `job ${job.id} done → ${job.out}`;
   }, (e) => { $('action-result').textContent = e.message; }), 500);
 }
+
+// ---- Undo, redo, snapshots and the A/B view --------------------------------------
+// One history for every tab, kept by the server: an undo is an edit that sets
+// the text back byte for byte, and every tab follows it. The edits of one
+// gesture (a drag of a slider, a curve's point or the camera, a burst of
+// typing, a key) are one step.
+
+let gesture = null;
+let gestures = 0;
+let typingGesture = null;
+let lastTyped = -Infinity;
+let lastWheel = -Infinity;
+
+function newGesture() {
+  gesture = `${TAB}.${++gestures}`;
+}
+
+/** Whether `target` edits text (its own undo is the browser's). */
+function isTextField(target) {
+  return target instanceof HTMLTextAreaElement ||
+    (target instanceof HTMLInputElement && ['text', 'search', 'password'].includes(target.type));
+}
+
+/** The gesture of a text edit: a new one after a second without typing. */
+function typing() {
+  const now = performance.now();
+  if (!typingGesture || now - lastTyped > 1000) typingGesture = `${TAB}.${++gestures}`;
+  lastTyped = now;
+  return typingGesture;
+}
+
+document.addEventListener('pointerdown', newGesture, true);
+document.addEventListener('keydown', (e) => {
+  if (!isTextField(e.target) && !e.ctrlKey && !e.metaKey && !e.altKey) newGesture();
+}, true);
+document.addEventListener('wheel', () => {
+  if (performance.now() - lastWheel > 500) newGesture();
+  lastWheel = performance.now();
+}, { capture: true, passive: true });
+
+/** Undo (`back`) or redo, for every tab. */
+function stepHistory(back) {
+  clearTimeout(editTimer);
+  editTimer = null;
+  call('POST', `/studio/${back ? 'undo' : 'redo'}?tab=${encodeURIComponent(TAB)}`).then(
+    (view) => showScene(view, { text: true, sliders: true }),
+    (e) => { $('action-result').textContent = e.message; });
+}
+
+document.addEventListener('keydown', (e) => {
+  if (!(e.ctrlKey || e.metaKey) || e.altKey || isTextField(e.target)) return;
+  const key = e.key.toLowerCase();
+  if (key === 'z') stepHistory(!e.shiftKey);
+  else if (key === 'y') stepHistory(false);
+  else return;
+  e.preventDefault();
+});
+$('undo').addEventListener('click', () => stepHistory(true));
+$('redo').addEventListener('click', () => stepHistory(false));
+
+function showHistory(view) {
+  if (view.undo !== undefined) {
+    $('undo').disabled = view.undo === 0;
+    $('redo').disabled = view.redo === 0;
+    $('undo').title = `Ctrl+Z: ${view.undo} step${view.undo === 1 ? '' : 's'} back`;
+    $('redo').title = `Ctrl+Shift+Z or Ctrl+Y: ${view.redo} step${view.redo === 1 ? '' : 's'} forward`;
+  }
+  if (view.snapshots) showSnapshots(view.snapshots);
+  drawBounds();
+}
+
+studio.snapshots = [];
+studio.compare = null;   // the A/B view: {id, split (the first column of B), drawn}
+
+function button(label, onClick) {
+  const b = document.createElement('button');
+  b.type = 'button';
+  b.textContent = label;
+  b.addEventListener('click', onClick);
+  return b;
+}
+
+function showSnapshots(list) {
+  studio.snapshots = list;
+  const box = $('snapshots');
+  box.innerHTML = '';
+  for (const s of list) {
+    const item = document.createElement('li');
+    item.dataset.id = s.id;
+    const label = document.createElement('span');
+    const state = s.ready ? '' : s.error ? ` · ${s.error}` : ' · rendering…';
+    label.textContent = `${s.name} · version ${s.version}${state}`;
+    const restore = button('Restore', () => {
+      call('POST', `/studio/snapshots/${s.id}/restore?tab=${encodeURIComponent(TAB)}`).then(
+        (view) => showScene(view, { text: true, sliders: true }),
+        (e) => { $('action-result').textContent = e.message; });
+    });
+    const ab = button('A/B', () => openCompare(s));
+    ab.className = 'compare-open';
+    ab.disabled = !s.ready;
+    item.append(label, restore, ab);
+    box.appendChild(item);
+  }
+}
+
+$('snapshot-form').addEventListener('submit', (e) => {
+  e.preventDefault();
+  call('POST', '/studio/snapshots', { name: $('snapshot-name').value }).then(({ snapshots }) => {
+    $('snapshot-name').value = '';
+    showSnapshots(snapshots);
+  }, (error) => { $('action-result').textContent = error.message; });
+});
+
+const compareCanvas = $('compare');
+const compareContext = compareCanvas.getContext('2d');
+let compare = null;      // {id, name, width, height, pixels, split}
+let splitting = null;    // the pointer dragging the split
+
+/** Shows snapshot `s` (A, left of the split) against the current image (B). */
+async function openCompare(s) {
+  const response = await fetch(`/studio/snapshots/${s.id}/pixels`, { headers: headers(false) });
+  if (!response.ok) {
+    $('action-result').textContent = (await response.json()).error;
+    return;
+  }
+  const pixels = new Uint8ClampedArray(await response.arrayBuffer());
+  compare = { id: s.id, name: s.name, width: s.width, height: s.height, pixels, split: Math.floor(s.width / 2) };
+  compareCanvas.width = s.width;
+  compareCanvas.height = s.height;
+  compareCanvas.hidden = false;
+  $('split').hidden = false;
+  $('compare-bar').hidden = false;
+  image.hidden = true;
+  $('bounds').setAttribute('hidden', '');
+  $('compare-info').textContent = `A: ${s.name} (version ${s.version}) · B: the current image`;
+  drawCompare();
+}
+
+function closeCompare() {
+  compare = null;
+  studio.compare = null;
+  compareCanvas.hidden = true;
+  $('split').hidden = true;
+  $('compare-bar').hidden = true;
+  image.hidden = false;
+  drawBounds();
+}
+$('compare-close').addEventListener('click', closeCompare);
+
+/** Puts the snapshot's columns left of the split and the current image's
+ * from the split on into the A/B canvas. */
+function drawCompare() {
+  if (!compare) return;
+  const { width, height, pixels, split } = compare;
+  const out = new ImageData(width, height);
+  const live = studio.width === width && studio.height === height
+    ? context.getImageData(0, 0, width, height).data : null;
+  for (let y = 0; y < height; y++) {
+    const row = y * width * 4, cut = row + split * 4, end = row + width * 4;
+    out.data.set(pixels.subarray(row, cut), row);
+    if (live) out.data.set(live.subarray(cut, end), cut);
+  }
+  compareContext.putImageData(out, 0, 0);
+  $('compare-info').dataset.sizes = live ? 'same' : 'differ';
+  placeSplit();
+  studio.compare = { id: compare.id, split, drawn: studio.framesDrawn };
+}
+
+/** Where the image is drawn in the A/B canvas's box (it keeps its aspect). */
+function compareBox() {
+  const r = compareCanvas.getBoundingClientRect();
+  const scale = Math.min(r.width / compare.width, r.height / compare.height);
+  return { r, scale, left: r.left + (r.width - compare.width * scale) / 2,
+    top: r.top + (r.height - compare.height * scale) / 2 };
+}
+
+function placeSplit() {
+  const { scale, left, top } = compareBox();
+  const stage = $('stage').getBoundingClientRect();
+  const line = $('split');
+  line.style.left = `${left - stage.left + compare.split * scale}px`;
+  line.style.top = `${top - stage.top}px`;
+  line.style.height = `${compare.height * scale}px`;
+}
+
+function splitAt(clientX) {
+  const { scale, left } = compareBox();
+  compare.split = Math.max(0, Math.min(compare.width, Math.round((clientX - left) / scale)));
+  drawCompare();
+}
+
+compareCanvas.tabIndex = 0;
+compareCanvas.addEventListener('pointerdown', (e) => {
+  if (!compare) return;
+  e.preventDefault();
+  compareCanvas.setPointerCapture(e.pointerId);
+  splitting = e.pointerId;
+  splitAt(e.clientX);
+});
+compareCanvas.addEventListener('pointermove', (e) => {
+  if (compare && splitting === e.pointerId) splitAt(e.clientX);
+});
+const stopSplitting = () => { splitting = null; };
+compareCanvas.addEventListener('pointerup', stopSplitting);
+compareCanvas.addEventListener('pointercancel', stopSplitting);
+compareCanvas.addEventListener('keydown', (e) => {
+  if (!compare || (e.key !== 'ArrowLeft' && e.key !== 'ArrowRight')) return;
+  const step = (e.shiftKey ? 10 : 1) * (e.key === 'ArrowLeft' ? -1 : 1);
+  compare.split = Math.max(0, Math.min(compare.width, compare.split + step));
+  drawCompare();
+  e.preventDefault();
+});
+window.addEventListener('resize', () => { if (compare) placeSplit(); });
+
+// ---- The march's bounds over the image ------------------------------------------
+// The box the rays are marched through, drawn over the image (Bounds, or
+// always while the server warns that an object goes on past it).
+
+let boundsShown = false;
+
+/** The 12 edges of the bounds projected into the image (pixel coordinates),
+ * through the camera the renderer uses; null when the text does not write
+ * the bounds or a perspective camera. */
+function boundsEdges(view) {
+  const value = (id) => paramValues[id] ?? view.params.find((p) => p.id === id)?.value;
+  const vec = (name) => [0, 1, 2].map((i) => value(`${name}[${i}]`));
+  const min = vec('march.bounds.min'), max = vec('march.bounds.max');
+  const eye = vec('camera.eye'), lookAt = vec('camera.look_at'), upIn = vec('camera.up');
+  const fov = view.params.find((p) => p.id.endsWith('fov_y'))?.value;
+  if (![...min, ...max, ...eye, ...lookAt, ...upIn, fov].every((x) => x !== undefined)) return null;
+  const forward = unit(sub(lookAt, eye));
+  const right = unit(cross(forward, upIn));
+  const up = cross(right, forward);
+  const half = Math.tan((fov * Math.PI) / 360);
+  const aspect = studio.width / studio.height;
+  const project = (p) => {
+    const d = sub(p, eye);
+    return [dot(d, right), dot(d, up), dot(d, forward)];
+  };
+  const toPixel = ([x, y, z]) => [
+    ((x / (z * half * aspect)) + 1) / 2 * studio.width,
+    (1 - y / (z * half)) / 2 * studio.height,
+  ];
+  const corner = (i) => [0, 1, 2].map((a) => ((i >> a) & 1 ? max[a] : min[a]));
+  const edges = [];
+  for (let i = 0; i < 8; i++) {
+    for (const a of [0, 1, 2]) {
+      const j = i | (1 << a);
+      if (j === i) continue;
+      let p = project(corner(i)), q = project(corner(j));
+      // The part in front of the eye.
+      const near = 1e-3;
+      if (p[2] < near && q[2] < near) continue;
+      const cut = (a0, b0) => {
+        const t = (near - a0[2]) / (b0[2] - a0[2]);
+        return a0.map((v, k) => v + (b0[k] - v) * t);
+      };
+      if (p[2] < near) p = cut(p, q);
+      else if (q[2] < near) q = cut(q, p);
+      edges.push([toPixel(p), toPixel(q)]);
+    }
+  }
+  return edges;
+}
+
+function drawBounds() {
+  const view = studio.view;
+  const svg = $('bounds');
+  const warned = Boolean(view?.warning);
+  $('warning').textContent = view?.warning || '';
+  $('warning').hidden = !warned;
+  const edges = view && (boundsShown || warned) && studio.width ? boundsEdges(view) : null;
+  studio.boundsDrawn = edges ? edges.length : 0;
+  // An SVG element has no `hidden` property: the attribute is set.
+  const off = !edges || compare !== null;
+  svg.toggleAttribute('hidden', off);
+  if (off) return;
+  svg.setAttribute('viewBox', `0 0 ${studio.width} ${studio.height}`);
+  svg.classList.toggle('warned', warned);
+  svg.innerHTML = edges.map(([[x1, y1], [x2, y2]]) =>
+    `<line x1="${x1}" y1="${y1}" x2="${x2}" y2="${y2}"></line>`).join('');
+  const r = image.getBoundingClientRect(), stage = $('stage').getBoundingClientRect();
+  const scale = Math.min(r.width / studio.width, r.height / studio.height);
+  svg.style.left = `${r.left - stage.left + (r.width - studio.width * scale) / 2}px`;
+  svg.style.top = `${r.top - stage.top + (r.height - studio.height * scale) / 2}px`;
+  svg.style.width = `${studio.width * scale}px`;
+  svg.style.height = `${studio.height * scale}px`;
+}
+
+$('show-bounds').addEventListener('click', () => {
+  boundsShown = !boundsShown;
+  $('show-bounds').setAttribute('aria-pressed', String(boundsShown));
+  drawBounds();
+});
+window.addEventListener('resize', drawBounds);
 
 call('GET', '/studio/scene').then((view) => {
   showScene(view, { text: true, sliders: true });

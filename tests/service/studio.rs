@@ -95,13 +95,7 @@ fn the_studio_refines_live_and_matches_the_in_process_render() {
     );
     let shot = screenshot
         .unwrap_or_else(|| browser.call("Page.captureScreenshot", json!({ "format": "png" })));
-    {
-        use base64::Engine as _;
-        let png = base64::engine::general_purpose::STANDARD
-            .decode(shot["data"].as_str().expect("png data"))
-            .expect("base64");
-        std::fs::write(dir.join("refining.png"), png).expect("refining.png");
-    }
+    write_screenshot(&shot, &dir.join("refining.png"));
 
     // A syntax error: its line:column shows, the image stays.
     let generation = browser.eval("studio.generation");
@@ -557,6 +551,296 @@ fn two_tabs_stay_in_sync_and_the_camera_moves_in_the_image() {
     let _ = studio.child.wait();
 }
 
+/// Ctrl+Z steps back through a slider's drag, an orbit of the camera and a
+/// text edit, one step each, and gives the file's text back byte for byte;
+/// Ctrl+Shift+Z and Ctrl+Y step forward to the edited text. The second tab
+/// follows every step (one history for every tab).
+#[test]
+fn undo_and_redo_give_the_text_back_byte_for_byte_in_every_tab() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-undo");
+    let scene = small_copy(&dir, "scenes/fur.ron", 24);
+    let original = std::fs::read_to_string(&scene).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let url = format!("http://127.0.0.1:{port}");
+    let mut a = open_page(&chromium, &dir.join("a"), port);
+    let mut b = open_page(&chromium, &dir.join("b"), port);
+    let view = || crate::support::http::get(&url, "/studio/scene").json();
+    let text = || view()["text"].as_str().unwrap().to_string();
+    assert_eq!(text(), original, "the studio shows the file's bytes");
+    assert_eq!(view()["undo"], 0);
+    // Waits for the high-quality frame of an edit in `a`.
+    let rested = |a: &mut Browser, generation: &Value| {
+        a.wait_until(
+            &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+            120,
+        );
+    };
+
+    // A slider's drag: several values, one gesture.
+    let generation = a.eval("studio.generation");
+    a.eval(
+        "(() => { const i = document.getElementById('param-modulation[0].Fur.bias'); \
+         i.dispatchEvent(new PointerEvent('pointerdown', { bubbles: true })); \
+         for (const v of [0.6, 0.63, 0.67]) { i.value = v; i.dispatchEvent(new Event('input')); } \
+         i.dispatchEvent(new PointerEvent('pointerup', { bubbles: true })); })()",
+    );
+    until(60, "the drag reaches the server", || {
+        text().contains("bias: 0.67")
+    });
+    rested(&mut a, &generation);
+    let dragged = text();
+    // An orbit of the camera: a drag across the image.
+    let generation = a.eval("studio.generation");
+    let centre = a.eval(
+        "(() => { const r = document.getElementById('image').getBoundingClientRect(); \
+         return [r.x + r.width / 2, r.y + r.height / 2]; })()",
+    );
+    let (x, y) = (centre[0].as_f64().unwrap(), centre[1].as_f64().unwrap());
+    for (kind, dx, buttons) in [
+        ("mousePressed", 0.0, 1),
+        ("mouseMoved", 10.0, 1),
+        ("mouseMoved", 20.0, 1),
+        ("mouseMoved", 30.0, 1),
+        ("mouseReleased", 30.0, 0),
+    ] {
+        a.call(
+            "Input.dispatchMouseEvent",
+            json!({ "type": kind, "x": x + dx, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        );
+    }
+    until(60, "the orbit reaches the server", || text() != dragged);
+    rested(&mut a, &generation);
+    let orbited = text();
+    // A text edit.
+    let generation = a.eval("studio.generation");
+    a.eval(
+        "(() => { const t = document.getElementById('text'); \
+         t.value = '// to be undone\\n' + t.value; t.dispatchEvent(new Event('input')); })()",
+    );
+    until(60, "the text edit reaches the server", || {
+        text().starts_with("// to be undone\n")
+    });
+    rested(&mut a, &generation);
+    let edited = text();
+    assert_eq!(edited, format!("// to be undone\n{orbited}"));
+    assert_eq!(view()["undo"], 3, "three gestures, three steps");
+
+    // Ctrl+Z (not in the text box): one step each, in both tabs.
+    a.eval("document.activeElement.blur()");
+    let press = |a: &mut Browser, key: &str, code: u32, modifiers: u32| {
+        let version = view()["version"].as_u64().unwrap();
+        for kind in ["keyDown", "keyUp"] {
+            a.call(
+                "Input.dispatchKeyEvent",
+                json!({ "type": kind, "key": key, "code": format!("Key{}", key.to_uppercase()),
+                        "windowsVirtualKeyCode": code, "modifiers": modifiers }),
+            );
+        }
+        until(30, "the step reaches the server", || {
+            view()["version"].as_u64().unwrap() > version
+        });
+    };
+    let shown_in = |tab: &mut Browser, want: &str| {
+        tab.wait_until(
+            &format!(
+                "document.getElementById('text').value === {}",
+                serde_json::to_string(want).unwrap()
+            ),
+            60,
+        );
+    };
+    for want in [&orbited, &dragged, &original] {
+        press(&mut a, "z", 90, 2);
+        assert_eq!(&text(), want);
+        shown_in(&mut a, want);
+        shown_in(&mut b, want);
+    }
+    assert_eq!(
+        text().as_bytes(),
+        original.as_bytes(),
+        "undo restores the text exactly"
+    );
+    assert_eq!(
+        (view()["undo"].clone(), view()["redo"].clone()),
+        (json!(0), json!(3))
+    );
+    a.wait_until("document.getElementById('undo').disabled", 30);
+    // Ctrl+Shift+Z twice, Ctrl+Y once: the edited text again.
+    press(&mut a, "Z", 90, 2 | 8);
+    press(&mut a, "Z", 90, 2 | 8);
+    press(&mut a, "y", 89, 2);
+    assert_eq!(
+        text().as_bytes(),
+        edited.as_bytes(),
+        "redo gives the edited text back"
+    );
+    shown_in(&mut a, &edited);
+    shown_in(&mut b, &edited);
+    // The Undo button of the other tab steps back for both.
+    b.eval("document.getElementById('undo').click()");
+    until(30, "B's undo reaches the server", || text() == orbited);
+    shown_in(&mut a, &orbited);
+    drop((a, b));
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// A snapshot's image, rendered by the farm at the live frame's quality, is
+/// shown left of the A/B view's split and the current image right of it
+/// (read from the page's pixels after the split is dragged). The A/B view's
+/// screenshot is written beside the test's scene (`ab.png`).
+#[test]
+fn a_snapshot_is_shown_against_the_current_image_in_a_split_view() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-ab");
+    let scene = small_copy(&dir, "scenes/fur.ron", 32);
+    let mut studio = studio(&scene, &dir.join("data"), 2);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut a = open_page(&chromium, &dir.join("a"), port);
+    let before = a.canvas();
+    a.eval(
+        "document.getElementById('snapshot-name').value = 'before'; \
+         document.getElementById('snapshot-take').click()",
+    );
+    a.wait_until(
+        "studio.snapshots.length === 1 && studio.snapshots[0].ready && \
+         !document.querySelector('#snapshots .compare-open').disabled",
+        120,
+    );
+    // The scene changes: the fur's bias.
+    let generation = a.eval("studio.generation");
+    a.eval(
+        "(() => { const i = document.getElementById('param-modulation[0].Fur.bias'); \
+         i.value = 0.9; i.dispatchEvent(new Event('input')); })()",
+    );
+    a.wait_until(
+        &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+        120,
+    );
+    let after = a.canvas();
+    assert_ne!(before, after, "the change shows");
+    a.eval("document.querySelector('#snapshots .compare-open').click()");
+    a.wait_until("studio.compare !== null", 30);
+    // The split dragged from the middle to a quarter of the width (of the
+    // image as drawn: the canvas keeps its aspect in its box).
+    let drawn = a.eval(
+        "(() => { const r = document.getElementById('compare').getBoundingClientRect(); \
+         const k = Math.min(r.width / 32, r.height / 32); \
+         return [r.x + (r.width - 32 * k) / 2, r.y + r.height / 2, 32 * k]; })()",
+    );
+    let r: Vec<f64> = drawn
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    for (kind, at, buttons) in [
+        ("mousePressed", 0.5, 1),
+        ("mouseMoved", 0.4, 1),
+        ("mouseMoved", 0.3, 1),
+        ("mouseMoved", 0.25, 1),
+        ("mouseReleased", 0.25, 0),
+    ] {
+        a.call(
+            "Input.dispatchMouseEvent",
+            json!({ "type": kind, "x": r[0] + r[2] * at, "y": r[1], "button": "left", "buttons": buttons, "clickCount": 1 }),
+        );
+    }
+    a.wait_until("studio.compare.split === 8", 30);
+    let shown = a.canvas_of("compare");
+    assert_eq!(shown.len(), before.len());
+    let (width, split) = (32, 8);
+    let column = |image: &[u8], x: usize| -> Vec<u8> {
+        (0..32)
+            .flat_map(|y| image[(y * width + x) * 4..][..4].to_vec())
+            .collect()
+    };
+    let mut differ = [false, false];
+    for x in 0..width {
+        let (want, other) = if x < split {
+            (&before, &after)
+        } else {
+            (&after, &before)
+        };
+        assert_eq!(
+            column(&shown, x),
+            column(want, x),
+            "column {x}: the {} image",
+            if x < split { "snapshot's" } else { "current" }
+        );
+        differ[usize::from(x >= split)] |= column(want, x) != column(other, x);
+    }
+    assert_eq!(differ, [true, true], "both sides show what only they hold");
+    let shot = a.call("Page.captureScreenshot", json!({ "format": "png" }));
+    write_screenshot(&shot, &dir.join("ab.png"));
+    eprintln!("the A/B view: {}", dir.join("ab.png").display());
+    drop(a);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// A sphere swapped in for the fur's torus keeps the torus's flat bounds:
+/// the page warns that the march cuts it at -y and +y and draws the bounds
+/// over the image; bounds widened in the text clear the warning. The
+/// screenshot of the warning is written beside the test's scene
+/// (`bounds.png`).
+#[test]
+fn a_sphere_in_the_torus_bounds_is_warned_of_and_the_bounds_are_drawn() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-bounds");
+    let scene = small_copy(&dir, "scenes/fur.ron", 48);
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let torus = text
+        .lines()
+        .find(|l| l.contains("object: Torus("))
+        .expect("fur.ron's torus");
+    let swapped = text.replace(torus, "    object: Sphere(radius: 1.0, softness: 0.2),");
+    std::fs::write(&scene, &swapped).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut a = open_page(&chromium, &dir.join("a"), port);
+    a.wait_until(
+        "document.getElementById('warning').textContent.includes('at -y, +y') && \
+         !document.getElementById('warning').hidden && studio.boundsDrawn === 12 && \
+         !document.getElementById('bounds').hasAttribute('hidden')",
+        60,
+    );
+    let shot = a.call("Page.captureScreenshot", json!({ "format": "png" }));
+    write_screenshot(&shot, &dir.join("bounds.png"));
+    let generation = a.eval("studio.generation");
+    a.eval(
+        "(() => { const t = document.getElementById('text'); \
+         t.value = t.value.replace('min: (-1.6, -0.6, -1.6), max: (1.6, 0.6, 1.6)', \
+         'min: (-1.6, -1.6, -1.6), max: (1.6, 1.6, 1.6)'); \
+         t.dispatchEvent(new Event('input')); })()",
+    );
+    a.wait_until(
+        &format!(
+            "studio.generation > {generation} && {COMPLETE_HIGH} && \
+             studio.view.warning === null && document.getElementById('warning').hidden && \
+             document.getElementById('bounds').hasAttribute('hidden')"
+        ),
+        120,
+    );
+    // The Bounds button draws them without a warning.
+    a.eval("document.getElementById('show-bounds').click()");
+    a.wait_until("studio.boundsDrawn === 12", 30);
+    drop(a);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// A curve is drawn as the renderer evaluates it: the `Step` alpha map of
 /// Gilet & Dischler's isolines stays 0 up to its second key, then 1 (read
 /// from the page's pixels: never the ramp its two points would make). At
@@ -797,6 +1081,15 @@ fn small_copy(dir: &Path, scene: &str, size: u32) -> std::path::PathBuf {
     let copy = dir.join(Path::new(scene).file_name().unwrap());
     std::fs::write(&copy, small).unwrap();
     copy
+}
+
+/// Writes the PNG of a `Page.captureScreenshot` answer to `path`.
+fn write_screenshot(shot: &Value, path: &Path) {
+    use base64::Engine as _;
+    let png = base64::engine::general_purpose::STANDARD
+        .decode(shot["data"].as_str().expect("png data"))
+        .expect("base64");
+    std::fs::write(path, png).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
 }
 
 /// The in-process render of `scene` (written in `dir`): its RGBA bytes.

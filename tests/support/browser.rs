@@ -191,12 +191,17 @@ impl Browser {
 
     /// The canvas's RGBA bytes.
     pub fn canvas(&mut self) -> Vec<u8> {
-        let b64 = self.eval(
-            "(() => { const c = document.getElementById('image'); \
+        self.canvas_of("image")
+    }
+
+    /// The RGBA pixels of the canvas with id `id`.
+    pub fn canvas_of(&mut self, id: &str) -> Vec<u8> {
+        let b64 = self.eval(&format!(
+            "(() => {{ const c = document.getElementById('{id}'); \
              const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
              let s = ''; for (let i = 0; i < d.length; i++) s += String.fromCharCode(d[i]); \
-             return btoa(s); })()",
-        );
+             return btoa(s); }})()"
+        ));
         use base64::Engine as _;
         base64::engine::general_purpose::STANDARD
             .decode(b64.as_str().expect("a string"))

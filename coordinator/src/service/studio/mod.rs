@@ -40,8 +40,12 @@
 //! | `POST /studio/reload`    | takes SCENE's text from disk: a new frame                 |
 //! | `POST /studio/final`     | queues the shown text as a job writing `STEM.final.NNNN.png` (the next free N) |
 //! | `GET /studio/final/N`    | final render N's PNG                                      |
-//! | `GET /studio/events`     | Server-Sent Events: `scene`, `frame`, `tile`, `tiles`, `done`, `status`, `error` |
+//! | `GET /studio/events`     | Server-Sent Events: `scene`, `frame`, `tile`, `tiles`, `done`, `status`, `error`, `snapshots` |
 //! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
+//! | `POST /studio/undo[?tab=T]`, `POST /studio/redo[?tab=T]` | steps back or forward through the one history of every tab's edits: a new version; 409 when there is no step |
+//! | `POST /studio/snapshots` | `{"name": N}`: a snapshot of the shown state, its image rendered by the farm; answers the list |
+//! | `POST /studio/snapshots/ID/restore[?tab=T]` | sets the snapshot's text and frame back, as an edit |
+//! | `GET /studio/snapshots/ID/pixels` | its image's 8-bit sRGB RGBA, row-major (409 until rendered) |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
 //! the service) need `Authorization: Bearer <token>`; the event stream alone
@@ -71,8 +75,11 @@ use tokio::sync::{broadcast, mpsc};
 use super::params::{self, Curve, Param};
 use crate::farm::{self, Accepted, JobId, Shared, WireJob};
 use crate::service::jobs::{Control, JobSpec};
-use versions::{Edit, Stale, Versions};
+use snapshots::{Render, Snapshot, SnapshotView, Snapshots};
+use versions::{Edit, Origin, Stale, Versions};
 
+mod bounds;
+mod snapshots;
 mod versions;
 
 /// Live frames' job ids start here (the store's ids are far below).
@@ -156,6 +163,10 @@ struct Live {
     versions: Versions,
     /// The frame of the sequence shown (what `frame` means in the scene).
     frame_number: u32,
+    /// The named snapshots, with their images.
+    snapshots: Snapshots,
+    /// Why the shown scene's objects are cut by the march's bounds, if they are.
+    warning: Option<String>,
 }
 
 /// The studio of a service.
@@ -207,9 +218,30 @@ pub struct Change {
     /// tell its own edits from others'.
     #[serde(default)]
     pub tab: Option<String>,
+    /// The gesture of the tab it belongs to (a slider's drag, an orbit, a
+    /// burst of typing): the edits of one gesture are one undo step.
+    #[serde(default)]
+    pub gesture: Option<String>,
     /// The frame of the sequence to show; absent: the one shown.
     #[serde(default)]
     pub frame: Option<u32>,
+}
+
+impl Change {
+    /// Sets `text` (knob values as its defaults) at high quality, from `tab`,
+    /// at `frame` (none: the frame shown): an edit of its own undo step.
+    fn set_text(text: String, tab: Option<String>, frame: Option<u32>) -> Change {
+        Change {
+            text: Some(text),
+            knobs: BTreeMap::new(),
+            params: BTreeMap::new(),
+            quality: Quality::High,
+            base: None,
+            tab,
+            gesture: None,
+            frame,
+        }
+    }
 }
 
 /// A knob as the page shows it.
@@ -242,6 +274,12 @@ pub struct SceneView {
     version: u64,
     /// The frame of the sequence shown.
     frame: u32,
+    /// How many steps undo and redo can take (one history for every tab).
+    undo: usize,
+    redo: usize,
+    snapshots: Vec<SnapshotView>,
+    /// An object of the scene goes on past the march's bounds (cut flat).
+    warning: Option<String>,
 }
 
 /// An error answered as `{"error": …}`.
@@ -334,6 +372,10 @@ pub fn with_knob_values(text: &str, values: &BTreeMap<String, f64>) -> Option<St
             .unwrap_or(text.len() - start);
         if len == 0 {
             return None;
+        }
+        // A number already of this value keeps its bytes (`0.50` stays).
+        if text[start..start + len].parse::<f64>() == Ok(*value) {
+            continue;
         }
         edits.push((start, start + len, format!("{value:?}")));
     }
@@ -449,6 +491,37 @@ fn overrides(
     )
 }
 
+/// Puts the frame of `checked` on the farm as live job `job` of `units`.
+fn submit(
+    shared: &Shared,
+    checked: &Checked,
+    job: JobId,
+    units: Vec<WorkUnit>,
+) -> Result<(), String> {
+    let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
+    let frame_job = farm::FrameJob {
+        request: checked.built.request.clone(),
+        frames: vec![farm::FrameOut {
+            frame: checked.built.request.frames.first,
+            out: PathBuf::new(),
+        }],
+        // A live frame is drawn in the page, never written to a file.
+        metadata: Arc::new(crate::image::output::ImageMetadata::without_scene(
+            width, height, None, None,
+        )),
+        assets: checked.files.clone(),
+    };
+    shared
+        .add_live_frame(
+            (job, checked.built.request.frames.first),
+            units,
+            (width, height),
+            PixelFormat::Srgb8,
+            WireJob::of(&frame_job),
+        )
+        .map_err(|e| e.to_string())
+}
+
 impl Studio {
     /// A studio of the scene at `path` (none: an empty editor), whose final
     /// renders go beside the scene (or into the working directory).
@@ -496,6 +569,8 @@ impl Studio {
                 generation: 0,
                 versions: Versions::new(&text_read),
                 frame_number: 0,
+                snapshots: Snapshots::default(),
+                warning: None,
             }),
             raw,
             raw_rx: Mutex::new(Some(raw_rx)),
@@ -539,6 +614,7 @@ impl Studio {
                 quality: Quality::High,
                 base: None,
                 tab: None,
+                gesture: None,
                 frame: None,
             });
         }
@@ -561,6 +637,7 @@ impl Studio {
             shared.remove_job(job);
         }
         if let Some(why) = gave_up {
+            self.snapshot_gave_up(job, &why);
             self.send(Event {
                 name: "error",
                 data: serde_json::json!({ "error": why }).to_string(),
@@ -605,6 +682,9 @@ impl Studio {
                 return;
             };
             let mut live = self.live();
+            if self.snapshot_tile(&mut live, &raw) {
+                continue;
+            }
             let Some(frame) = live.frame.as_mut() else {
                 continue;
             };
@@ -733,6 +813,7 @@ impl Studio {
             quality: Quality::High,
             base: None,
             tab: None,
+            gesture: None,
             frame: None,
         };
         if let Err(e) = self.change_live(&mut live, change) {
@@ -742,6 +823,16 @@ impl Studio {
 
     /// [`Studio::change`] on the live state, locked by the caller.
     fn change_live(&self, live: &mut Live, change: Change) -> Result<SceneView, String> {
+        let origin = Origin::Edit {
+            tab: change.tab.clone(),
+            gesture: change.gesture.clone(),
+        };
+        self.apply(live, change, origin)
+    }
+
+    /// [`Studio::change_live`] of a state made by `origin` (an edit, an undo
+    /// or a redo: see [`versions`]).
+    fn apply(&self, live: &mut Live, change: Change, origin: Origin) -> Result<SceneView, String> {
         let shared = self
             .farm
             .get()
@@ -762,6 +853,7 @@ impl Studio {
         live.error = None;
         if !same {
             self.start_frame(shared, live, &checked, change.quality)?;
+            live.warning = bounds::warning(&checked.built.scene, frame_number);
         }
         live.frame_number = frame_number;
         live.text = checked.text;
@@ -778,7 +870,7 @@ impl Studio {
         } = live;
         (*params, *curves) = params::controls(text, ranges);
         let view = self.view(live);
-        if live.versions.record(&live.shown, &live.knobs) {
+        if live.versions.record_as(&live.shown, &live.knobs, origin) {
             let view = self.view(live);
             self.send(Event {
                 name: "scene",
@@ -850,18 +942,6 @@ impl Studio {
         let (interleave, expected) = shared.unit_layout();
         let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
         let units = farm_units(width, height, interleave, expected);
-        let frame_job = farm::FrameJob {
-            request: checked.built.request.clone(),
-            frames: vec![farm::FrameOut {
-                frame: checked.built.request.frames.first,
-                out: PathBuf::new(),
-            }],
-            // A live frame is drawn in the page, never written to a file.
-            metadata: Arc::new(crate::image::output::ImageMetadata::without_scene(
-                width, height, None, None,
-            )),
-            assets: checked.files.clone(),
-        };
         let frame_units = units.clone();
         let data = serde_json::json!({
             "generation": live.generation,
@@ -890,15 +970,7 @@ impl Studio {
             flush_at: None,
             _scene: Arc::clone(&checked.built.scene),
         });
-        shared
-            .add_live_frame(
-                (job, checked.built.request.frames.first),
-                frame_units,
-                (width, height),
-                PixelFormat::Srgb8,
-                WireJob::of(&frame_job),
-            )
-            .map_err(|e| e.to_string())
+        submit(shared, checked, job, frame_units)
     }
 
     fn view(&self, live: &Live) -> SceneView {
@@ -923,6 +995,10 @@ impl Studio {
             generation: live.generation,
             version: live.versions.current().number,
             frame: live.frame_number,
+            undo: live.versions.steps().0,
+            redo: live.versions.steps().1,
+            snapshots: live.snapshots.views(),
+            warning: live.warning.clone(),
         }
     }
 
@@ -1023,6 +1099,7 @@ impl Studio {
             quality: Quality::High,
             base: None,
             tab: None,
+            gesture: None,
             frame: None,
         })?;
         *known = Some(text);
@@ -1079,6 +1156,126 @@ impl Studio {
     }
 }
 
+/// Undo, redo and snapshots ([`versions`], [`snapshots`]).
+impl Studio {
+    /// Undo (`back`) or redo: the text and values set to the state of the
+    /// step, byte for byte, at high quality, as a new version every tab
+    /// follows. 409 when there is no step to take.
+    fn step(&self, back: bool, tab: Option<String>) -> Result<SceneView, Refused> {
+        let mut live = self.live();
+        let (target, origin, what) = if back {
+            (live.versions.undo_to(), Origin::Undo, "undo")
+        } else {
+            (live.versions.redo_to(), Origin::Redo, "redo")
+        };
+        let target = target
+            .cloned()
+            .ok_or_else(|| Refused(StatusCode::CONFLICT, format!("nothing to {what}")))?;
+        // The shown text holds the knob values as defaults: set back, it
+        // gives the same values and the same text.
+        let change = Change::set_text(target.shown, tab, None);
+        self.apply(&mut live, change, origin)
+            .map_err(|e| Refused(StatusCode::BAD_REQUEST, format!("cannot {what}: {e}")))
+    }
+
+    /// A snapshot named `name` of the state shown; its image is put on the
+    /// farm at high quality. Answers every snapshot.
+    fn take_snapshot(&self, name: &str) -> Result<Vec<SnapshotView>, Refused> {
+        let bad = |e: String| Refused(StatusCode::BAD_REQUEST, e);
+        let shared = self
+            .farm
+            .get()
+            .ok_or_else(|| bad("the farm is starting".into()))?;
+        let mut live = self.live();
+        let name = live.snapshots.check_name(name).map_err(bad)?;
+        let checked = {
+            let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
+            self.read_files(&live.text, &mut files).map_err(bad)?;
+            let at = (Quality::High, live.frame_number);
+            check(&live.text, &self.name, &live.knobs, at, &files).map_err(bad)?
+        };
+        let job = self.next_job.fetch_add(1, Ordering::Relaxed);
+        let (interleave, expected) = shared.unit_layout();
+        let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
+        let units = farm_units(width, height, interleave, expected);
+        let render = Render::new(
+            job,
+            units.clone(),
+            (width, height, interleave),
+            Arc::clone(&checked.built.scene),
+        );
+        submit(shared, &checked, job, units).map_err(bad)?;
+        let snapshot = Snapshot {
+            id: 0,
+            name,
+            version: live.versions.current().number,
+            shown: live.shown.clone(),
+            frame: live.frame_number,
+            render,
+        };
+        live.snapshots.add(snapshot);
+        Ok(self.send_snapshots(&live))
+    }
+
+    /// Sends every tab the snapshots (a `snapshots` event); returns them.
+    fn send_snapshots(&self, live: &Live) -> Vec<SnapshotView> {
+        let views = live.snapshots.views();
+        self.send(Event {
+            name: "snapshots",
+            data: serde_json::json!({ "snapshots": views }).to_string(),
+        });
+        views
+    }
+
+    /// Sets snapshot `id`'s text and frame back, as an edit of its own step.
+    fn restore(&self, id: u64, tab: Option<String>) -> Result<SceneView, Refused> {
+        let mut live = self.live();
+        let snapshot = live
+            .snapshots
+            .get(id)
+            .ok_or_else(|| Refused(StatusCode::NOT_FOUND, format!("no snapshot {id}")))?;
+        let change = Change::set_text(snapshot.shown.clone(), tab, Some(snapshot.frame));
+        self.change_live(&mut live, change)
+            .map_err(|e| Refused(StatusCode::BAD_REQUEST, e))
+    }
+
+    /// Snapshot `id`'s image, once rendered.
+    fn snapshot_pixels(&self, id: u64) -> Result<Arc<Vec<u8>>, Refused> {
+        let live = self.live();
+        let snapshot = live
+            .snapshots
+            .get(id)
+            .ok_or_else(|| Refused(StatusCode::NOT_FOUND, format!("no snapshot {id}")))?;
+        snapshot.render.pixels().cloned().ok_or_else(|| {
+            Refused(
+                StatusCode::CONFLICT,
+                format!("snapshot {id} (`{}`) is still rendering", snapshot.name),
+            )
+        })
+    }
+
+    /// Stores `raw` when it is a tile of a snapshot's image; returns whether
+    /// it was. The tab learns that an image is whole by a `snapshots` event.
+    fn snapshot_tile(&self, live: &mut Live, raw: &RawTile) -> bool {
+        let Some(snapshot) = live.snapshots.rendered_by(raw.job) else {
+            return false;
+        };
+        if snapshot.render.store(raw.unit, &raw.pixels) {
+            self.send_snapshots(live);
+        }
+        true
+    }
+
+    /// The farm gave job `job` up: if it rendered a snapshot, its list says why.
+    fn snapshot_gave_up(&self, job: JobId, why: &str) {
+        let mut live = self.live();
+        if let Some(snapshot) = live.snapshots.rendered_by(job) {
+            snapshot.render.fail(why.to_string());
+            self.send_snapshots(&live);
+        }
+    }
+}
+
 /// The router's state.
 #[derive(Clone)]
 struct Ctx {
@@ -1101,6 +1298,17 @@ pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
         .route("/studio/final/{number}", axum::routing::get(final_png))
         .route("/studio/events", axum::routing::get(events))
         .route("/studio/tiles", axum::routing::get(tiles))
+        .route("/studio/undo", axum::routing::post(undo))
+        .route("/studio/redo", axum::routing::post(redo))
+        .route("/studio/snapshots", axum::routing::post(take_snapshot))
+        .route(
+            "/studio/snapshots/{id}/restore",
+            axum::routing::post(restore_snapshot),
+        )
+        .route(
+            "/studio/snapshots/{id}/pixels",
+            axum::routing::get(snapshot_pixels),
+        )
         .layer(middleware::from_fn_with_state(ctx.clone(), check_token));
     Router::new()
         .route("/", axum::routing::get(page))
@@ -1192,6 +1400,92 @@ async fn post_scene(
             }
             Json(view).into_response()
         }
+        Err(refused) => refused.into_response(),
+    }
+}
+
+/// The tab an undo, a redo or a restore comes from (echoed in its `scene`
+/// event).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TabQuery {
+    #[serde(default)]
+    tab: Option<String>,
+}
+
+type TabQueryResult = Result<Query<TabQuery>, axum::extract::rejection::QueryRejection>;
+
+async fn undo(State(ctx): State<Ctx>, query: TabQueryResult) -> Response {
+    step(ctx, query, true).await
+}
+
+async fn redo(State(ctx): State<Ctx>, query: TabQueryResult) -> Response {
+    step(ctx, query, false).await
+}
+
+async fn step(ctx: Ctx, query: TabQueryResult, back: bool) -> Response {
+    let tab = match query {
+        Ok(Query(q)) => q.tab,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    let studio = Arc::clone(&ctx.studio);
+    match tokio::task::spawn_blocking(move || studio.step(back, tab)).await {
+        Ok(Ok(view)) => Json(view).into_response(),
+        Ok(Err(refused)) => refused.into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+/// `POST /studio/snapshots`'s body.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SnapshotName {
+    name: String,
+}
+
+async fn take_snapshot(
+    State(ctx): State<Ctx>,
+    body: Result<Json<SnapshotName>, axum::extract::rejection::JsonRejection>,
+) -> Response {
+    let Json(SnapshotName { name }) = match body {
+        Ok(b) => b,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    let studio = Arc::clone(&ctx.studio);
+    match tokio::task::spawn_blocking(move || studio.take_snapshot(&name)).await {
+        Ok(Ok(list)) => Json(serde_json::json!({ "snapshots": list })).into_response(),
+        Ok(Err(refused)) => refused.into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+type IdPath = Result<axum::extract::Path<u64>, axum::extract::rejection::PathRejection>;
+
+async fn restore_snapshot(State(ctx): State<Ctx>, id: IdPath, query: TabQueryResult) -> Response {
+    let (id, tab) = match (id, query) {
+        (Ok(axum::extract::Path(id)), Ok(Query(q))) => (id, q.tab),
+        (Err(e), _) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+        (_, Err(e)) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    let studio = Arc::clone(&ctx.studio);
+    match tokio::task::spawn_blocking(move || studio.restore(id, tab)).await {
+        Ok(Ok(view)) => Json(view).into_response(),
+        Ok(Err(refused)) => refused.into_response(),
+        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    }
+}
+
+async fn snapshot_pixels(State(ctx): State<Ctx>, id: IdPath) -> Response {
+    let id = match id {
+        Ok(axum::extract::Path(id)) => id,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match ctx.studio.snapshot_pixels(id) {
+        Ok(pixels) => (
+            [(header::CONTENT_TYPE, "application/octet-stream")],
+            pixels.as_slice().to_vec(),
+        )
+            .into_response(),
         Err(refused) => refused.into_response(),
     }
 }

@@ -4,6 +4,14 @@
 //! edit is merged onto the current version if it touches other values (other
 //! knobs, other numbers of the text, other lines), and refused as a conflict
 //! when it touches the same one. A stale tab never silently undoes another.
+//!
+//! The versions also hold the undo history, one for every tab: undo is an
+//! edit that sets the text and values back to the state before the last
+//! step, byte for byte, and is a new version like any edit (so every tab
+//! follows it); redo steps forward again; a new edit after an undo drops
+//! what redo held. A step is one gesture of one tab (a slider's drag, an
+//! orbit of the camera, a burst of typing: the edits that name the same tab
+//! and gesture), or one edit that names none.
 
 use std::collections::{BTreeMap, VecDeque};
 
@@ -25,6 +33,27 @@ pub struct Version {
 #[derive(Debug)]
 pub struct Versions {
     kept: VecDeque<Version>,
+    /// The states undo goes back to, the next one last (at most [`KEPT`]).
+    undo: VecDeque<Version>,
+    /// The states redo goes forward to, the next one last.
+    redo: VecDeque<Version>,
+    /// The tab and gesture of the step the last edit belongs to.
+    gesture: Option<(String, String)>,
+}
+
+/// What made a new state, for the undo history.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Origin {
+    /// An edit: it continues the last step when it names the same tab and
+    /// gesture as the edit before it, and starts a step otherwise.
+    Edit {
+        tab: Option<String>,
+        gesture: Option<String>,
+    },
+    /// Undo: the state is [`Versions::undo_to`]'s.
+    Undo,
+    /// Redo: the state is [`Versions::redo_to`]'s.
+    Redo,
 }
 
 /// An edit as a tab makes it: a new text, or knob and number values.
@@ -53,6 +82,9 @@ impl Versions {
                 shown: shown.to_string(),
                 knobs: BTreeMap::new(),
             }]),
+            undo: VecDeque::new(),
+            redo: VecDeque::new(),
+            gesture: None,
         }
     }
 
@@ -60,23 +92,85 @@ impl Versions {
         self.kept.back().expect("a version is always kept")
     }
 
-    /// Records the state after an edit: a new version when the text or the
-    /// knob values changed. Returns whether it did.
+    /// Records the state after an edit that names no gesture (a step of its
+    /// own): a new version when the text or the knob values changed. Returns
+    /// whether it did.
+    #[cfg(test)]
     pub fn record(&mut self, shown: &str, knobs: &BTreeMap<String, f64>) -> bool {
+        let origin = Origin::Edit {
+            tab: None,
+            gesture: None,
+        };
+        self.record_as(shown, knobs, origin)
+    }
+
+    /// [`Versions::record`] of a state made by `origin`, which moves the undo
+    /// history: an edit that starts a step puts the state before it on the
+    /// undo list and empties the redo list (the first build of the text as
+    /// opened, which only fills in the knob values, is no step); an undo moves the state before it
+    /// to the redo list, a redo to the undo list.
+    pub fn record_as(
+        &mut self,
+        shown: &str,
+        knobs: &BTreeMap<String, f64>,
+        origin: Origin,
+    ) -> bool {
         let now = self.current();
-        if now.shown == shown && now.knobs == *knobs {
+        let unchanged = now.shown == shown && now.knobs == *knobs;
+        let before = now.clone();
+        match origin {
+            Origin::Edit { tab, gesture } => {
+                if unchanged {
+                    return false;
+                }
+                let step = tab.zip(gesture);
+                let first_build = before.number == 0 && before.shown == shown;
+                if (step.is_none() || step != self.gesture) && !first_build {
+                    push_bounded(&mut self.undo, before.clone());
+                }
+                self.gesture = step;
+                self.redo.clear();
+            }
+            Origin::Undo | Origin::Redo => {
+                let (from, to) = if origin == Origin::Undo {
+                    (&mut self.undo, &mut self.redo)
+                } else {
+                    (&mut self.redo, &mut self.undo)
+                };
+                from.pop_back();
+                if !unchanged {
+                    push_bounded(to, before.clone());
+                }
+                self.gesture = None;
+            }
+        }
+        if unchanged {
             return false;
         }
-        let number = now.number + 1;
-        self.kept.push_back(Version {
-            number,
-            shown: shown.to_string(),
-            knobs: knobs.clone(),
-        });
-        while self.kept.len() > KEPT {
-            self.kept.pop_front();
-        }
+        push_bounded(
+            &mut self.kept,
+            Version {
+                number: before.number + 1,
+                shown: shown.to_string(),
+                knobs: knobs.clone(),
+            },
+        );
         true
+    }
+
+    /// The state an undo sets back, if any.
+    pub fn undo_to(&self) -> Option<&Version> {
+        self.undo.back()
+    }
+
+    /// The state a redo sets again, if any.
+    pub fn redo_to(&self) -> Option<&Version> {
+        self.redo.back()
+    }
+
+    /// How many steps undo and redo can take.
+    pub fn steps(&self) -> (usize, usize) {
+        (self.undo.len(), self.redo.len())
     }
 
     /// `edit`, made on version `base` (none: on the current one), as an edit
@@ -113,6 +207,14 @@ impl Versions {
                 )?,
             }),
         }
+    }
+}
+
+/// Adds `version` last, dropping the first beyond [`KEPT`].
+fn push_bounded(list: &mut VecDeque<Version>, version: Version) {
+    list.push_back(version);
+    while list.len() > KEPT {
+        list.pop_front();
     }
 }
 
@@ -296,5 +398,112 @@ mod tests {
             v.rebase(Some(1), Edit::default()),
             Err(Stale::Unknown(_))
         ));
+    }
+
+    fn edit(tab: &str, gesture: &str) -> Origin {
+        Origin::Edit {
+            tab: Some(tab.to_string()),
+            gesture: Some(gesture.to_string()),
+        }
+    }
+
+    /// Undoes once: the state it sets back, recorded as the undo.
+    fn undo(v: &mut Versions) -> String {
+        let back = v.undo_to().expect("a step to undo").clone();
+        assert!(v.record_as(&back.shown, &back.knobs, Origin::Undo));
+        back.shown
+    }
+
+    fn redo(v: &mut Versions) -> String {
+        let again = v.redo_to().expect("a step to redo").clone();
+        assert!(v.record_as(&again.shown, &again.knobs, Origin::Redo));
+        again.shown
+    }
+
+    #[test]
+    fn a_gesture_is_one_step_and_undo_gives_the_text_back_byte_for_byte() {
+        let opened = "Scene(\n    a: 1.000,  // odd spacing kept\n\tb: 2.0,\n)\n";
+        let mut v = Versions::new(opened);
+        let gains = knobs(&[("gain", 0.5)]);
+        // The first build: the text as opened is not a step of its own.
+        assert!(v.record(opened, &gains));
+        assert_eq!(v.steps(), (0, 0));
+        // A slider's drag: many edits of one gesture, one step.
+        let dragged = opened.replace("a: 1.000", "a: 1.5");
+        for a in ["1.1", "1.3", "1.5"] {
+            let text = opened.replace("a: 1.000", &format!("a: {a}"));
+            assert!(v.record_as(&text, &gains, edit("tab A", "1")));
+        }
+        // Another gesture of the same tab (a camera orbit), then a text edit
+        // of another tab.
+        let orbited = dragged.replace("b: 2.0", "b: 2.25");
+        v.record_as(&orbited, &gains, edit("tab A", "2"));
+        let typed = format!("// typed\n{orbited}");
+        v.record_as(&typed, &gains, edit("tab B", "1"));
+        assert_eq!(v.steps(), (3, 0));
+
+        assert_eq!(undo(&mut v), orbited);
+        assert_eq!(undo(&mut v), dragged);
+        assert_eq!(undo(&mut v), opened);
+        assert_eq!(v.current().shown.as_bytes(), opened.as_bytes());
+        assert_eq!(v.current().knobs, gains);
+        assert_eq!(v.steps(), (0, 3));
+        assert_eq!(v.undo_to(), None, "nothing before the text as opened");
+        // Each undo is a version of its own: every tab follows it.
+        assert_eq!(v.current().number, 9);
+
+        assert_eq!(redo(&mut v), dragged);
+        assert_eq!(redo(&mut v), orbited);
+        assert_eq!(redo(&mut v), typed);
+        assert_eq!(v.steps(), (3, 0));
+        assert_eq!(v.current().shown, typed);
+
+        // A scene without knobs: its first build makes no version, and the
+        // first edit steps back to the text as opened.
+        let mut v = Versions::new(opened);
+        assert!(!v.record(opened, &BTreeMap::new()));
+        v.record_as(&dragged, &BTreeMap::new(), edit("tab A", "1"));
+        assert_eq!(undo(&mut v), opened);
+    }
+
+    #[test]
+    fn a_new_edit_after_an_undo_drops_the_redo_list() {
+        let mut v = versions();
+        let b3 = TEXT.replace("b: 2.0", "b: 3.0");
+        v.record_as(&b3, &knobs(&[("bias", 0.3)]), edit("A", "1"));
+        v.record_as(&b3, &knobs(&[("bias", 0.4)]), edit("A", "2"));
+        undo(&mut v);
+        assert_eq!(v.steps(), (1, 1));
+        // The same gesture after an undo is a new step.
+        v.record_as(&b3, &knobs(&[("bias", 0.5)]), edit("A", "2"));
+        assert_eq!(v.steps(), (2, 0));
+        assert_eq!(v.redo_to(), None);
+        // An unchanged state moves nothing.
+        assert!(!v.record_as(&b3, &knobs(&[("bias", 0.5)]), edit("A", "3")));
+        assert_eq!(v.steps(), (2, 0));
+        // Edits that name no gesture are a step each.
+        v.record(&b3, &knobs(&[("bias", 0.6)]));
+        v.record(&b3, &knobs(&[("bias", 0.7)]));
+        assert_eq!(v.steps(), (4, 0));
+    }
+
+    #[test]
+    fn the_history_keeps_the_last_kept_steps() {
+        let mut v = versions();
+        for i in 0..KEPT as u64 + 10 {
+            v.record(TEXT, &knobs(&[("bias", i as f64)]));
+        }
+        assert_eq!(v.steps(), (KEPT, 0));
+        let mut last = None;
+        while v.undo_to().is_some() {
+            undo(&mut v);
+            last = Some(v.current().knobs.clone());
+        }
+        assert_eq!(
+            last,
+            Some(knobs(&[("bias", 9.0)])),
+            "the oldest steps go first"
+        );
+        assert_eq!(v.steps(), (0, KEPT));
     }
 }
