@@ -169,6 +169,7 @@ fn a_thousand_workers_on_one_coordinator() {
                     shares_process: true,
                     tags: Vec::new(),
                     asset_cache_bytes: 1 << 20,
+                    idle_exit: None,
                 };
                 runtime.spawn(worker::run(config, stopped.clone()))
             })
