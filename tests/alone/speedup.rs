@@ -18,22 +18,11 @@
 //! child this process has waited for, so no other test may run children
 //! beside it.
 
+use crate::children_cpu;
 use crate::support::*;
 
 /// Rounds of a serial and a farm render.
 const ROUNDS: usize = 11;
-
-/// CPU seconds (user + system) of all waited-for children so far.
-fn children_cpu() -> f64 {
-    // SAFETY: getrusage writes only into the zeroed struct we pass.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    assert_eq!(
-        unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) },
-        0
-    );
-    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
-    secs(usage.ru_utime) + secs(usage.ru_stime)
-}
 
 /// The CPU seconds of `--in-process --threads 1`, rendered twice at once and
 /// averaged: the farm's two workers share the machine's cores, caches and

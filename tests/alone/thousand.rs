@@ -18,6 +18,7 @@ use std::os::unix::process::CommandExt as _;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+use crate::children_cpu;
 use crate::support::*;
 
 /// Clients.
@@ -26,18 +27,6 @@ const WORKERS: usize = 1024;
 const FRAMES: u32 = 16;
 /// The fraction of units rendered twice.
 const VERIFY: f64 = 0.1;
-
-/// CPU seconds (user + system) of all waited-for children so far.
-fn children_cpu() -> f64 {
-    // SAFETY: getrusage writes only into the zeroed struct we pass.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    assert_eq!(
-        unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) },
-        0
-    );
-    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
-    secs(usage.ru_utime) + secs(usage.ru_stime)
-}
 
 /// Pins the calling thread (and the threads it starts) to `cpu`.
 fn pin(cpu: usize) -> std::io::Result<()> {

@@ -304,14 +304,19 @@ fn highest_final(prefix: &Path) -> u32 {
         return 0;
     };
     let stem = format!("{}.", stem.to_string_lossy());
+    u32::try_from(highest_numbered(dir, &stem, ".png")).unwrap_or(u32::MAX)
+}
+
+/// The highest N of the files `PREFIX N SUFFIX` in `dir` (0: none).
+fn highest_numbered(dir: &Path, prefix: &str, suffix: &str) -> u64 {
     std::fs::read_dir(dir)
         .into_iter()
         .flatten()
         .flatten()
         .filter_map(|entry| {
             let file = entry.file_name();
-            let number = file.to_str()?.strip_prefix(&stem)?.strip_suffix(".png")?;
-            number.parse::<u32>().ok()
+            let number = file.to_str()?.strip_prefix(prefix)?.strip_suffix(suffix)?;
+            number.parse::<u64>().ok()
         })
         .max()
         .unwrap_or(0)
@@ -336,17 +341,7 @@ fn next_backup(path: &Path) -> PathBuf {
         _ => Path::new("."),
     };
     let prefix = format!("{name}.~");
-    let highest = std::fs::read_dir(dir)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter_map(|entry| {
-            let file = entry.file_name();
-            let number = file.to_str()?.strip_prefix(&prefix)?.strip_suffix('~')?;
-            number.parse::<u64>().ok()
-        })
-        .max()
-        .unwrap_or(0);
+    let highest = highest_numbered(dir, &prefix, "~");
     dir.join(format!("{prefix}{}~", highest + 1))
 }
 
