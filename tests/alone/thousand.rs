@@ -259,7 +259,7 @@ fn a_thousand_workers_on_one_coordinator() {
         .find_map(|l| {
             l.split("; ")
                 .nth(1)?
-                .strip_suffix(" units rendered twice and compared")?
+                .strip_suffix(" units verified by a second rendering")?
                 .parse()
                 .ok()
         })

@@ -426,7 +426,7 @@ fn log_session(session: &farm::SessionReport, frames: usize) {
     }
     let n = session.workers.len();
     tracing::info!(
-        "{} frame{} on {n} worker{} in {:.3} s; {} unit{} rendered twice and compared",
+        "{} frame{} on {n} worker{} in {:.3} s; {} unit{} verified by a second rendering",
         frames,
         if frames == 1 { "" } else { "s" },
         if n == 1 { "" } else { "s" },
