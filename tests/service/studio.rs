@@ -983,15 +983,21 @@ fn srgb_decode(v: f64) -> f64 {
 
 /// A studio on a copy of `scenes/fur.ron` at `size` × `size` in a scratch
 /// folder named `name`, once serving: the folder, the scene's text, the
-/// studio and its URL.
-fn fur_studio(name: &str, size: u32) -> (std::path::PathBuf, String, Running, String) {
+/// studio, its port and its URL.
+fn fur_studio(name: &str, size: u32) -> (std::path::PathBuf, String, Running, u16, String) {
     let dir = scratch(name);
     let scene = small_copy(&dir, "scenes/fur.ron", size);
     let original = std::fs::read_to_string(&scene).unwrap();
     let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
     studio.wait_for("serving on", 30);
-    let url = format!("http://127.0.0.1:{}", studio.port());
-    (dir, original, studio, url)
+    (
+        dir,
+        original,
+        studio,
+        port,
+        format!("http://127.0.0.1:{port}"),
+    )
 }
 
 /// Exposure is the display's: +1 stop shows each pixel's sRGB byte doubled
@@ -1002,8 +1008,7 @@ fn exposure_changes_the_display_only_and_the_histogram_follows() {
     let Some(chromium) = chromium_or_skip() else {
         return;
     };
-    let (dir, original, mut studio, url) = fur_studio("studio-exposure", 32);
-    let port = studio.port();
+    let (dir, original, mut studio, port, url) = fur_studio("studio-exposure", 32);
     let mut browser = open_page(&chromium, &dir, port);
     let before = browser.canvas();
     let histogram = |b: &mut Browser| -> Vec<f64> {
@@ -1086,8 +1091,7 @@ fn the_background_has_a_colour_picker_and_labels_carry_the_scenes_comments() {
     let Some(chromium) = chromium_or_skip() else {
         return;
     };
-    let (dir, original, mut studio, url) = fur_studio("studio-background", 24);
-    let port = studio.port();
+    let (dir, original, mut studio, port, url) = fur_studio("studio-background", 24);
     let view = || crate::support::http::get(&url, "/studio/scene").json();
     let mut browser = open_page(&chromium, &dir, port);
     let title = browser
