@@ -39,6 +39,8 @@ const studio = window.studio = {
   version: 0,         // the version of the text and values the sliders show
   textBase: 0,        // the version the text box's text was made on
   conflict: null,     // the last edit another tab's edit refused
+  exposure: 0,        // the display's exposure in stops
+  histogram: null,    // the luminance histogram last drawn
 };
 // This tab, as its edits name it: the server's `scene` events carry it back,
 // so the tab tells its own edits from other tabs'.
@@ -266,7 +268,7 @@ function draw() {
   backlog = [];
   lastDraw = performance.now();
   showStatusNow();
-  context.putImageData(shown, 0, 0);
+  present(studio.complete);
   studio.drawn = studio.complete;
   studio.framesDrawn++;
   const m = moment(studio.generation);
@@ -301,6 +303,90 @@ function schedule() {
     drawTimer = setTimeout(() => { drawTimer = null; schedule(); }, wait);
   }
 }
+
+// ---- Exposure and histogram ------------------------------------------------
+
+// Exposure is the page's own: the frame's sRGB bytes, decoded to linear
+// light, times 2^stops, encoded back (each channel through a 256-entry
+// table). The scene, the farm's pixels and Render final stay as they are.
+const exposureInput = $('exposure');
+const HISTOGRAM_BINS = 64;
+let exposureTable = null;              // byte → exposed byte; null at 0 stops
+let exposed = null;                    // ImageData drawn when exposed
+
+function srgbToLinear(v) {
+  return v <= 0.04045 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4;
+}
+
+function linearToSrgb(v) {
+  return v <= 0.0031308 ? v * 12.92 : 1.055 * v ** (1 / 2.4) - 0.055;
+}
+
+/** The table of `stops` of exposure, or null for none. */
+function exposureTableOf(stops) {
+  if (stops === 0) return null;
+  const k = 2 ** stops, table = new Uint8ClampedArray(256);
+  for (let v = 0; v < 256; v++) table[v] = Math.round(linearToSrgb(Math.min(1, srgbToLinear(v / 255) * k)) * 255);
+  return table;
+}
+
+/** Bytes `from`..`to` of the RGBA `pixels` written exposed into `out`
+ * (alpha as it is). */
+function expose(pixels, out, from, to) {
+  const t = exposureTable;
+  for (let i = from; i < to; i += 4) {
+    out[i] = t[pixels[i]]; out[i + 1] = t[pixels[i + 1]]; out[i + 2] = t[pixels[i + 2]]; out[i + 3] = pixels[i + 3];
+  }
+}
+
+/** Draws the frame on the canvas through the exposure, and the histogram
+ * of what it shows when `histogram`. */
+function present(histogram) {
+  let out = shown;
+  if (exposureTable) {
+    if (!exposed || exposed.width !== shown.width || exposed.height !== shown.height) {
+      exposed = new ImageData(shown.width, shown.height);
+    }
+    expose(shown.data, exposed.data, 0, shown.data.length);
+    out = exposed;
+  }
+  context.putImageData(out, 0, 0);
+  if (histogram) drawHistogram(out.data);
+}
+
+/** The luminance of `pixels` (linear Rec. 709 weights, binned by its sRGB
+ * code) in HISTOGRAM_BINS bins, drawn as bars whose heights are the square
+ * roots of the counts, the fullest bin full height (so a large flat
+ * background leaves the object's bins visible). */
+function drawHistogram(pixels) {
+  const bins = new Uint32Array(HISTOGRAM_BINS);
+  const linear = new Float64Array(256);
+  for (let v = 0; v < 256; v++) linear[v] = srgbToLinear(v / 255);
+  for (let i = 0; i < pixels.length; i += 4) {
+    const y = 0.2126 * linear[pixels[i]] + 0.7152 * linear[pixels[i + 1]] + 0.0722 * linear[pixels[i + 2]];
+    bins[Math.min(HISTOGRAM_BINS - 1, Math.floor(linearToSrgb(y) * HISTOGRAM_BINS))]++;
+  }
+  const canvas = $('histogram'), g = canvas.getContext('2d');
+  const most = Math.max(1, ...bins), w = canvas.width / HISTOGRAM_BINS, h = canvas.height;
+  g.clearRect(0, 0, canvas.width, h);
+  g.fillStyle = '#d9a35b';
+  bins.forEach((n, b) => {
+    const bar = n ? Math.max(1, Math.round(Math.sqrt(n / most) * h)) : 0;
+    g.fillRect(b * w, h - bar, w, bar);
+  });
+  studio.histogram = Array.from(bins);
+}
+
+exposureInput.addEventListener('input', () => {
+  const stops = Number(exposureInput.value);
+  $('exposure-shown').textContent = `${stops > 0 ? '+' : ''}${format(stops)}`;
+  exposureTable = exposureTableOf(stops);
+  studio.exposure = stops;
+  if (shown && studio.framesDrawn) {
+    present(true);
+    drawCompare();
+  }
+});
 
 // ---- Which worker rendered which set ---------------------------------------
 
@@ -481,7 +567,7 @@ function setSlider(input, value) {
 }
 
 const GROUPS = { march: 'March', object: 'Object', modulation: 'Modulation', distortion: 'Distortion',
-  camera: 'Camera', lights: 'Lights', shading: 'Shading' };
+  camera: 'Camera', lights: 'Lights', shading: 'Shading', background: 'Background' };
 
 /** Readable labels: `camera.eye[1]` → `eye y`; `modulation[0].Fur.frequency`
  * → `Fur frequency` (the second modulation: `#2 Fur frequency`);
@@ -495,10 +581,52 @@ function paramLabel(id, group) {
   const component = /\[(\d)\]$/.exec(rest);
   if (component) {
     const key = rest.slice(0, component.index).split('.').pop();
-    const names = /colour|ambient/.test(key) ? 'rgb' : 'xyz';
+    const names = /colour|ambient/i.test(key) ? 'rgb' : 'xyz';
     rest = rest.slice(0, component.index) + ' ' + (names[Number(component[1])] ?? component[1]);
   }
   return rest.replace(/\[(\d+)\]/g, ' $1').replace(/[._]/g, ' ').replace(/\s+/g, ' ').trim() || group;
+}
+
+// ---- Colours: a picker for each colour's three sliders ------------------------
+
+/** Whether `id` is the last component (`[2]`) of a colour whose three
+ * components are sliders: `background.Colour[2]`, `lights.ambient[2]`. */
+function colourTriple(id) {
+  const m = /^(.*\.(?:\w*colour\w*|ambient)(?:\[\d+\])?)\[2\]$/i.exec(id);
+  return Boolean(m) && [0, 1].every((k) => document.getElementById(`param-${m[1]}[${k}]`));
+}
+
+const hex2 = (v) => Math.round(Math.min(1, Math.max(0, linearToSrgb(v))) * 255).toString(16).padStart(2, '0');
+
+/** A colour picker for the linear colour at `base` (its components
+ * `base[0..2]`): a pick writes the three values in one edit. */
+function colourPicker(box, base, group) {
+  const row = document.createElement('div');
+  row.className = 'knob';
+  const id = 'pick-' + base;
+  const name = paramLabel(base, group);
+  row.innerHTML = `<label for="${escape(id)}">${escape(/colour/i.test(name) ? name : name + ' colour')}</label>` +
+    `<input type="color" id="${escape(id)}">`;
+  box.appendChild(row);
+  const input = row.querySelector('input');
+  input.addEventListener('input', () => {
+    const values = {};
+    const sliders = [0, 1, 2].map((k) => document.getElementById(`param-${base}[${k}]`));
+    sliders.forEach((s, k) => {
+      const code = parseInt(input.value.slice(1 + 2 * k, 3 + 2 * k), 16);
+      values[`${base}[${k}]`] = Number(srgbToLinear(code / 255).toPrecision(6));
+      s.value = values[`${base}[${k}]`];
+    });
+    paramMoved(values, null);
+    sliders.forEach((s) => setSlider(s, Number(s.value)));
+  });
+}
+
+/** Sets the picker of the colour at `base` to its sliders' values. */
+function showPickedColour(base) {
+  const picker = document.getElementById('pick-' + base);
+  if (!picker || held(picker)) return;
+  picker.value = '#' + [0, 1, 2].map((k) => hex2(Number(document.getElementById(`param-${base}[${k}]`).value))).join('');
 }
 
 function curveLabel(id) {
@@ -568,6 +696,8 @@ function showScene(view, { text, sliders }) {
       const input = slider(box, 'param-' + p.id, paramLabel(p.id, p.group), p.min, p.max, p.step,
         (i) => paramMoved({ [p.id]: Number(Number(i.value).toPrecision(6)) }, i));
       input.dataset.param = p.id;
+      if (p.comment) input.previousElementSibling.title = p.comment;
+      if (colourTriple(p.id)) colourPicker(box, p.id.slice(0, -3), p.group);
     }
   }
   for (const p of view.params) {
@@ -577,6 +707,7 @@ function showScene(view, { text, sliders }) {
     if (held(input)) continue;
     setSlider(input, p.value);
     if (p.id in paramValues) paramValues[p.id] = p.value;
+    if (colourTriple(p.id)) showPickedColour(p.id.slice(0, -3));
   }
   if (!dragging) showCurves(view.curves);
   else {
@@ -1315,7 +1446,8 @@ function drawCompare() {
     ? context.getImageData(0, 0, width, height).data : null;
   for (let y = 0; y < height; y++) {
     const row = y * width * 4, cut = row + split * 4, end = row + width * 4;
-    out.data.set(pixels.subarray(row, cut), row);
+    if (exposureTable) expose(pixels, out.data, row, cut);
+    else out.data.set(pixels.subarray(row, cut), row);
     if (live) out.data.set(live.subarray(cut, end), cut);
   }
   compareContext.putImageData(out, 0, 0);

@@ -964,6 +964,226 @@ fn the_frame_slider_shows_any_frame_and_play_steps_them() {
     let _ = studio.child.wait();
 }
 
+/// The sRGB code of linear `v` in [0, 1], and back (IEC 61966-2-1).
+fn srgb_encode(v: f64) -> f64 {
+    if v <= 0.0031308 {
+        v * 12.92
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+fn srgb_decode(v: f64) -> f64 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// A studio on a copy of `scenes/fur.ron` at `size` × `size` in a scratch
+/// folder named `name`, once serving: the folder, the scene's text, the
+/// studio, its port and its URL.
+fn fur_studio(name: &str, size: u32) -> (std::path::PathBuf, String, Running, u16, String) {
+    let dir = scratch(name);
+    let scene = small_copy(&dir, "scenes/fur.ron", size);
+    let original = std::fs::read_to_string(&scene).unwrap();
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    (
+        dir,
+        original,
+        studio,
+        port,
+        format!("http://127.0.0.1:{port}"),
+    )
+}
+
+/// Exposure is the display's: +1 stop shows each pixel's sRGB byte doubled
+/// in linear light (±1), the scene and its frame stay as they are, and the
+/// histogram of the image shown is drawn and moves up with the exposure.
+#[test]
+fn exposure_changes_the_display_only_and_the_histogram_follows() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let (dir, original, mut studio, port, url) = fur_studio("studio-exposure", 32);
+    let mut browser = open_page(&chromium, &dir, port);
+    let before = browser.canvas();
+    let histogram = |b: &mut Browser| -> Vec<f64> {
+        let bins = b.eval("studio.histogram");
+        let bins: Vec<f64> = bins
+            .as_array()
+            .expect("a histogram")
+            .iter()
+            .map(|n| n.as_f64().unwrap())
+            .collect();
+        assert_eq!(bins.len(), 64, "64 bins");
+        assert_eq!(bins.iter().sum::<f64>(), 32.0 * 32.0, "every pixel counted");
+        bins
+    };
+    let mean = |bins: &[f64]| {
+        bins.iter()
+            .enumerate()
+            .map(|(i, n)| i as f64 * n)
+            .sum::<f64>()
+            / bins.iter().sum::<f64>()
+    };
+    let unexposed = mean(&histogram(&mut browser));
+    let set_exposure = |b: &mut Browser, stops: i32| {
+        b.eval(&format!(
+            "(() => {{ const e = document.getElementById('exposure'); \
+             e.value = '{stops}'; e.dispatchEvent(new Event('input')); }})()"
+        ));
+        b.wait_until(&format!("studio.exposure === {stops}"), 10);
+    };
+    let generation = browser.eval("studio.generation");
+    set_exposure(&mut browser, 1);
+    let after = browser.canvas();
+    assert_eq!(after.len(), before.len());
+    let mut changed = 0;
+    for (i, (&was, &now)) in before.iter().zip(&after).enumerate() {
+        let want = if i % 4 == 3 {
+            f64::from(was)
+        } else {
+            (srgb_encode((srgb_decode(f64::from(was) / 255.0) * 2.0).min(1.0)) * 255.0).round()
+        };
+        assert!(
+            (f64::from(now) - want).abs() <= 1.0,
+            "byte {i}: {was} exposed +1 shows {now}, not {want}"
+        );
+        changed += usize::from(now != was);
+    }
+    assert!(
+        changed > 32 * 32,
+        "the image is brighter: {changed} bytes changed"
+    );
+    let exposed = mean(&histogram(&mut browser));
+    assert!(
+        exposed > unexposed,
+        "the histogram moves up: {unexposed} → {exposed}"
+    );
+    let bars = browser.canvas_of("histogram");
+    assert!(
+        bars.chunks(4).any(|p| p[3] > 0),
+        "the histogram's bars are drawn on its empty canvas"
+    );
+    let shot = browser.call("Page.captureScreenshot", json!({ "format": "png" }));
+    write_screenshot(&shot, &dir.join("exposure.png"));
+    // Display only: no new frame, the scene's text as it was.
+    assert_eq!(browser.eval("studio.generation"), generation);
+    let view = crate::support::http::get(&url, "/studio/scene").json();
+    assert_eq!(view["text"].as_str().unwrap(), original);
+    // Back to 0 stops: the frame's own bytes.
+    set_exposure(&mut browser, 0);
+    assert_eq!(browser.canvas(), before);
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
+/// The parameters are labelled in file order, a label's tooltip is the
+/// scene's comment above it, and the background's colour has a picker that
+/// writes its three numbers in one edit (one undo step) and shows in the image.
+#[test]
+fn the_background_has_a_colour_picker_and_labels_carry_the_scenes_comments() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let (dir, original, mut studio, port, url) = fur_studio("studio-background", 24);
+    let view = || crate::support::http::get(&url, "/studio/scene").json();
+    let mut browser = open_page(&chromium, &dir, port);
+    let title = browser
+        .eval("document.querySelector('label[for=\"param-object.Torus.minor_radius\"]').title");
+    assert_eq!(
+        title,
+        json!("Inner (D = 1) radius r - s/2 = 0.35, outer (D = 0) radius r + s/2 = 0.60."),
+        "the comment above the torus"
+    );
+    let order = browser.eval(
+        "[...document.querySelectorAll('#params input[type=range]')].map((i) => i.dataset.param)",
+    );
+    let order: Vec<&str> = order
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    let at = |id: &str| {
+        order
+            .iter()
+            .position(|p| *p == id)
+            .unwrap_or_else(|| panic!("no {id} in {order:?}"))
+    };
+    let file_order = [
+        "camera.eye[0]",
+        "background.Colour[0]",
+        "background.Colour[2]",
+        "lights.ambient[0]",
+        "march.opacity",
+        "object.Torus.minor_radius",
+        "modulation[0].Fur.gain",
+    ];
+    assert!(
+        file_order.windows(2).all(|w| at(w[0]) < at(w[1])),
+        "labels in file order: {order:?}"
+    );
+    assert_eq!(
+        browser.eval("document.getElementById('pick-background.Colour').value"),
+        json!("#272730"),
+        "the picker shows Colour(0.02, 0.02, 0.03)"
+    );
+    let generation = browser.eval("studio.generation");
+    browser.eval(
+        "(() => { const p = document.getElementById('pick-background.Colour'); \
+         p.dispatchEvent(new PointerEvent('pointerdown', { bubbles: true })); \
+         p.value = '#336699'; p.dispatchEvent(new Event('input')); \
+         p.dispatchEvent(new PointerEvent('pointerup', { bubbles: true })); })()",
+    );
+    until(60, "the picked colour reaches the server", || {
+        view()["text"].as_str().unwrap() != original
+    });
+    browser.wait_until(
+        &format!("studio.generation > {generation} && {COMPLETE_HIGH}"),
+        120,
+    );
+    let text = view()["text"].as_str().unwrap().to_string();
+    let line = text
+        .lines()
+        .find(|l| l.contains("background: Colour("))
+        .expect("the background's line");
+    let values: Vec<f64> = line
+        .split(['(', ')'])
+        .nth(1)
+        .unwrap()
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    for (got, code) in values.iter().zip([0x33, 0x66, 0x99]) {
+        let want = srgb_decode(f64::from(code) / 255.0);
+        assert!((got - want).abs() < 1e-5, "{line}: {got} for #{code:02x}");
+    }
+    assert_eq!(
+        text.replace(line, "    background: Colour(0.02, 0.02, 0.03),"),
+        original,
+        "only the background's numbers change"
+    );
+    assert_eq!(view()["undo"], 1, "one pick, one undo step");
+    // The image's corner is the background: the picked colour.
+    let corner = &browser.canvas()[..3];
+    for (got, want) in corner.iter().zip([0x33u8, 0x66, 0x99]) {
+        assert!(got.abs_diff(want) <= 1, "corner {corner:?} shows #336699");
+    }
+    browser.eval("document.getElementById('undo').click()");
+    until(30, "the undo reaches the server", || {
+        view()["text"].as_str().unwrap() == original
+    });
+    drop(browser);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// A scene on a mesh opens in the studio: the studio reads the mesh beside
 /// the scene file and sends it to its workers, and the page shows the
 /// in-process render.

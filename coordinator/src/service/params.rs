@@ -26,12 +26,16 @@ pub struct Number {
     pub integer: bool,
     /// Its bytes in the text.
     pub span: std::ops::Range<usize>,
+    /// The scene's own words on it: see [`comment_of`].
+    pub comment: String,
 }
 
 /// One open bracket while scanning.
 struct Level {
     /// The path up to and including this bracket's own segment.
     path: String,
+    /// Where the bracket stands in the text.
+    at: usize,
     /// Position among the bracket's comma-separated items.
     index: usize,
     /// The `name:` seen for the current item.
@@ -95,7 +99,7 @@ fn scan(text: &str) -> NumberScan<'_> {
                 scan.ident = None;
                 continue;
             }
-            b'(' | b'[' => scan.open(),
+            b'(' | b'[' => scan.open(i),
             b')' | b']' => {
                 scan.word();
                 scan.levels.pop();
@@ -158,7 +162,7 @@ struct NumberScan<'a> {
 impl NumberScan<'_> {
     /// An opening bracket: a level whose path is the current item's, with the
     /// variant just named (`Torus(`) as one more segment.
-    fn open(&mut self) {
+    fn open(&mut self, at: usize) {
         let path = match self.levels.last() {
             None => String::new(),
             Some(level) => {
@@ -172,6 +176,7 @@ impl NumberScan<'_> {
         self.ident = None;
         self.levels.push(Level {
             path,
+            at,
             index: 0,
             key: None,
         });
@@ -218,11 +223,39 @@ impl NumberScan<'_> {
                 value,
                 integer: !plain.contains(['.', 'e', 'E']),
                 span: start..end,
+                comment: comment_of(self.text, start, &self.levels),
             });
         }
         self.ident = None;
         end
     }
+}
+
+/// The `//` comment lines directly above the line of the number at `at`, or,
+/// when there are none, above the line where its innermost enclosing bracket
+/// that has some opens (the scene's outermost bracket excluded: its comments
+/// are the file's), each line's text after `//`, joined by newlines; empty
+/// when there are none.
+fn comment_of(text: &str, at: usize, levels: &[Level]) -> String {
+    std::iter::once(at)
+        .chain(levels.iter().skip(1).rev().map(|l| l.at))
+        .map(|at| comment_above(text, at))
+        .find(|c| !c.is_empty())
+        .unwrap_or_default()
+}
+
+/// The `//` comment lines directly above the line holding byte `at`.
+fn comment_above(text: &str, at: usize) -> String {
+    let line_start = text[..at].rfind('\n').map_or(0, |i| i + 1);
+    let mut lines: Vec<&str> = text[..line_start]
+        .lines()
+        .rev()
+        .map(str::trim)
+        .take_while(|l| l.starts_with("//"))
+        .map(|l| l.trim_start_matches('/').trim())
+        .collect();
+    lines.reverse();
+    lines.join("\n")
 }
 
 /// `text` with the numbers at `values`' paths set to them (each written as the
@@ -258,9 +291,9 @@ fn literal(value: f64, integer: bool) -> String {
     }
 }
 
-/// Which of a scene's top-level fields get sliders: the modelling ones and
-/// the march (its bounds, step, opacity and threshold). The image's size and
-/// seeds are not looks; curves get handles instead.
+/// Which of a scene's top-level fields get sliders: the modelling ones, the
+/// background and the march (its bounds, step, opacity and threshold). The
+/// image's size and seeds are not looks; curves get handles instead.
 const SLIDER_FIELDS: &[&str] = &[
     "march",
     "object",
@@ -269,6 +302,7 @@ const SLIDER_FIELDS: &[&str] = &[
     "camera",
     "lights",
     "shading",
+    "background",
 ];
 
 /// A slider for one number.
@@ -282,6 +316,8 @@ pub struct Param {
     pub min: f64,
     pub max: f64,
     pub step: f64,
+    /// The scene's comment on it (the label's tooltip; empty: none).
+    pub comment: String,
 }
 
 /// A control point's coordinate on a curve.
@@ -395,6 +431,7 @@ pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<P
             min,
             max,
             step: if n.integer { 1.0 } else { step(max - min) },
+            comment: n.comment.clone(),
         });
     }
     ranges.retain(|path, _| params.iter().any(|p| &p.id == path));
@@ -494,7 +531,7 @@ fn range(path: &str, value: f64, integer: bool) -> (f64, f64) {
         "bias" | "gain" => Some((0.01, 0.99)),
         "fov_y" => Some((5.0, 150.0)),
         "ambient" | "diffuse" | "specular" | "threshold" => Some((0.0, 1.0)),
-        "colour" if component => Some((0.0, 1.0)),
+        "colour" | "Colour" | "colours" if component => Some((0.0, 1.0)),
         "direction" | "up" => Some((-1.0, 1.0)),
         "shift" => Some((-1.0, 1.0)),
         "eye" | "look_at" | "position" => Some((value - 4.0, value + 4.0)),
@@ -678,6 +715,70 @@ mod tests {
         );
         assert!(params.iter().any(|p| p.id == "shading.specular"));
         assert!(!params.iter().any(|p| p.id.contains("points")));
+    }
+
+    #[test]
+    fn a_parameter_carries_the_comment_above_its_line_or_its_block() {
+        let (params, _) = controls(FUR, &mut BTreeMap::new());
+        let comment = |id: &str| {
+            params
+                .iter()
+                .find(|p| p.id == id)
+                .unwrap_or_else(|| panic!("no {id}"))
+                .comment
+                .clone()
+        };
+        let torus = "Inner (D = 1) radius r - s/2 = 0.35, outer (D = 0) radius r + s/2 = 0.60.";
+        assert_eq!(comment("object.Torus.minor_radius"), torus);
+        // No comment above the camera: the file's own, above `Scene(`, is not its.
+        assert_eq!(comment("camera.eye[1]"), "");
+        let text = "// the file\nScene(\n    lights: (\n        // warm key light\n        \
+                    // from the left\n        sources: [Point(position: (1.0, 2.0, 3.0))],\n    ),\n\
+                    \n    // a gap breaks it\n\n    march: (\n        opacity: 4.0,\n        \
+                    /* a block comment is not a label's */\n        threshold: 0.9,\n    ),\n)";
+        let (params, _) = controls(text, &mut BTreeMap::new());
+        let comments: Vec<(&str, &str)> = params
+            .iter()
+            .map(|p| (p.id.as_str(), p.comment.as_str()))
+            .collect();
+        let light = "warm key light\nfrom the left";
+        assert_eq!(
+            comments,
+            [
+                ("lights.sources[0].Point.position[0]", light),
+                ("lights.sources[0].Point.position[1]", light),
+                ("lights.sources[0].Point.position[2]", light),
+                ("march.opacity", ""),
+                ("march.threshold", ""),
+            ],
+            "in file order"
+        );
+    }
+
+    #[test]
+    fn the_background_colour_is_three_sliders_in_zero_to_one() {
+        let (params, _) = controls(FUR, &mut BTreeMap::new());
+        let background: Vec<(&str, f64, f64, f64)> = params
+            .iter()
+            .filter(|p| p.group == "background")
+            .map(|p| (p.id.as_str(), p.value, p.min, p.max))
+            .collect();
+        assert_eq!(
+            background,
+            [
+                ("background.Colour[0]", 0.02, 0.0, 1.0),
+                ("background.Colour[1]", 0.02, 0.0, 1.0),
+                ("background.Colour[2]", 0.03, 0.0, 1.0),
+            ]
+        );
+        let checker = "Scene(background: Checker(colours: ((0.9, 0.9, 0.85), (0.15, 0.15, 0.2)), squares: 10))";
+        let (params, _) = controls(checker, &mut BTreeMap::new());
+        let second = params
+            .iter()
+            .find(|p| p.id == "background.Checker.colours[1][2]")
+            .expect("the checker's second colour");
+        assert_eq!((second.value, second.min, second.max), (0.2, 0.0, 1.0));
+        assert!(params.iter().any(|p| p.id == "background.Checker.squares"));
     }
 
     #[test]
