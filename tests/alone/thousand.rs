@@ -147,18 +147,10 @@ fn a_thousand_workers_on_one_coordinator() {
         let tasks: Vec<_> = (0..WORKERS)
             .map(|i| {
                 let config = worker::WorkerConfig {
-                    coordinator: url.clone(),
-                    threads: 1,
-                    token: None,
-                    name: format!("t{i:04}"),
-                    ca: None,
                     exit_when_done: true,
                     lease: Duration::from_secs(30),
-                    fault: None,
-                    shares_process: true,
-                    tags: Vec::new(),
                     asset_cache_bytes: 1 << 20,
-                    idle_exit: None,
+                    ..worker_config(&url, &format!("t{i:04}"))
                 };
                 runtime.spawn(worker::run(config, stopped.clone()))
             })

@@ -399,6 +399,17 @@ pub fn in_process_worker(
         .unwrap();
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let config = worker::WorkerConfig {
+        fault,
+        ..worker_config(url, name)
+    };
+    let task = runtime.spawn(worker::run(config, stopped));
+    (runtime, stop, task)
+}
+
+/// The configuration of a worker that runs in this process (`worker::run`):
+/// one thread, no token, staying (not `exit_when_done`), a lease of 10 s.
+pub fn worker_config(url: &str, name: &str) -> worker::WorkerConfig {
+    worker::WorkerConfig {
         coordinator: url.to_string(),
         threads: 1,
         token: None,
@@ -406,14 +417,12 @@ pub fn in_process_worker(
         ca: None,
         exit_when_done: false,
         lease: std::time::Duration::from_secs(10),
-        fault,
+        fault: None,
         shares_process: true,
         tags: Vec::new(),
         asset_cache_bytes: worker::cache::DEFAULT_ASSET_CACHE_MB << 20,
         idle_exit: None,
-    };
-    let task = runtime.spawn(worker::run(config, stopped));
-    (runtime, stop, task)
+    }
 }
 
 /// Runs `future` to completion on a runtime of its own (one thread), as a
