@@ -626,6 +626,10 @@ pub struct BenchArgs {
     /// PNG's 8-bit colour (4 bytes a pixel).
     #[arg(long)]
     pub exr: bool,
+    /// Rounds per farm size, each an in-process render on every core then the
+    /// farm, taking turns; the row gives the medians.
+    #[arg(long, value_name = "N", default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub rounds: u32,
 }
 
 impl BenchArgs {
@@ -638,6 +642,7 @@ impl BenchArgs {
             height: self.height,
             workers: self.workers.into_iter().filter(|&n| n > 0).collect(),
             simulate: self.simulate.into_iter().filter(|&n| n > 0).collect(),
+            rounds: self.rounds as usize,
             pixel_format: if self.exr {
                 hypertexture::PixelFormat::Samples
             } else {

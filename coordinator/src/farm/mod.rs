@@ -1453,6 +1453,9 @@ async fn start_session(job: &FrameJob, config: &FarmConfig) -> Result<(Farm, usi
     hypertexture::render::interleave::check_partition(&units, width, height)
         .map_err(FarmError::Units)?;
     let unit_count = units.len();
+    let interleave = units
+        .first()
+        .map_or(config.interleave, |u| u.set.interleave);
     let mut scheduler =
         Scheduler::new(units, width, height, job.request.pixel_format, config.lease).with_frames(
             hypertexture::FrameRange::consecutive(job.frames.iter().map(|f| f.frame))
@@ -1468,7 +1471,7 @@ async fn start_session(job: &FrameJob, config: &FarmConfig) -> Result<(Farm, usi
         .insert(crate::farm::scheduler::ONE_SHOT_JOB, wire);
     tracing::info!(
         "{width} × {height}, {unit_count} units of {} pixel sets",
-        config.interleave * config.interleave
+        interleave * interleave
     );
     Ok((farm, unit_count))
 }

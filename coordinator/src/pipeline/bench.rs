@@ -26,6 +26,9 @@ pub struct BenchConfig {
     pub workers: Vec<usize>,
     /// Simulated farm sizes.
     pub simulate: Vec<usize>,
+    /// Rounds per farm size: an in-process render on every core, then the
+    /// farm, taking turns, so that a machine's drift reaches both alike.
+    pub rounds: usize,
     /// What the farm's tiles carry (8-bit sRGB for a PNG, every sample for an EXR).
     pub pixel_format: hypertexture::PixelFormat,
 }
@@ -92,7 +95,9 @@ pub fn run(config: &BenchConfig) -> Result<(), CoordinatorError> {
         farm_rows(config, &runtime, (&text, &scene), &reference)?;
     println!();
     println!(
-        "Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip). Not in the coordinator's rows: its known-answer probe, once per process before them, {:.1} ms (each worker process's own probe is in the workers' CPU).",
+        "Each farm row: {} rounds, each an in-process render on {} threads then the farm, taking turns; wall is the farm's median, and \"against in-process\" the median of the rounds' ratios (in-process wall / farm wall). Wall: the render alone (first unit handed out to last tile in, like the in-process rows); in brackets with starting and stopping the worker processes. Efficiency: speedup / min(workers, cores). Coordinator CPU: its share of all CPU used (its own and its worker processes', from start-up to shut-down), and its own CPU time per round. What a unit costs a worker beyond rendering its pixels, charged by the simulation: encoding its tile, {:.1} ns per pixel (measured on the in-process image), and its calls (below). Not charged: the time the worker's render thread did not render in all, {:.2} ms (the first unit's wait, preemption on this machine, the last tile's trip). Not in the coordinator's rows: its known-answer probe, once per process before them, {:.1} ms (each worker process's own probe is in the workers' CPU).",
+        config.rounds.max(1),
+        cores,
         encode_per_pixel * 1e9,
         render_thread_wait * 1e3,
         probe_time * 1e3,
@@ -133,17 +138,17 @@ fn in_process_rows(
     );
     println!();
     println!(
-        "| configuration | wall (s) | speedup | efficiency | coordinator CPU | tile bytes | imbalance (max/mean unit cost per pixel) | exact |"
+        "| configuration | wall (s) | speedup | efficiency | against in-process, {cores} threads | coordinator CPU | tile bytes | imbalance (max/mean unit cost per pixel) | exact |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|---|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---|");
 
     let (serial_film, serial) = crate::pipeline::run::render_in_process(scene, 0, 1, false)?;
     let serial = serial.as_secs_f64();
-    println!("| in-process, 1 thread | {serial:.3} | 1.00 | 100% | – | – | – | reference |");
+    println!("| in-process, 1 thread | {serial:.3} | 1.00 | 100% | – | – | – | – | reference |");
     let (film, all) = crate::pipeline::run::render_in_process(scene, 0, cores, false)?;
     let all = all.as_secs_f64();
     println!(
-        "| in-process, {cores} threads | {all:.3} | {:.2} | {:.0}% | – | – | – | {} |",
+        "| in-process, {cores} threads | {all:.3} | {:.2} | {:.0}% | 1 | – | – | – | {} |",
         serial / all,
         100.0 * serial / all / cores as f64,
         if same(&film, &serial_film) {
@@ -157,21 +162,37 @@ fn in_process_rows(
 
 /// Seconds a worker spends encoding a pixel of its tile (on its render
 /// thread, counted in its unit's cost; in-process, the image is encoded
-/// after the render): the fastest of three encodings of `film`.
+/// after the render): the fastest of three encodings of `film` in tiles of
+/// at most a unit's pixels, as a worker encodes them.
 fn encode_cost(format: hypertexture::PixelFormat, film: &Film) -> f64 {
+    let tile = hypertexture::render::interleave::DEFAULT_MAX_UNIT_PIXELS as usize;
     (0..3)
         .map(|_| {
             let t = Instant::now();
-            std::hint::black_box(format.encode(film.pixels()));
+            for chunk in film.pixels().chunks(tile) {
+                std::hint::black_box(format.encode(chunk));
+            }
             t.elapsed().as_secs_f64()
         })
         .fold(f64::INFINITY, f64::min)
         / film.pixels().len().max(1) as f64
 }
 
-/// Prints a row per farm size of `config.workers`. Returns the (render µs,
-/// calls µs) of each tile of a 1-worker farm but its first, and how long
-/// that farm's render thread did not render.
+/// The median of `values` (0 when empty).
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => 0.0,
+        n if n % 2 == 1 => values[n / 2],
+        n => (values[n / 2 - 1] + values[n / 2]) / 2.0,
+    }
+}
+
+/// Prints a row per farm size of `config.workers`: `config.rounds` rounds of
+/// an in-process render on every core then the farm, taking turns; the row
+/// gives the farm's median wall and the median of the rounds' ratios.
+/// Returns the (render µs, calls µs) of each tile of the 1-worker farms but
+/// their first, and how long those farms' render thread did not render.
 fn farm_rows(
     config: &BenchConfig,
     runtime: &tokio::runtime::Runtime,
@@ -180,48 +201,66 @@ fn farm_rows(
 ) -> Result<(Vec<(f64, u64)>, f64), CoordinatorError> {
     let (serial, cores) = (reference.seconds, reference.cores);
     let mut call_points: Vec<(f64, u64)> = Vec::new();
-    let mut render_thread_wait = 0.0f64;
+    let mut render_thread_wait = f64::INFINITY;
     for &n in &config.workers {
-        let (self0, children0) = (
-            cpu_seconds(libc::RUSAGE_SELF),
-            cpu_seconds(libc::RUSAGE_CHILDREN),
-        );
-        let start = Instant::now();
-        let report = farm_render(runtime, text, &config.scene, scene, config.pixel_format, n)?;
-        let total = start.elapsed().as_secs_f64();
-        // As for the in-process rows: the render itself, first unit out to last tile in.
-        let wall = report.render_time.as_secs_f64();
-        let own = cpu_seconds(libc::RUSAGE_SELF) - self0;
-        let workers = cpu_seconds(libc::RUSAGE_CHILDREN) - children0;
-        let costs: Vec<f64> = report.unit_costs.iter().map(|&c| c as f64).collect();
-        if n == 1 {
-            call_points.extend(unit_call_points(&report));
-            // For the record: how long its render thread did not render
-            // (waiting for the first unit, preempted by the coordinator and
-            // its own calls on this machine, the last tile's trip).
-            let rendering: f64 = costs.iter().sum::<f64>() / 1e6;
-            render_thread_wait = (report.render_time.as_secs_f64() - rendering).max(0.0);
-        }
-        let speedup = serial / wall;
-        println!(
-            "| {n} worker process{} (loopback gRPC) | {wall:.3} ({total:.2} with start-up) | {speedup:.2} | {:.0}% | {:.2}% ({:.0} ms) | {} | {:.2} | {} |",
-            if n == 1 { "" } else { "es" },
-            100.0 * speedup / n.min(cores) as f64,
-            100.0 * own / (own + workers).max(1e-9),
-            own * 1e3,
-            report.tile_bytes,
-            imbalance(scene, n, &costs),
-            if match &report.image {
+        let (mut walls, mut totals, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut own, mut workers, mut exact) = (0.0, 0.0, true);
+        let mut last = None;
+        for _ in 0..config.rounds.max(1) {
+            let (_, in_process) = crate::pipeline::run::render_in_process(scene, 0, cores, false)?;
+            let (self0, children0) = (
+                cpu_seconds(libc::RUSAGE_SELF),
+                cpu_seconds(libc::RUSAGE_CHILDREN),
+            );
+            let start = Instant::now();
+            let report = farm_render(runtime, text, &config.scene, scene, config.pixel_format, n)?;
+            totals.push(start.elapsed().as_secs_f64());
+            // As for the in-process rows: the render itself, first unit out to last tile in.
+            let wall = report.render_time.as_secs_f64();
+            walls.push(wall);
+            ratios.push(in_process.as_secs_f64() / wall);
+            own += cpu_seconds(libc::RUSAGE_SELF) - self0;
+            workers += cpu_seconds(libc::RUSAGE_CHILDREN) - children0;
+            if n == 1 {
+                call_points.extend(unit_call_points(&report));
+                // For the record: how long its render thread did not render
+                // (waiting for the first unit, preempted by the coordinator and
+                // its own calls on this machine, the last tile's trip).
+                let rendering = report.unit_costs.iter().map(|&c| c as f64).sum::<f64>() / 1e6;
+                render_thread_wait = render_thread_wait.min((wall - rendering).max(0.0));
+            }
+            exact &= match &report.image {
                 FrameImage::Film(film) => same(film, reference.film),
                 image => image.srgb8() == reference.film.to_srgb8(),
-            } {
-                "yes"
-            } else {
-                "NO"
-            }
+            };
+            last = Some(report);
+        }
+        let Some(report) = last else { continue };
+        let costs: Vec<f64> = report.unit_costs.iter().map(|&c| c as f64).collect();
+        let rounds = walls.len() as f64;
+        let (wall, total) = (median(&mut walls), median(&mut totals));
+        let speedup = serial / wall;
+        println!(
+            "| {n} worker process{} (loopback gRPC) | {wall:.3} ({total:.2} with start-up) | {speedup:.2} | {:.0}% | {:.3} | {:.2}% ({:.0} ms) | {} | {:.2} | {} |",
+            if n == 1 { "" } else { "es" },
+            100.0 * speedup / n.min(cores) as f64,
+            median(&mut ratios),
+            100.0 * own / (own + workers).max(1e-9),
+            own * 1e3 / rounds,
+            report.tile_bytes,
+            imbalance(scene, n, &costs),
+            if exact { "yes" } else { "NO" }
         );
     }
-    Ok((call_points, render_thread_wait))
+    // No 1-worker farm measured: nothing to report.
+    Ok((
+        call_points,
+        if render_thread_wait.is_finite() {
+            render_thread_wait
+        } else {
+            0.0
+        },
+    ))
 }
 
 /// The largest unit cost per pixel over the mean (0 without costs): units
@@ -267,7 +306,7 @@ fn simulated_rows(
     let calls = UnitCalls::fit(&render, &call);
     println!();
     println!(
-        "What a unit costs a worker's async thread (its calls), fitted over the tiles of 1-worker farms of both scenes but their first ({} tiles): {:.3} ms + {:.1}% of the unit's render time (mean {:.3} ms). The simulation charges it to every unit.",
+        "What a unit costs a worker's async thread (its calls), fitted over the tiles of 1-worker farms of both scenes but their first ({} tiles): {:.3} ms + {:.1}% of the unit's render time (mean {:.3} ms). The simulation charges it to every unit; \"without the calls\" is the pull schedule with units costing their pixels (rendering and encoding) alone.",
         render.len(),
         calls.fixed * 1e3,
         calls.proportional * 1e2,
@@ -279,9 +318,9 @@ fn simulated_rows(
     );
     println!();
     println!(
-        "| scene | workers | units | pull speedup | pull efficiency | blocks speedup | blocks efficiency |"
+        "| scene | workers | units | pull speedup | pull efficiency | without the calls | blocks speedup | blocks efficiency |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for (name, s) in [("fur", scene), ("unbalanced (corner)", &unbalanced)] {
         let costs: Vec<f64> = pixel_costs(s)
             .into_iter()
@@ -289,11 +328,13 @@ fn simulated_rows(
             .collect();
         for &w in &config.simulate {
             let sim = simulate(&costs, s.width(), s.height(), w, calls);
+            let free = simulate(&costs, s.width(), s.height(), w, UnitCalls::default());
             println!(
-                "| {name} | {w} | {} | {:.1} | {:.1}% | {:.1} | {:.1}% |",
+                "| {name} | {w} | {} | {:.1} | {:.1}% | {:.1}% | {:.1} | {:.1}% |",
                 sim.units,
                 sim.pull_speedup,
                 100.0 * sim.pull_speedup / w as f64,
+                100.0 * free.pull_speedup / w as f64,
                 sim.blocks_speedup,
                 100.0 * sim.blocks_speedup / w as f64
             );

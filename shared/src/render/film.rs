@@ -137,8 +137,10 @@ pub fn srgb_byte(c: f32) -> u8 {
 const SRGB_BUCKETS: usize = 4096;
 
 struct SrgbTable {
-    /// `threshold[k]`: the least `c` in [0, 1] whose code is at least `k`.
-    threshold: [f32; 256],
+    /// `threshold[k]`: the least `c` in [0, 1] whose code is at least `k`;
+    /// `threshold[256]` and `threshold[257]` are infinite, so that two steps
+    /// past code 255 stay there.
+    threshold: [f32; 258],
     /// `bucket[i]`: the code of `i / SRGB_BUCKETS`.
     bucket: [u8; SRGB_BUCKETS + 1],
 }
@@ -148,11 +150,12 @@ impl SrgbTable {
     #[inline]
     fn code(&self, c: f32) -> u8 {
         let c = c.clamp(0.0, 1.0);
-        let mut code = self.bucket[(c * SRGB_BUCKETS as f32) as usize];
-        while code < 255 && self.threshold[code as usize + 1] <= c {
-            code += 1;
-        }
-        code
+        // At most two thresholds lie inside a bucket: two steps without a
+        // branch, which random colours would mispredict.
+        let mut code = usize::from(self.bucket[(c * SRGB_BUCKETS as f32) as usize]);
+        code += usize::from(self.threshold[code + 1] <= c);
+        code += usize::from(self.threshold[code + 1] <= c);
+        code as u8
     }
 
     /// [`srgb8`] with the table in hand.
@@ -169,8 +172,9 @@ fn srgb_table() -> &'static SrgbTable {
     static TABLE: std::sync::OnceLock<Box<SrgbTable>> = std::sync::OnceLock::new();
     TABLE.get_or_init(|| {
         let code = |c: f32| to_byte(linear_to_srgb(c));
-        let mut threshold = [0.0f32; 256];
-        for (k, t) in threshold.iter_mut().enumerate().skip(1) {
+        let mut threshold = [f32::INFINITY; 258];
+        threshold[0] = 0.0;
+        for (k, t) in threshold.iter_mut().enumerate().take(256).skip(1) {
             // Non-negative floats order like their bits: bisect on the bits.
             let (mut lo, mut hi) = (0u32, 1.0f32.to_bits());
             while lo < hi {
@@ -238,8 +242,9 @@ impl PixelFormat {
             }
             PixelFormat::Srgb8 => {
                 let table = srgb_table();
-                for s in samples {
-                    bytes.extend_from_slice(&table.rgba(s));
+                bytes.resize(samples.len() * 4, 0);
+                for (out, s) in bytes.chunks_exact_mut(4).zip(samples) {
+                    out.copy_from_slice(&table.rgba(s));
                 }
             }
         }

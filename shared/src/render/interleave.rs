@@ -121,15 +121,18 @@ pub fn bayer_rank(interleave: u32, x: u32, y: u32) -> u32 {
 ///   [`DEFAULT_MAX_UNIT_PIXELS`] pixels), and the last quarter of the sets in
 ///   half-size units, so that the workers finish together.
 /// - **8 workers or more:** equal units, as large as the cap allows and at
-///   least one per worker (`pixels / workers` when that is smaller). Every
-///   unit is an interleaved sample of the whole image, so units of equal size
-///   cost the same: within ±2% for both the fur and the one-dense-corner
-///   scene at 512² (`coordinator bench`). Finer units then balance nothing;
-///   they only add calls, about 0.1 ms of a worker's CPU each on our VM. At
-///   64 workers on the 512² corner frame (3.4 ms per worker), 448 units,
-///   finer at the end, simulated 86–95% efficiency; whole sets, 96–97%
-///   (docs/benchmark-log.md, "equal units for large farms"). A straggler is covered by the scheduler's
-///   speculative duplicates.
+///   least one per worker (`pixels / workers` when that is smaller), of a
+///   finer interleave than `interleave` beyond 256 workers
+///   ([`large_farm_interleave`]). Every unit is an interleaved sample of the
+///   whole image, so units of equal size cost the same: within ±2% for both
+///   the fur and the one-dense-corner scene at 512² (`coordinator bench`).
+///   Finer units then balance nothing; they only add calls, about 0.05 ms of
+///   a worker's CPU each on our VM. At 64 workers on the 512² corner frame
+///   (3.4 ms per worker), 448 units, finer at the end, simulated 86–95%
+///   efficiency; whole sets, 96–97% (docs/benchmark-log.md, "equal units for
+///   large farms"). At 1,024 workers on the 2048² corner frame (1.7 ms per
+///   worker), two units per worker simulated 85–90% against 92–95% for one.
+///   A straggler is covered by the scheduler's speculative duplicates.
 pub fn farm_units(width: u32, height: u32, interleave: u32, workers: usize) -> Vec<WorkUnit> {
     let pixels = u64::from(width) * u64::from(height);
     let cap = u64::from(DEFAULT_MAX_UNIT_PIXELS);
@@ -141,6 +144,11 @@ pub fn farm_units(width: u32, height: u32, interleave: u32, workers: usize) -> V
         // At least one pixel: `set_units` makes it one set row.
         let equal = (pixels / workers).clamp(1, cap) as u32;
         (equal, equal)
+    };
+    let interleave = if workers < 8 {
+        interleave
+    } else {
+        large_farm_interleave(interleave, width, height, workers)
     };
     let sets = interleave * interleave;
     let tail_from = sets - sets / 4;
@@ -154,6 +162,22 @@ pub fn farm_units(width: u32, height: u32, interleave: u32, workers: usize) -> V
         units.extend(set_units(set, width, height, max));
     }
     units
+}
+
+/// The interleave of a farm of `workers` (8 or more): `interleave`, doubled
+/// while there are fewer than a set per 4 workers (up to 64, and while a set
+/// keeps 8×8 pixels). A unit then samples the image on a finer lattice, so that
+/// units of equal size cost more nearly the same where the cost is in one
+/// place: for the one-dense-corner scene at 2048² on 1,024 workers, B = 16
+/// makes the largest unit 2.5% closer to the mean than B = 8
+/// (`coordinator bench --simulate 1024`). Farms of up to 256 workers keep
+/// B = 8, and the order stays coarse to fine.
+fn large_farm_interleave(interleave: u32, width: u32, height: u32, workers: u64) -> u32 {
+    let mut b = interleave;
+    while b < 64 && u64::from(b * b) * 4 < workers && b * 2 * 8 <= width.min(height) {
+        b *= 2;
+    }
+    b
 }
 
 /// The B² sets in coarse-to-fine (Bayer) order.
@@ -266,6 +290,31 @@ pub fn check_partition(units: &[WorkUnit], width: u32, height: u32) -> Result<()
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_large_farm_samples_the_image_on_a_finer_lattice() {
+        // Up to 256 workers, the interleave asked for; beyond, doubled while
+        // there are fewer than a set per 4 workers and a set keeps 8×8 pixels.
+        let interleave_of = |w: u32, h: u32, workers: usize| {
+            let units = farm_units(w, h, 8, workers);
+            assert_eq!(check_partition(&units, w, h), Ok(()), "{w}×{h}, {workers}");
+            let b = units[0].set.interleave;
+            assert!(units.iter().all(|u| u.set.interleave == b));
+            b
+        };
+        assert_eq!(interleave_of(2048, 2048, 64), 8);
+        assert_eq!(interleave_of(2048, 2048, 256), 8);
+        assert_eq!(interleave_of(2048, 2048, 1024), 16);
+        assert_eq!(interleave_of(2048, 2048, 4096), 32);
+        assert_eq!(interleave_of(2048, 2048, 100_000), 64);
+        assert_eq!(interleave_of(256, 256, 4096), 32);
+        assert_eq!(interleave_of(100, 37, 4096), 8);
+        // Still one unit per worker, coarse to fine: the first set is the
+        // lattice through (0, 0).
+        let units = farm_units(2048, 2048, 8, 1024);
+        assert_eq!(units.len(), 1024);
+        assert_eq!(units[0].set.offset(), (0, 0));
+    }
 
     #[test]
     fn a_partition_must_cover_every_pixel_once() {
