@@ -180,6 +180,12 @@ pub struct WorkerReport {
     /// Units dropped unfinished because the coordinator took them back (their
     /// job was cancelled, or a studio frame superseded).
     pub withdrawn: u64,
+    /// From the start of [`run`] to its first unit on the render pool: the
+    /// known-answer probe, connecting, registering, fetching the scene's
+    /// files and building the scene (a mesh's distance field included).
+    pub first_unit_after: Option<std::time::Duration>,
+    /// When [`run`] started.
+    pub(crate) started: Option<std::time::Instant>,
 }
 
 /// Meshes fetched for one assignment and not kept yet: the cache takes them

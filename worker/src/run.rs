@@ -24,6 +24,7 @@ pub async fn run(
     config: WorkerConfig,
     mut stop: watch::Receiver<bool>,
 ) -> Result<WorkerReport, WorkerError> {
+    let started = std::time::Instant::now();
     let endpoint = endpoint(&config)?;
     let auth = Auth::bearer(&config)?;
     let pool = RenderPool::new(config.threads)?;
@@ -33,7 +34,10 @@ pub async fn run(
         auth,
         arithmetic_digest: arithmetic_digest(&pool, config.fault).await?,
     };
-    let mut report = WorkerReport::default();
+    let mut report = WorkerReport {
+        started: Some(started),
+        ..WorkerReport::default()
+    };
     let mut scenes = SceneCache::new(config.asset_cache_bytes);
     let mut unreachable = Unreachable::new(&config);
     let mut idle = Idle::new(config.idle_exit);

@@ -192,7 +192,14 @@ impl Session<'_> {
             },
         };
         match self.start(&assignment).await {
-            Ok(rendering) => Ok(Step::Go((assignment, rendering))),
+            Ok(rendering) => {
+                if self.report.first_unit_after.is_none() {
+                    let after = self.report.started.map(|t| t.elapsed()).unwrap_or_default();
+                    self.report.first_unit_after = Some(after);
+                    tracing::info!("first unit started {} ms after start", after.as_millis());
+                }
+                Ok(Step::Go((assignment, rendering)))
+            }
             Err((kind, reason)) => {
                 if let Err(status) =
                     report_failure(self.client, self.worker_id, &assignment, kind, &reason).await
