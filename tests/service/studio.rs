@@ -1376,7 +1376,8 @@ const SLIDER: &str = "param-modulation[0].Fur.frequency";
 /// step gives an interactive frame then a high-quality one, each drawn first
 /// coarse and then whole, and that dragging shows frames; the figures at the
 /// scene's own 512² come from
-/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test service -- --nocapture studio::latency`.
+/// `HYPERTEXTURE_LATENCY_SIZE=512 HYPERTEXTURE_LATENCY_ROUNDS=15 cargo test --release -p coordinator --test service -- --nocapture studio::latency`,
+/// and for furry Spot with `HYPERTEXTURE_LATENCY_SCENE=scenes/mesh/furry_spot.ron`.
 #[test]
 fn latency() {
     let Some(chromium) = chromium_or_skip() else {
@@ -1391,7 +1392,19 @@ fn latency() {
     };
     let size = env("HYPERTEXTURE_LATENCY_SIZE", 64);
     let rounds = env("HYPERTEXTURE_LATENCY_ROUNDS", 1).max(1);
-    let scene = small_copy(&dir, "scenes/fur.ron", size);
+    // Another scene with the same slider (a mesh scene's meshes are copied
+    // beside it): `HYPERTEXTURE_LATENCY_SCENE=scenes/mesh/furry_spot.ron`.
+    let scene_name =
+        std::env::var("HYPERTEXTURE_LATENCY_SCENE").unwrap_or_else(|_| "scenes/fur.ron".into());
+    let scene = small_copy(&dir, &scene_name, size);
+    let meshes = root().join(&scene_name).with_file_name("meshes");
+    if scene_name.contains("mesh/") && meshes.is_dir() {
+        std::fs::create_dir_all(dir.join("meshes")).unwrap();
+        for entry in std::fs::read_dir(&meshes).unwrap() {
+            let path = entry.unwrap().path();
+            std::fs::copy(&path, dir.join("meshes").join(path.file_name().unwrap())).unwrap();
+        }
+    }
     let data = dir.join("data");
     let mut studio = studio(&scene, &data, 2);
     let port = studio.port();
@@ -1500,7 +1513,7 @@ fn latency() {
     assert!(seen >= 1, "dragging shows frames: {drag:?}");
     let ratios: Vec<f64> = high.iter().zip(&one_shot).map(|(h, o)| h / o).collect();
     eprintln!(
-        "studio latency, scenes/fur.ron at {size}², 2 local workers, {rounds} rounds\n\
+        "studio latency, {scene_name} at {size}², 2 local workers, {rounds} rounds\n\
          slider step → the change answered: median {:.1} ms {answered:?}\n\
          slider step → first tile's event in the page: median {:.1} ms {arrived:?}\n\
          slider step → first (coarse) image drawn: median {:.1} ms {first:?}\n\
