@@ -999,7 +999,8 @@ function addPointAt(c, e) {
   const r = c.svg.getBoundingClientRect();
   const sx = (e.clientX - r.left) * CURVE_W / r.width;
   const sy = (e.clientY - r.top) * CURVE_H / r.height;
-  const round = (v) => Number(v.toPrecision(3));
+  // A double-click is no finer than a pixel: keys and values on a 0.01 grid.
+  const round = (v) => Math.round(v * 100) / 100;
   const x = round(Math.min(1, Math.max(0, d.x0 + (sx - PAD) / (CURVE_W - 2 * PAD) * (d.x1 - d.x0))));
   if (c.points.some((p) => p.x.value === x)) return;
   const edit = { op: 'add_point', curve: c.id, x };

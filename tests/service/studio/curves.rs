@@ -92,15 +92,23 @@ fn a_point_added_and_one_deleted_change_the_text_and_the_drawn_curve_and_undo_re
          const [clientX, clientY] = at(0.25, 0.5); \
          s.dispatchEvent(new MouseEvent('dblclick', { clientX, clientY, bubbles: true })); })()",
     );
-    let added = "alpha_map: (interpolation: Step, points: [(0.0, 0.0), (0.25, 0.5), (0.5, 1.0)]),";
+    // The pointer's position is whole pixels: the value within a hundredth.
+    let start = "alpha_map: (interpolation: Step, points: [(0.0, 0.0), (0.25, ";
     until(60, "the new point reaches the text", || {
-        text(&url).contains(added)
+        text(&url).contains(start)
     });
+    let now = text(&url);
+    let line = now.lines().find(|l| l.contains(start)).unwrap().trim();
+    let y: f64 = line[start.len()..line.find("), (0.5, 1.0)]),").expect(line)]
+        .parse()
+        .expect(line);
+    assert!((y - 0.5).abs() <= 0.02, "{line}");
+    let added = format!("{start}{y:?}), (0.5, 1.0)]),");
     assert_eq!(
-        text(&url),
+        now,
         original.replace(
             "alpha_map: (interpolation: Step, points: [(0.0, 0.0), (0.5, 1.0)]),",
-            added
+            &added
         ),
         "only the alpha map's line changes"
     );
@@ -128,10 +136,13 @@ fn a_point_added_and_one_deleted_change_the_text_and_the_drawn_curve_and_undo_re
             .collect()
     };
     let sampled = values(&view(&url));
-    assert_eq!(sampled[90], 0.5, "at 0.375");
+    assert!((sampled[90] - y).abs() < 1e-6, "at 0.375: {}", sampled[90]);
+    let page =
+        browser.eval("studio.view.curves.find((c) => c.id === 'alpha_map.points').values[90]");
     assert_eq!(
-        browser.eval("studio.view.curves.find((c) => c.id === 'alpha_map.points').values[90]"),
-        json!(0.5)
+        page.as_f64(),
+        Some(sampled[90]),
+        "the page has the renderer's values"
     );
     // The editor in use: the curves, the grid and the distortion's controls.
     let rect = browser.eval(
