@@ -378,7 +378,8 @@ fn a_colour_stop_picked_changes_the_text() {
 }
 
 /// A distortion term switched off: `enabled: false` is written into the
-/// term, and the image changes to the in-process render of the new text.
+/// term, the image changes to the in-process render of the new text, and a
+/// second tab shows the switch off and the new text.
 #[test]
 fn a_distortion_term_disabled_changes_the_text_and_the_image() {
     let Some(chromium) = chromium_or_skip() else {
@@ -394,6 +395,9 @@ fn a_distortion_term_disabled_changes_the_text_and_the_image() {
         browser.eval("document.getElementById('operator-distortion.terms[4]').value"),
         json!("Blend")
     );
+    // A second tab follows.
+    let port = url.rsplit(':').next().unwrap().parse().unwrap();
+    let mut other = open_page(&chromium, &dir.join("b"), port);
     let generation = browser.eval("studio.generation");
     browser.eval(
         "(() => { const c = document.getElementById('enabled-distortion.terms[4]'); \
@@ -416,12 +420,16 @@ fn a_distortion_term_disabled_changes_the_text_and_the_image() {
         decode_png(&reference).into_raw(),
         "as the CLI renders it"
     );
-    assert!(
-        !browser
-            .eval("document.getElementById('enabled-distortion.terms[4]').checked")
-            .as_bool()
-            .unwrap()
+    assert_eq!(
+        browser.eval("document.getElementById('enabled-distortion.terms[4]').checked"),
+        json!(false)
     );
+    other.wait_until(
+        "!document.getElementById('enabled-distortion.terms[4]').checked && \
+         document.getElementById('text').value.includes('operator: Blend, enabled: false),')",
+        60,
+    );
+    drop(other);
     close(browser, studio);
 }
 
