@@ -396,6 +396,13 @@ mod tests {
     #[test]
     fn unknown_versions_are_refused() {
         let mut v = versions();
+        // A structural edit is made on the text of the version it names.
+        let b3 = TEXT.replace("b: 2.0", "b: 3.0");
+        v.record(&b3, &knobs(&[("bias", 0.3), ("gain", 0.9)]));
+        assert_eq!(v.at(Some(1)).unwrap().shown, TEXT);
+        assert_eq!(v.at(None).unwrap().shown, b3);
+        assert_eq!(v.at(Some(2)).unwrap().number, 2);
+        assert!(matches!(v.at(Some(3)), Err(Stale::Unknown(_))));
         assert!(matches!(
             v.rebase(Some(7), Edit::default()),
             Err(Stale::Unknown(_))
