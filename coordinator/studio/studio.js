@@ -709,6 +709,8 @@ function showScene(view, { text, sliders }) {
     if (p.id in paramValues) paramValues[p.id] = p.value;
     if (colourTriple(p.id)) showPickedColour(p.id.slice(0, -3));
   }
+  showDistortions(view.distortions ?? []);
+  showGrids(view.grids ?? []);
   if (!dragging) showCurves(view.curves);
   else {
     // The dragged curve keeps its points; its line takes the new samples.
@@ -768,11 +770,14 @@ function showCurves(list) {
     svg.setAttribute('width', CURVE_W);
     svg.setAttribute('height', CURVE_H);
     svg.setAttribute('role', 'group');
-    svg.setAttribute('aria-label', curveLabel(c.id) + ': drag a control point, or focus it and use the arrow keys');
+    svg.setAttribute('aria-label', curveLabel(c.id) + ': drag a control point, or focus it and use the arrow keys; ' +
+      'double-click to add a point, Delete to delete the focused one');
     svg.id = 'curve-' + c.id;
-    figure.append(caption, svg);
+    figure.append(caption, svg, curveTools(c));
     box.appendChild(figure);
     c.svg = svg;
+    c.selected = Math.min(selectedPoints[c.id] ?? 0, c.points.length - 1);
+    svg.addEventListener('dblclick', (e) => addPointAt(c, e));
     drawCurve(c);
   }
   if (!curves.length) box.textContent = 'This scene has no curves.';
@@ -840,7 +845,10 @@ function drawCurve(c) {
       e.preventDefault();
       handle.setPointerCapture(e.pointerId);
       dragging = { c, i, pointer: e.pointerId };
+      selectPoint(c, i);
     });
+    handle.addEventListener('focus', () => selectPoint(c, i));
+    handle.addEventListener('dblclick', (e) => e.stopPropagation());
     handle.addEventListener('pointermove', (e) => {
       if (!dragging || dragging.pointer !== e.pointerId) return;
       const r = svg.getBoundingClientRect();
@@ -853,6 +861,11 @@ function drawCurve(c) {
     handle.addEventListener('pointerup', end);
     handle.addEventListener('pointercancel', end);
     handle.addEventListener('keydown', (e) => {
+      if (e.key === 'Delete' || e.key === 'Backspace') {
+        e.preventDefault();
+        deletePoint(c, i);
+        return;
+      }
       const step = (d.x1 - d.x0) / 100;
       const moves = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowDown: [0, -step], ArrowUp: [0, step] };
       const m = moves[e.key];
@@ -891,8 +904,11 @@ function placeCurve(c) {
       return stop;
     }));
   }
+  showCurveTools(c);
   c.handles.forEach((handle, i) => {
     const p = c.points[i];
+    handle.classList.toggle('selected', i === c.selected);
+    if (p.rgb) handle.setAttribute('fill', rgbCss(p.rgb));
     const [x, y] = toScreen(c, d, p);
     handle.setAttribute('cx', x);
     handle.setAttribute('cy', y);
@@ -918,6 +934,228 @@ function movePoint(c, i, x, y) {
   }
   placeCurve(c);
   paramMoved(change, null);
+}
+
+// ---- Editing a curve's shape: points added and deleted, its interpolation, --------
+// ---- a colour stop's colour ------------------------------------------------------
+
+const selectedPoints = {};   // curve id → the index of its selected point
+const INTERPOLATIONS = ['Linear', 'Spline', 'Step'];
+
+/** The row under a curve: its interpolation, Delete point and, on a colour
+ * map, the picker of the selected stop's colour. */
+function curveTools(c) {
+  const row = document.createElement('div');
+  row.className = 'curve-tools';
+  const pick = c.points.every((p) => p.rgb)
+    ? `<label for="${escape('stop-' + c.id)}">stop colour</label><input type="color" id="${escape('stop-' + c.id)}">`
+    : '';
+  row.innerHTML = `<label for="${escape('interp-' + c.id)}">interpolation</label>` +
+    `<select id="${escape('interp-' + c.id)}">${INTERPOLATIONS.map((w) => `<option>${w}</option>`).join('')}</select>` +
+    pick + `<button type="button" id="${escape('delete-' + c.id)}">Delete point</button>`;
+  const select = row.querySelector('select');
+  select.value = c.interpolation;
+  select.addEventListener('change', () => {
+    shapeEdited([{ op: 'set', path: c.id.replace(/\.points$/, '.interpolation'), to: select.value }]);
+  });
+  row.querySelector('button').addEventListener('click', () => deletePoint(c, c.selected));
+  const picker = row.querySelector('input[type=color]');
+  if (picker) picker.addEventListener('input', () => stopPicked(c, picker));
+  return row;
+}
+
+/** Sets the tools under `c` to its interpolation and selected point. */
+function showCurveTools(c) {
+  const select = document.getElementById('interp-' + c.id);
+  if (select && select.value !== c.interpolation) select.value = c.interpolation;
+  const remove = document.getElementById('delete-' + c.id);
+  if (remove) remove.disabled = c.points.length < 2;
+  const picker = document.getElementById('stop-' + c.id);
+  const p = c.points[c.selected];
+  if (picker && p?.rgb && !held(picker)) picker.value = '#' + p.rgb.map(hex2).join('');
+  if (picker) picker.setAttribute('aria-label', `${curveLabel(c.id)}, colour of stop ${c.selected + 1}`);
+}
+
+function selectPoint(c, i) {
+  c.selected = i;
+  selectedPoints[c.id] = i;
+  placeCurve(c);
+}
+
+/** A structural edit of the text: its own undo step, made on the version
+ * shown, with the values moved but not sent yet written first. */
+function shapeEdited(edits) {
+  const asked = performance.now();
+  newGesture();
+  const change = { ...current('interactive'), edits };
+  for (const key of Object.keys(paramValues)) delete paramValues[key];
+  send(change, asked, true);
+}
+
+/** A double-click in a curve's frame adds a point there: on a scalar curve
+ * at the pointer's value, on a colour map with the map's colour at its key. */
+function addPointAt(c, e) {
+  const d = c.domain;
+  const r = c.svg.getBoundingClientRect();
+  const sx = (e.clientX - r.left) * CURVE_W / r.width;
+  const sy = (e.clientY - r.top) * CURVE_H / r.height;
+  // A double-click is no finer than a pixel: keys and values on a 0.01 grid.
+  const round = (v) => Math.round(v * 100) / 100;
+  const x = round(Math.min(1, Math.max(0, d.x0 + (sx - PAD) / (CURVE_W - 2 * PAD) * (d.x1 - d.x0))));
+  if (c.points.some((p) => p.x.value === x)) return;
+  const edit = { op: 'add_point', curve: c.id, x };
+  if (c.points.every((p) => p.rgb)) {
+    const n = c.colours?.length ?? 0;
+    const at = n ? Math.round((x - c.from) / (c.to - c.from) * (n - 1)) : -1;
+    edit.rgb = (c.colours?.[Math.min(n - 1, Math.max(0, at))] ?? c.points[0].rgb).map((v) => Number(v.toPrecision(4)));
+  } else {
+    edit.y = round(Math.min(d.y1, Math.max(d.y0, d.y0 + (CURVE_H - PAD - sy) / (CURVE_H - 2 * PAD) * (d.y1 - d.y0))));
+  }
+  selectedPoints[c.id] = c.points.filter((p) => p.x.value < x).length;
+  shapeEdited([edit]);
+}
+
+function deletePoint(c, i) {
+  if (c.points.length < 2 || i === undefined || i < 0 || i >= c.points.length) return;
+  selectedPoints[c.id] = Math.max(0, i - 1);
+  shapeEdited([{ op: 'delete_point', curve: c.id, index: i }]);
+}
+
+/** The picked colour of the selected stop: its three numbers in one edit. */
+function stopPicked(c, picker) {
+  const p = c.points[c.selected];
+  if (!p?.rgb) return;
+  const values = {};
+  p.rgb = [0, 1, 2].map((k) => {
+    const code = parseInt(picker.value.slice(1 + 2 * k, 3 + 2 * k), 16);
+    const v = Number(srgbToLinear(code / 255).toPrecision(6));
+    values[`${c.id}[${c.selected}][1][${k}]`] = v;
+    return v;
+  });
+  placeCurve(c);
+  paramMoved(values, null);
+}
+
+// ---- Distortion terms and 2D shape transfer grids ---------------------------------
+
+const FIELDS = ['Boundary', 'Radial', 'Constant', 'Curl', 'Perturbed'];
+
+/** Each distortion's vector field, and each term's operator and switch. */
+function showDistortions(list) {
+  const box = $('distortions');
+  const key = JSON.stringify(list);
+  if (box.dataset.key === key) return;
+  box.dataset.key = key;
+  box.innerHTML = '';
+  for (const d of list) {
+    const h = document.createElement('h3');
+    h.textContent = d.id === 'distortion' ? 'Distortion' : paramLabel(d.id, '');
+    box.appendChild(h);
+    const row = document.createElement('div');
+    row.className = 'term';
+    row.innerHTML = `<label for="${escape('field-' + d.id)}">vector field</label>` +
+      `<select id="${escape('field-' + d.id)}">${FIELDS.map((w) => `<option>${w}</option>`).join('')}</select>`;
+    const field = row.querySelector('select');
+    field.value = d.field;
+    field.addEventListener('change', () => shapeEdited([{ op: 'set', path: d.id + '.field', to: field.value }]));
+    box.appendChild(row);
+    d.terms.forEach((t, k) => {
+      const term = document.createElement('div');
+      term.className = 'term';
+      term.innerHTML = `<span>term ${k + 1} (${escape(t.transfer)})</span>` +
+        `<select id="${escape('operator-' + t.id)}" aria-label="term ${k + 1} operator"><option>Sum</option><option>Blend</option></select>` +
+        `<label><input type="checkbox" id="${escape('enabled-' + t.id)}"> enabled</label>`;
+      const operator = term.querySelector('select');
+      operator.value = t.operator;
+      operator.addEventListener('change', () => shapeEdited([{ op: 'set', path: t.id + '.operator', to: operator.value }]));
+      const enabled = term.querySelector('input');
+      enabled.checked = t.enabled;
+      enabled.addEventListener('change', () => shapeEdited([{ op: 'set', path: t.id + '.enabled', to: String(enabled.checked) }]));
+      box.appendChild(term);
+    });
+  }
+}
+
+const CELL_MAX = 24;
+let grids = [];           // the grids shown, with their values
+let painting = null;      // the grid a stroke of the brush paints
+
+/** Gilet & Dischler's 2D shape transfer functions: each grid's cells as
+ * grey levels (noise left to right, object density 0 at the top, 1 at the
+ * bottom), painted with a brush of a value and a size. */
+function showGrids(list) {
+  const box = $('grids');
+  const key = list.map((g) => `${g.id}:${g.rows}x${g.columns}`).join(',');
+  if (box.dataset.key === key) {
+    if (!painting) list.forEach((g, i) => { grids[i].values = [...g.values]; drawGrid(grids[i]); });
+    return;
+  }
+  box.dataset.key = key;
+  box.innerHTML = '';
+  grids = list.map((g) => ({ ...g, values: [...g.values] }));
+  for (const g of grids) {
+    const figure = document.createElement('figure');
+    figure.className = 'curve';
+    const cell = Math.max(4, Math.min(CELL_MAX, Math.floor(264 / g.columns)));
+    figure.innerHTML = `<figcaption>${escape(curveLabel(g.id.replace(/\.Grid\.rows$/, '')))}: ` +
+      'noise →, object density ↓ (paint with the brush)</figcaption>' +
+      `<canvas id="${escape('grid-' + g.id)}" width="${g.columns * cell}" height="${g.rows * cell}" class="grid"></canvas>` +
+      `<div class="curve-tools"><label for="${escape('brush-' + g.id)}">brush value</label>` +
+      `<input type="range" id="${escape('brush-' + g.id)}" min="0" max="1" step="0.05" value="1">` +
+      `<output>1</output><label for="${escape('brush-size-' + g.id)}">size</label>` +
+      `<input type="range" id="${escape('brush-size-' + g.id)}" min="0" max="3" step="1" value="0"></div>`;
+    box.appendChild(figure);
+    g.cell = cell;
+    g.canvas = figure.querySelector('canvas');
+    [g.brush, g.size] = figure.querySelectorAll('input[type=range]');
+    g.brush.addEventListener('input', () => { g.brush.nextElementSibling.textContent = g.brush.value; });
+    g.canvas.addEventListener('pointerdown', (e) => {
+      e.preventDefault();
+      g.canvas.setPointerCapture(e.pointerId);
+      painting = { g, pointer: e.pointerId };
+      paint(g, e);
+    });
+    g.canvas.addEventListener('pointermove', (e) => {
+      if (painting?.pointer === e.pointerId) paint(g, e);
+    });
+    const end = () => { painting = null; };
+    g.canvas.addEventListener('pointerup', end);
+    g.canvas.addEventListener('pointercancel', end);
+    drawGrid(g);
+  }
+}
+
+function drawGrid(g) {
+  const ctx = g.canvas.getContext('2d');
+  for (let j = 0; j < g.rows; j++) {
+    for (let i = 0; i < g.columns; i++) {
+      const v = Math.round(Math.min(1, Math.max(0, g.values[j * g.columns + i])) * 255);
+      ctx.fillStyle = `rgb(${v},${v},${v})`;
+      ctx.fillRect(i * g.cell, j * g.cell, g.cell - 1, g.cell - 1);
+    }
+  }
+}
+
+/** Paints the cells under the pointer (and those within the brush's size)
+ * with the brush's value: their numbers in one edit. */
+function paint(g, e) {
+  const r = g.canvas.getBoundingClientRect();
+  const i = Math.floor((e.clientX - r.left) / r.width * g.columns);
+  const j = Math.floor((e.clientY - r.top) / r.height * g.rows);
+  const size = Number(g.size.value);
+  const value = Number(g.brush.value);
+  const values = {};
+  for (let jj = j - size; jj <= j + size; jj++) {
+    for (let ii = i - size; ii <= i + size; ii++) {
+      if (jj < 0 || ii < 0 || jj >= g.rows || ii >= g.columns) continue;
+      if (g.values[jj * g.columns + ii] === value) continue;
+      g.values[jj * g.columns + ii] = value;
+      values[`${g.id}[${jj}][${ii}]`] = value;
+    }
+  }
+  if (!Object.keys(values).length) return;
+  drawGrid(g);
+  paramMoved(values, null);
 }
 
 // ---- The frame of a sequence: a slider and Play ----------------------------------
@@ -1160,6 +1398,12 @@ $('take-theirs').addEventListener('click', () => {
  * `change.base`; while one is in flight, only the latest waits. */
 function send(change, asked, fromSlider) {
   if (inFlight || gated()) {
+    // A structural edit waiting is kept: the change after it carries it.
+    const before = queued?.[0];
+    if (before?.edits?.length) {
+      change = { ...change, params: { ...before.params, ...change.params },
+        edits: [...before.edits, ...(change.edits ?? [])] };
+    }
     queued = [change, asked, fromSlider];
     return;
   }

@@ -23,6 +23,8 @@ use crate::support::{
 };
 use serde_json::{Value, json};
 
+mod curves;
+
 const COMPLETE_HIGH: &str = "studio.drawn && studio.quality === 'high'";
 
 #[test]

@@ -40,6 +40,44 @@ struct Level {
     index: usize,
     /// The `name:` seen for the current item.
     key: Option<String>,
+    /// Where the current item's first token starts, and its value's (after
+    /// its `name:`), and where its last token so far ends.
+    item_start: Option<usize>,
+    value_start: Option<usize>,
+    last_end: usize,
+}
+
+/// An item of a bracket as it stands in the text: a field (`name: value`) or
+/// a list's element.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Item {
+    /// Its path (as a number in it is named: `alpha_map.points[1]`,
+    /// `distortion.terms[0].operator`).
+    pub path: String,
+    /// The path of the bracket it stands in.
+    pub parent: String,
+    /// From its first token (its name, if it has one) to the end of its value.
+    pub span: std::ops::Range<usize>,
+    /// Its value's bytes.
+    pub value: std::ops::Range<usize>,
+}
+
+/// What a scan finds in a scene's text: its numbers, the bare words given as
+/// a field's value by the field's path, and every item of every bracket.
+pub struct Scanned {
+    pub numbers: Vec<Number>,
+    pub words: BTreeMap<String, String>,
+    pub items: Vec<Item>,
+}
+
+/// The numbers, words and items of `text`, in the order they stand.
+pub fn scanned(text: &str) -> Scanned {
+    let s = scan(text);
+    Scanned {
+        numbers: s.out,
+        words: s.words,
+        items: s.items,
+    }
 }
 
 impl Level {
@@ -74,6 +112,7 @@ fn scan(text: &str) -> NumberScan<'_> {
         text,
         out: Vec::new(),
         words: BTreeMap::new(),
+        items: Vec::new(),
         levels: Vec::new(),
         ident: None,
     };
@@ -90,32 +129,45 @@ fn scan(text: &str) -> NumberScan<'_> {
                 continue;
             }
             b'"' => {
-                i = ron_text::string_end(text, i).unwrap_or(bytes.len());
+                let end = ron_text::string_end(text, i).unwrap_or(bytes.len());
+                scan.token(i, end);
+                i = end;
                 scan.ident = None;
                 continue;
             }
             b'r' if matches!(bytes.get(i + 1), Some(b'"' | b'#')) => {
-                i = raw_string_end(bytes, i);
+                let end = raw_string_end(bytes, i).min(bytes.len());
+                scan.token(i, end);
+                i = end;
                 scan.ident = None;
                 continue;
             }
-            b'(' | b'[' => scan.open(i),
+            b'(' | b'[' => {
+                scan.token(i, i + 1);
+                scan.open(i);
+            }
             b')' | b']' => {
                 scan.word();
+                scan.end_item();
                 scan.levels.pop();
+                scan.token(i, i + 1);
                 scan.ident = None;
             }
             b',' => {
                 scan.word();
+                scan.end_item();
                 scan.comma();
             }
             b':' => {
                 if let Some(level) = scan.levels.last_mut() {
                     level.key = scan.ident.take();
+                    level.value_start = None;
                 }
             }
             b'-' | b'+' | b'.' | b'0'..=b'9' => {
-                i = scan.number(i);
+                let end = scan.number(i);
+                scan.token(i, end);
+                i = end;
                 continue;
             }
             c if c.is_ascii_alphabetic() || c == b'_' => {
@@ -123,6 +175,7 @@ fn scan(text: &str) -> NumberScan<'_> {
                 while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
                     i += 1;
                 }
+                scan.token(start, i);
                 scan.ident = Some(text[start..i].to_string());
                 continue;
             }
@@ -154,6 +207,7 @@ struct NumberScan<'a> {
     text: &'a str,
     out: Vec<Number>,
     words: BTreeMap<String, String>,
+    items: Vec<Item>,
     /// The outermost `Scene(` opens the root: its fields' paths start bare.
     levels: Vec<Level>,
     ident: Option<String>,
@@ -179,7 +233,33 @@ impl NumberScan<'_> {
             at,
             index: 0,
             key: None,
+            item_start: None,
+            value_start: None,
+            last_end: at + 1,
         });
+    }
+
+    /// A token from `start` to `end` in the innermost bracket.
+    fn token(&mut self, start: usize, end: usize) {
+        if let Some(level) = self.levels.last_mut() {
+            level.item_start.get_or_insert(start);
+            level.value_start.get_or_insert(start);
+            level.last_end = end;
+        }
+    }
+
+    /// The end of the current item (at its comma or its bracket's close).
+    fn end_item(&mut self) {
+        if let Some(level) = self.levels.last_mut()
+            && let (Some(start), Some(value)) = (level.item_start.take(), level.value_start.take())
+        {
+            self.items.push(Item {
+                path: level.item(),
+                parent: level.path.clone(),
+                span: start..level.last_end,
+                value: value..level.last_end,
+            });
+        }
     }
 
     /// A field's value that is a bare word, at the end of its item.
@@ -305,6 +385,10 @@ const SLIDER_FIELDS: &[&str] = &[
     "background",
 ];
 
+/// What the path of a 2D transfer function grid's value holds:
+/// `….Grid.rows[j][i]`.
+pub const GRID_ROWS: &str = ".Grid.rows[";
+
 /// A slider for one number.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct Param {
@@ -416,7 +500,8 @@ pub fn controls(text: &str, ranges: &mut BTreeMap<String, (f64, f64)>) -> (Vec<P
             continue;
         }
         let group = n.path.split(['.', '[']).next().unwrap_or_default();
-        if !SLIDER_FIELDS.contains(&group) {
+        // A 2D transfer function's grid is painted with a brush, not slid.
+        if !SLIDER_FIELDS.contains(&group) || n.path.contains(GRID_ROWS) {
             continue;
         }
         let (min, max) = match ranges.get(&n.path) {

@@ -35,7 +35,7 @@
 //! |--------------------------|-----------------------------------------------------------|
 //! | `GET /`                  | the page (and `/studio/studio.js`, `/studio/studio.css`)  |
 //! | `GET /studio/scene`      | the scene: its text for the current knob values, the knobs |
-//! | `POST /studio/scene`     | new text and/or values and a quality, made on a version: a new frame; 409 when it conflicts |
+//! | `POST /studio/scene`     | new text and/or values, structural edits ([`shape`]) and a quality, made on a version: a new frame; 409 when it conflicts |
 //! | `POST /studio/save[?over=true]` | writes the text back to SCENE, the file before to SCENE.~N~; 409 when SCENE changed on disk |
 //! | `POST /studio/reload`    | takes SCENE's text from disk: a new frame                 |
 //! | `POST /studio/final`     | queues the shown text as a job writing `STEM.final.NNNN.png` (the next free N) |
@@ -75,10 +75,12 @@ use tokio::sync::{broadcast, mpsc};
 use super::params::{self, Curve, Param};
 use crate::farm::{self, Accepted, JobId, Shared, WireJob};
 use crate::service::jobs::{Control, JobSpec};
+use shape::{DistortionView, GridView, ShapeEdit};
 use snapshots::{Render, Snapshot, SnapshotView, Snapshots};
 use versions::{Edit, Origin, Stale, Versions};
 
 mod bounds;
+mod shape;
 mod snapshots;
 mod versions;
 
@@ -155,6 +157,9 @@ struct Live {
     /// The sliders of the text's numeric parameters, and its curves.
     params: Vec<Param>,
     curves: Vec<Curve>,
+    /// The distortions (their fields and terms) and 2D transfer grids.
+    distortions: Vec<DistortionView>,
+    grids: Vec<GridView>,
     /// Each slider's range, kept while it moves.
     ranges: BTreeMap<String, (f64, f64)>,
     frame: Option<LiveFrame>,
@@ -208,6 +213,11 @@ pub struct Change {
     /// text (the new one, or the current one).
     #[serde(default)]
     pub params: BTreeMap<String, f64>,
+    /// Structural edits of the text (points added or deleted, words set),
+    /// made after `params` on the text of version `base`: the edit is then
+    /// that text's, merged like any text edit.
+    #[serde(default)]
+    pub edits: Vec<ShapeEdit>,
     /// `interactive` while a slider moves, `high` once it rests.
     pub quality: Quality,
     /// The version the edit was made on ([`SceneView`]'s `version`); absent:
@@ -235,6 +245,7 @@ impl Change {
             text: Some(text),
             knobs: BTreeMap::new(),
             params: BTreeMap::new(),
+            edits: Vec::new(),
             quality: Quality::High,
             base: None,
             tab,
@@ -268,6 +279,11 @@ pub struct SceneView {
     params: Vec<Param>,
     /// The curves, with their control points.
     curves: Vec<Curve>,
+    /// The distortions: each one's vector field, and each term's operator
+    /// and `enabled` switch.
+    distortions: Vec<DistortionView>,
+    /// The 2D shape transfer functions' grids.
+    grids: Vec<GridView>,
     error: Option<String>,
     generation: u64,
     /// The version of the text and knob values shown.
@@ -380,6 +396,19 @@ pub fn with_knob_values(text: &str, values: &BTreeMap<String, f64>) -> Option<St
         out.replace_range(start..end, &with);
     }
     Some(out)
+}
+
+/// `text` with a change's parameters written in, its structural edits made
+/// and its knob values written as the knobs' defaults: the text of an edit
+/// that changes the scene's shape.
+fn shaped(text: &str, change: &Change) -> Result<String, String> {
+    let text = if change.params.is_empty() {
+        text.to_string()
+    } else {
+        params::with_values(text, &change.params)?
+    };
+    let text = shape::apply(&text, &change.edits)?;
+    Ok(with_knob_values(&text, &change.knobs).unwrap_or(text))
 }
 
 /// The byte offset just after `name:` as a field (not in a comment or a string).
@@ -559,6 +588,8 @@ impl Studio {
                 quality: Quality::High,
                 params: Vec::new(),
                 curves: Vec::new(),
+                distortions: Vec::new(),
+                grids: Vec::new(),
                 ranges: BTreeMap::new(),
                 frame: None,
                 generation: 0,
@@ -606,6 +637,7 @@ impl Studio {
                 text: Some(text),
                 knobs: BTreeMap::new(),
                 params: BTreeMap::new(),
+                edits: Vec::new(),
                 quality: Quality::High,
                 base: None,
                 tab: None,
@@ -765,22 +797,31 @@ impl Studio {
     /// (409 when another tab changed the same value since), then applied.
     fn edit(&self, change: Change) -> Result<SceneView, Refused> {
         let mut live = self.live();
-        let edit = Edit {
-            text: change.text,
-            knobs: change.knobs,
-            params: change.params,
+        let conflict = |stale| match stale {
+            Stale::Conflict(why) => Refused(StatusCode::CONFLICT, why),
+            Stale::Unknown(why) => Refused(StatusCode::CONFLICT, why),
         };
-        let edit = live
-            .versions
-            .rebase(change.base, edit)
-            .map_err(|stale| match stale {
-                Stale::Conflict(why) => Refused(StatusCode::CONFLICT, why),
-                Stale::Unknown(why) => Refused(StatusCode::CONFLICT, why),
-            })?;
+        let edit = if change.edits.is_empty() {
+            Edit {
+                text: change.text.clone(),
+                knobs: change.knobs.clone(),
+                params: change.params.clone(),
+            }
+        } else {
+            let base = live.versions.at(change.base).map_err(conflict)?;
+            let text = shaped(change.text.as_deref().unwrap_or(&base.shown), &change)
+                .map_err(|e| Refused(StatusCode::BAD_REQUEST, e))?;
+            Edit {
+                text: Some(text),
+                ..Edit::default()
+            }
+        };
+        let edit = live.versions.rebase(change.base, edit).map_err(conflict)?;
         let change = Change {
             text: edit.text,
             knobs: edit.knobs,
             params: edit.params,
+            edits: Vec::new(),
             base: None,
             ..change
         };
@@ -805,6 +846,7 @@ impl Studio {
             text: None,
             knobs: live.knobs.clone(),
             params: BTreeMap::new(),
+            edits: Vec::new(),
             quality: Quality::High,
             base: None,
             tab: None,
@@ -864,6 +906,7 @@ impl Studio {
             ..
         } = live;
         (*params, *curves) = params::controls(text, ranges);
+        (live.distortions, live.grids) = shape::looks(&live.text);
         let view = self.view(live);
         if live.versions.record_as(&live.shown, &live.knobs, origin) {
             let view = self.view(live);
@@ -986,6 +1029,8 @@ impl Studio {
                 .collect(),
             params: live.params.clone(),
             curves: live.curves.clone(),
+            distortions: live.distortions.clone(),
+            grids: live.grids.clone(),
             error: live.error.clone(),
             generation: live.generation,
             version: live.versions.current().number,
@@ -1091,6 +1136,7 @@ impl Studio {
             text: Some(text.clone()),
             knobs: BTreeMap::new(),
             params: BTreeMap::new(),
+            edits: Vec::new(),
             quality: Quality::High,
             base: None,
             tab: None,

@@ -173,12 +173,11 @@ impl Versions {
         (self.undo.len(), self.redo.len())
     }
 
-    /// `edit`, made on version `base` (none: on the current one), as an edit
-    /// of the current version.
-    pub fn rebase(&self, base: Option<u64>, edit: Edit) -> Result<Edit, Stale> {
+    /// Version `base` (none: the current one), if it is kept.
+    pub fn at(&self, base: Option<u64>) -> Result<&Version, Stale> {
         let now = self.current();
         let Some(base) = base.filter(|&b| b != now.number) else {
-            return Ok(edit);
+            return Ok(now);
         };
         if base > now.number {
             return Err(Stale::Unknown(format!(
@@ -186,13 +185,23 @@ impl Versions {
                 now.number
             )));
         }
-        let then = self.kept.iter().find(|v| v.number == base).ok_or_else(|| {
+        self.kept.iter().find(|v| v.number == base).ok_or_else(|| {
             Stale::Unknown(format!(
                 "the edit was made on version {base}, which the studio no longer keeps \
                      (it is at version {}): the page shows the current state",
                 now.number
             ))
-        })?;
+        })
+    }
+
+    /// `edit`, made on version `base` (none: on the current one), as an edit
+    /// of the current version.
+    pub fn rebase(&self, base: Option<u64>, edit: Edit) -> Result<Edit, Stale> {
+        let now = self.current();
+        let then = self.at(base)?;
+        if then.number == now.number {
+            return Ok(edit);
+        }
         match edit.text {
             Some(ours) => merge_text(then, now, ours),
             None => Ok(Edit {
@@ -387,6 +396,13 @@ mod tests {
     #[test]
     fn unknown_versions_are_refused() {
         let mut v = versions();
+        // A structural edit is made on the text of the version it names.
+        let b3 = TEXT.replace("b: 2.0", "b: 3.0");
+        v.record(&b3, &knobs(&[("bias", 0.3), ("gain", 0.9)]));
+        assert_eq!(v.at(Some(1)).unwrap().shown, TEXT);
+        assert_eq!(v.at(None).unwrap().shown, b3);
+        assert_eq!(v.at(Some(2)).unwrap().number, 2);
+        assert!(matches!(v.at(Some(3)), Err(Stale::Unknown(_))));
         assert!(matches!(
             v.rebase(Some(7), Edit::default()),
             Err(Stale::Unknown(_))
