@@ -872,11 +872,7 @@ fn a_step_curve_is_drawn_as_a_step_and_the_image_stays_in_view() {
         "Emulation.setDeviceMetricsOverride",
         json!({ "width": 1280, "height": 800, "deviceScaleFactor": 1, "mobile": false }),
     );
-    let rect = browser.eval(
-        "(() => { const e = document.getElementById('curve-alpha_map.points'); \
-         e.scrollIntoView(); const r = e.getBoundingClientRect(); \
-         return [r.x + scrollX, r.y + scrollY, r.width, r.height]; })()",
-    );
+    let png = element_png(&mut browser, "curve-alpha_map.points");
     let image = browser.eval(
         "(() => { const r = document.getElementById('image').getBoundingClientRect(); \
          return [r.top, r.bottom, r.width, scrollY, innerHeight]; })()",
@@ -888,16 +884,6 @@ fn a_step_curve_is_drawn_as_a_step_and_the_image_stays_in_view() {
         top >= 0.0 && bottom <= height && width >= 256.0,
         "the image is on screen: {image}"
     );
-    let [x, y, w, h] = [0, 1, 2, 3].map(|i| rect[i].as_f64().expect("the curve's box"));
-    let shot = browser.call(
-        "Page.captureScreenshot",
-        json!({ "format": "png", "captureBeyondViewport": true,
-                "clip": { "x": x, "y": y, "width": w, "height": h, "scale": 1 } }),
-    );
-    use base64::Engine as _;
-    let png = base64::engine::general_purpose::STANDARD
-        .decode(shot["data"].as_str().expect("png data"))
-        .expect("base64");
     std::fs::write(dir.join("curve.png"), &png).unwrap();
     let image = image::load_from_memory(&png).unwrap().to_rgba8();
     // The curve's line: its pixels are brighter than the frame (#111) and
@@ -1303,6 +1289,27 @@ fn small_copy(dir: &Path, scene: &str, size: u32) -> std::path::PathBuf {
     let copy = dir.join(Path::new(scene).file_name().unwrap());
     std::fs::write(&copy, small).unwrap();
     copy
+}
+
+/// The element `id` scrolled into view, and a PNG of its box (the page's
+/// pixels, one per CSS pixel).
+fn element_png(browser: &mut Browser, id: &str) -> Vec<u8> {
+    let rect = browser.eval(&format!(
+        "(() => {{ const e = document.getElementById({}); \
+         e.scrollIntoView(); const r = e.getBoundingClientRect(); \
+         return [r.x + scrollX, r.y + scrollY, r.width, r.height]; }})()",
+        serde_json::to_string(id).unwrap()
+    ));
+    let [x, y, w, h] = [0, 1, 2, 3].map(|i| rect[i].as_f64().expect("the element's box"));
+    let shot = browser.call(
+        "Page.captureScreenshot",
+        json!({ "format": "png", "captureBeyondViewport": true,
+                "clip": { "x": x, "y": y, "width": w, "height": h, "scale": 1 } }),
+    );
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD
+        .decode(shot["data"].as_str().expect("png data"))
+        .expect("base64")
 }
 
 /// Writes the PNG of a `Page.captureScreenshot` answer to `path`.

@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{Value, json};
 
-use super::{COMPLETE_HIGH, open_page, small_copy, srgb_decode, studio, write_screenshot};
+use super::{
+    COMPLETE_HIGH, element_png, open_page, small_copy, srgb_decode, studio, write_screenshot,
+};
 use crate::support::browser::{Browser, chromium_or_skip};
 use crate::support::{Running, decode_png, in_process_file, scratch, until};
 
@@ -234,22 +236,7 @@ fn a_point_added_and_one_deleted_change_the_text_and_the_drawn_curve_and_undo_re
 /// its line in the column at key `at`, as a fraction of the frame's inner
 /// height from the top (the frame is inset by 8 of 280 × 120 units).
 fn line_at(browser: &mut Browser, id: &str) -> impl Fn(f64) -> f64 + use<> {
-    let rect = browser.eval(&format!(
-        "(() => {{ const e = document.getElementById({}); \
-         e.scrollIntoView(); const r = e.getBoundingClientRect(); \
-         return [r.x + scrollX, r.y + scrollY, r.width, r.height]; }})()",
-        serde_json::to_string(&format!("curve-{id}")).unwrap()
-    ));
-    let [x, y, w, h] = [0, 1, 2, 3].map(|i| rect[i].as_f64().expect("the curve's box"));
-    let shot = browser.call(
-        "Page.captureScreenshot",
-        json!({ "format": "png", "captureBeyondViewport": true,
-                "clip": { "x": x, "y": y, "width": w, "height": h, "scale": 1 } }),
-    );
-    use base64::Engine as _;
-    let png = base64::engine::general_purpose::STANDARD
-        .decode(shot["data"].as_str().expect("png data"))
-        .expect("base64");
+    let png = element_png(browser, &format!("curve-{id}"));
     let image = image::load_from_memory(&png).unwrap().to_rgba8();
     move |at: f64| {
         let (iw, ih) = (image.width() as f64, image.height() as f64);
