@@ -25,12 +25,12 @@ const studio = window.studio = {
   // the change's answer, its first tile's event (arrived), its first
   // drawing and its drawing whole (first, complete).
   moments: {},
-  /** The asked frames: {generation, quality, answered, arrived, first,
-   * complete}, each in ms after the input (null: not yet). */
+  /** The asked frames: {generation, quality, preview, answered, arrived,
+   * first, complete}, each in ms after the input (null: not yet). */
   get timings() {
     return Object.entries(this.moments).filter(([, m]) => m.asked !== undefined).map(([g, m]) => {
       const after = (t) => (t === undefined ? null : t - m.asked);
-      return { generation: Number(g), quality: m.quality, answered: after(m.answered),
+      return { generation: Number(g), quality: m.quality, preview: Boolean(m.preview), answered: after(m.answered),
         arrived: after(m.arrived), first: after(m.first), complete: after(m.complete) };
     });
   },
@@ -41,7 +41,12 @@ const studio = window.studio = {
   conflict: null,     // the last edit another tab's edit refused
   exposure: 0,        // the display's exposure in stops
   histogram: null,    // the luminance histogram last drawn
+  // Per slider input event (the last INPUTS_KEPT): ms from the event's
+  // time stamp (when the browser took the input) to the end of its handler,
+  // so a main thread busy placing tiles counts.
+  inputs: [],
 };
+const INPUTS_KEPT = 4096;
 // This tab, as its edits name it: the server's `scene` events carry it back,
 // so the tab tells its own edits from other tabs'.
 const TAB = Math.random().toString(36).slice(2) + Date.now().toString(36);
@@ -426,6 +431,47 @@ function escape(s) {
 
 // ---- Events ----------------------------------------------------------------
 
+// The server renders a begun interactive frame to its end while the next
+// one starts behind it: the next frame's first tiles are held until the
+// frame shown is whole (at most EARLY_MAX_MS), so that each value of a drag
+// is drawn whole before the next replaces it.
+let early = [];
+let earlyTimer = null;
+const EARLY_MAX_MS = 250;
+
+/** Whether the interactive frame shown is still coming, with an
+ * interactive one waiting for it. */
+function finishing() {
+  return studio.quality === 'interactive' && pending?.quality === 'interactive' &&
+    !studio.complete && studio.received > 0;
+}
+
+function hold(t) {
+  early.push(t);
+  if (earlyTimer === null) earlyTimer = setTimeout(startEarly, EARLY_MAX_MS);
+}
+
+/** Starts the frame whose tiles were held, with them. */
+function startEarly() {
+  clearTimeout(earlyTimer);
+  earlyTimer = null;
+  const tiles = early;
+  early = [];
+  if (!pending || !tiles.length || tiles[0].generation !== pending.generation) return;
+  startFrame(pending);
+  for (const t of tiles) accept(t);
+}
+
+/** A tile of the frame shown. */
+function accept(t) {
+  backlog.push(t);
+  studio.received++;
+  if (studio.received === studio.units) studio.complete = true;
+  schedule();
+  frameProgress();
+  if (studio.complete && early.length) startEarly();
+}
+
 function listen() {
   // An EventSource cannot send a header: the one URL that carries the token.
   const source = new EventSource('/studio/events' + (token ? '?token=' + encodeURIComponent(token) : ''));
@@ -437,6 +483,7 @@ function listen() {
     const m = moment(pending.generation);
     m.asked ??= performance.now();
     m.quality ??= pending.quality;
+    m.preview ??= pending.preview;
   });
   source.addEventListener('tile', (e) => receive(JSON.parse(e.data)));
   source.addEventListener('snapshots', (e) => showSnapshots(JSON.parse(e.data).snapshots));
@@ -456,13 +503,15 @@ function listen() {
   });
   function receive(t) {
     moment(t.generation).arrived ??= performance.now();
-    if (pending && pending.generation === t.generation) startFrame(pending);
+    if (pending && pending.generation === t.generation) {
+      if (finishing()) {
+        hold(t);
+        return;
+      }
+      startFrame(pending);
+    }
     if (t.generation !== studio.generation) return;
-    backlog.push(t);
-    studio.received++;
-    if (studio.received === studio.units) studio.complete = true;
-    schedule();
-    frameProgress();
+    accept(t);
   }
   source.addEventListener('done', (e) => {
     const d = JSON.parse(e.data);
@@ -541,7 +590,11 @@ function slider(box, id, label, min, max, step, onInput) {
     `<output for="${escape(id)}"></output>`;
   box.appendChild(row);
   const input = row.querySelector('input');
-  input.addEventListener('input', () => onInput(input));
+  input.addEventListener('input', (e) => {
+    onInput(input);
+    studio.inputs.push(performance.now() - e.timeStamp);
+    if (studio.inputs.length > INPUTS_KEPT) studio.inputs.shift();
+  });
   return input;
 }
 
@@ -1319,13 +1372,14 @@ image.addEventListener('keydown', (e) => {
 
 let inFlight = false;
 let queued = null;
-// While a slider moves, the next frame waits for the one in flight to be
-// drawn whole (or, if it is slow, to have shown something for GATE_MS): a
-// frame replaced before its first tile would never be seen.
+// While a slider moves, the next frame waits for the one in flight to show
+// its first tile (or, if it is slow, for GATE_MAX_MS): a frame replaced
+// before its first tile would never be seen. The server renders a begun
+// interactive frame to its end with the next one queued behind it, so the
+// workers never wait for the page between the frames of a drag.
 let waitingFor = null;
 let gateTimer = null;
 let gateSince = 0;
-const GATE_MS = 300;
 const GATE_MAX_MS = 2000;
 
 function gated() {
@@ -1338,15 +1392,13 @@ function release() {
   flush();
 }
 
-/** Called as tiles arrive: the frame the gate waits for is whole. */
+/** Called as tiles arrive: the frame the gate waits for has begun. */
 function frameProgress() {
-  if (waitingFor !== null && studio.generation === waitingFor && studio.complete) release();
+  if (waitingFor !== null && studio.generation === waitingFor && studio.received > 0) release();
 }
 
 function checkGate() {
-  const now = performance.now();
-  const seen = studio.generation === waitingFor && studio.received > 0;
-  if ((seen && now - gateSince >= GATE_MS) || now - gateSince >= GATE_MAX_MS) release();
+  if (performance.now() - gateSince >= GATE_MAX_MS) release();
   else gateTimer = setTimeout(checkGate, 50);
 }
 
@@ -1438,7 +1490,10 @@ function send(change, asked, fromSlider) {
 
 /** The sliders' values as a change at `quality`. */
 function current(quality) {
-  return { knobs: { ...knobValues }, params: { ...paramValues }, quality, base: studio.version, gesture };
+  // While a pointer holds a control, a preview: the quarter of the pixels
+  // on the 2×-coarser lattice, so that a drag shows more of its values.
+  const preview = quality === 'interactive' && holding !== null;
+  return { knobs: { ...knobValues }, params: { ...paramValues }, quality, base: studio.version, gesture, preview };
 }
 
 function moved(name, input) {
@@ -1753,28 +1808,37 @@ window.addEventListener('resize', () => { if (compare) placeSplit(); });
 let boundsShown = false;
 
 /** The 12 edges of the bounds projected into the image (pixel coordinates),
- * through the camera the renderer uses; null when the text does not write
- * the bounds or a perspective camera. */
+ * through the camera the renderer uses (perspective or orthographic; `up`
+ * is (0, 1, 0) when the text leaves it out, as for the renderer); null when
+ * the text does not write the bounds or the camera. */
 function boundsEdges(view) {
   const value = (id) => paramValues[id] ?? view.params.find((p) => p.id === id)?.value;
   const vec = (name) => [0, 1, 2].map((i) => value(`${name}[${i}]`));
   const min = vec('march.bounds.min'), max = vec('march.bounds.max');
-  const eye = vec('camera.eye'), lookAt = vec('camera.look_at'), upIn = vec('camera.up');
-  const fov = view.params.find((p) => p.id.endsWith('fov_y'))?.value;
-  if (![...min, ...max, ...eye, ...lookAt, ...upIn, fov].every((x) => x !== undefined)) return null;
+  const eye = vec('camera.eye'), lookAt = vec('camera.look_at');
+  const written = vec('camera.up');
+  const upIn = written.every((x) => x === undefined) ? [0, 1, 0] : written;
+  const fov = value('camera.projection.Perspective.fov_y');
+  const height = value('camera.projection.Orthographic.height');
+  const perspective = fov !== undefined;
+  const half = perspective ? Math.tan((fov * Math.PI) / 360) : height / 2;
+  if (![...min, ...max, ...eye, ...lookAt, ...upIn, half].every((x) => x !== undefined)) return null;
   const forward = unit(sub(lookAt, eye));
   const right = unit(cross(forward, upIn));
   const up = cross(right, forward);
-  const half = Math.tan((fov * Math.PI) / 360);
   const aspect = studio.width / studio.height;
   const project = (p) => {
     const d = sub(p, eye);
     return [dot(d, right), dot(d, up), dot(d, forward)];
   };
-  const toPixel = ([x, y, z]) => [
-    ((x / (z * half * aspect)) + 1) / 2 * studio.width,
-    (1 - y / (z * half)) / 2 * studio.height,
-  ];
+  // Perspective divides by the depth; an orthographic view does not.
+  const toPixel = ([x, y, z]) => {
+    const depth = perspective ? z : 1;
+    return [
+      ((x / (depth * half * aspect)) + 1) / 2 * studio.width,
+      (1 - y / (depth * half)) / 2 * studio.height,
+    ];
+  };
   const corner = (i) => [0, 1, 2].map((a) => ((i >> a) & 1 ? max[a] : min[a]));
   const edges = [];
   for (let i = 0; i < 8; i++) {
@@ -1782,15 +1846,17 @@ function boundsEdges(view) {
       const j = i | (1 << a);
       if (j === i) continue;
       let p = project(corner(i)), q = project(corner(j));
-      // The part in front of the eye.
-      const near = 1e-3;
-      if (p[2] < near && q[2] < near) continue;
-      const cut = (a0, b0) => {
-        const t = (near - a0[2]) / (b0[2] - a0[2]);
-        return a0.map((v, k) => v + (b0[k] - v) * t);
-      };
-      if (p[2] < near) p = cut(p, q);
-      else if (q[2] < near) q = cut(q, p);
+      if (perspective) {
+        // The part in front of the eye.
+        const near = 1e-3;
+        if (p[2] < near && q[2] < near) continue;
+        const cut = (a0, b0) => {
+          const t = (near - a0[2]) / (b0[2] - a0[2]);
+          return a0.map((v, k) => v + (b0[k] - v) * t);
+        };
+        if (p[2] < near) p = cut(p, q);
+        else if (q[2] < near) q = cut(q, p);
+      }
       edges.push([toPixel(p), toPixel(q)]);
     }
   }

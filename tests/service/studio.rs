@@ -843,6 +843,45 @@ fn a_sphere_in_the_torus_bounds_is_warned_of_and_the_bounds_are_drawn() {
     let _ = studio.child.wait();
 }
 
+/// The bounds of an orthographic camera (the Pixel Stream Editor's marble:
+/// height 2.4, the bounds ±1.1 seen from (0, 1.2, 4)) are drawn without a
+/// perspective divide: the box's sides at x = ±1.1 fall at
+/// (±1.1 / 1.2 + 1) / 2 of the image's width, as the renderer's rays have
+/// them.
+#[test]
+fn an_orthographic_cameras_bounds_are_drawn_where_its_rays_are() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let dir = scratch("studio-bounds-orthographic");
+    let scene = small_copy(&dir, "scenes/pse/marble.ron", 48);
+    let mut studio = studio(&scene, &dir.join("data"), 1);
+    let port = studio.port();
+    studio.wait_for("serving on", 30);
+    let mut page = open_page(&chromium, &dir.join("page"), port);
+    page.wait_until(COMPLETE_HIGH, 120);
+    page.eval("document.getElementById('show-bounds').click()");
+    page.wait_until(
+        "studio.boundsDrawn === 12 && !document.getElementById('bounds').hasAttribute('hidden')",
+        30,
+    );
+    let xs = page.eval("JSON.stringify(boundsEdges(studio.view).flat().map(p => p[0]))");
+    let xs: Vec<f64> = serde_json::from_str(xs.as_str().unwrap()).unwrap();
+    let (lo, hi) = xs
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    let side = |x: f64| (x / 1.2 + 1.0) / 2.0 * 48.0;
+    assert!(
+        (lo - side(-1.1)).abs() < 1e-6 && (hi - side(1.1)).abs() < 1e-6,
+        "the box spans x {lo}..{hi}, the rays {}..{}",
+        side(-1.1),
+        side(1.1)
+    );
+    drop(page);
+    let _ = studio.child.kill();
+    let _ = studio.child.wait();
+}
+
 /// A curve is drawn as the renderer evaluates it: the `Step` alpha map of
 /// Gilet & Dischler's isolines stays 0 up to its second key, then 1 (read
 /// from the page's pixels: never the ramp its two points would make). At
@@ -1503,23 +1542,66 @@ fn latency() {
         one_shot.push(one_shot_seconds(&scene, &dir.join("one-shot.png")));
     }
 
-    // Dragging: a step every 16 ms for 4 s (a pointer at 60 Hz).
+    // Dragging: the slider pulled by the mouse (real input events through
+    // the DevTools protocol, one every 16 ms for 4 s: a pointer at 60 Hz),
+    // back and forth across its track.
     let g = browser.eval("studio.generation").as_u64().unwrap();
-    browser.eval(
-        &format!(
-            "new Promise(done => {{ let v = 20, n = 0; const k = document.getElementById({SLIDER:?}); \
-             const t = setInterval(() => {{ k.value = v += 0.25; k.dispatchEvent(new Event('input')); \
-             if (++n === 250) {{ clearInterval(t); done(); }} }}, 16); }})"
-        ),
+    let inputs_before = browser.eval("studio.inputs.length").as_u64().unwrap() as usize;
+    let track = browser.eval(&format!(
+        "(() => {{ const k = document.getElementById({SLIDER:?}); k.scrollIntoView({{ block: 'center' }}); \
+         const r = k.getBoundingClientRect(); return JSON.stringify([r.x, r.y + r.height / 2, r.width]); }})()"
+    ));
+    let track: Vec<f64> = serde_json::from_str(track.as_str().unwrap()).unwrap();
+    let (left, y, width) = (track[0], track[1], track[2]);
+    let at = |t: f64| {
+        let phase = (t / 2.0).fract();
+        let there = if phase < 0.5 {
+            2.0 * phase
+        } else {
+            2.0 - 2.0 * phase
+        };
+        left + width * (0.1 + 0.8 * there)
+    };
+    let mouse = |browser: &mut Browser, kind: &str, x: f64, buttons: u32| {
+        browser.call(
+            "Input.dispatchMouseEvent",
+            json!({ "type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        );
+    };
+    let moves = 250u32;
+    let step = Duration::from_millis(16);
+    mouse(&mut browser, "mouseMoved", at(0.0), 0);
+    mouse(&mut browser, "mousePressed", at(0.0), 1);
+    let began = std::time::Instant::now();
+    for i in 1..=moves {
+        if let Some(wait) = (step * i).checked_sub(began.elapsed()) {
+            std::thread::sleep(wait);
+        }
+        mouse(&mut browser, "mouseMoved", at((step * i).as_secs_f64()), 1);
+    }
+    let seconds = began.elapsed().as_secs_f64();
+    mouse(
+        &mut browser,
+        "mouseReleased",
+        at((step * moves).as_secs_f64()),
+        0,
     );
-    let seconds = 4.0;
     let drag = browser.eval(&format!(
         "JSON.stringify(studio.timings.filter(t => t.generation > {g} && t.quality === 'interactive'))"
     ));
     let drag: Vec<Value> = serde_json::from_str(drag.as_str().unwrap()).unwrap();
     let drawn_whole = drag.iter().filter(|t| t["complete"].is_number()).count();
     let seen = drag.iter().filter(|t| t["first"].is_number()).count();
+    let previews = drag.iter().filter(|t| t["preview"] == true).count();
     assert!(seen >= 1, "dragging shows frames: {drag:?}");
+    let inputs = browser.eval(&format!(
+        "JSON.stringify(studio.inputs.slice({inputs_before}))"
+    ));
+    let mut inputs: Vec<f64> = serde_json::from_str(inputs.as_str().unwrap()).unwrap();
+    assert!(!inputs.is_empty(), "the drag moved the slider");
+    inputs.sort_by(f64::total_cmp);
+    let over = inputs.iter().filter(|&&ms| ms > 16.0).count();
+    let p95 = inputs[(inputs.len() * 95 / 100).min(inputs.len() - 1)];
     let ratios: Vec<f64> = high.iter().zip(&one_shot).map(|(h, o)| h / o).collect();
     eprintln!(
         "studio latency, {scene_name} at {size}², 2 local workers, {rounds} rounds\n\
@@ -1533,7 +1615,8 @@ fn latency() {
          browser CPU with the page idle: {idle:.3} s a second\n\
          CPU per round (interactive frame, rest, high frame): browser median {:.3} s {browser_cpu:?}, \
          studio process {:.3} s {server_cpu:?}, workers {:.3} s {workers_cpu:?}\n\
-         dragging {seconds} s at 60 Hz: {drawn_whole} interactive frames drawn whole ({:.1}/s), {seen} with an image ({:.1}/s)",
+         dragging {seconds:.2} s at 60 Hz: {drawn_whole} interactive frames (values) drawn whole ({:.1}/s), {seen} with an image ({:.1}/s), {previews} of them previews\n\
+         input events while dragging: {}, handled (event's time stamp → end of its handler) in median {:.2} ms, 95% {p95:.2} ms, max {:.2} ms; {over} over 16 ms",
         median(answered.clone()),
         median(arrived.clone()),
         median(first.clone()),
@@ -1546,6 +1629,9 @@ fn latency() {
         median(workers_cpu.clone()),
         drawn_whole as f64 / seconds,
         seen as f64 / seconds,
+        inputs.len(),
+        median(inputs.clone()),
+        inputs[inputs.len() - 1],
     );
     drop(browser);
     let _ = studio.child.kill();

@@ -163,6 +163,9 @@ struct Live {
     /// Each slider's range, kept while it moves.
     ranges: BTreeMap<String, (f64, f64)>,
     frame: Option<LiveFrame>,
+    /// The interactive frame before `frame`, rendering to its end while
+    /// `frame` waits behind it in the farm ([`Studio::retire`]).
+    finishing: Option<LiveFrame>,
     generation: u64,
     /// The versions of the text and knob values (every tab's edits).
     versions: Versions,
@@ -235,6 +238,12 @@ pub struct Change {
     /// The frame of the sequence to show; absent: the one shown.
     #[serde(default)]
     pub frame: Option<u32>,
+    /// A preview, asked while a pointer holds a control: an interactive
+    /// frame at half the width and height (a quarter of the pixels, drawn
+    /// scaled up), so that a drag renders more of the values it passes
+    /// through. The edits' rest draws the whole frame at high quality.
+    #[serde(default)]
+    pub preview: bool,
 }
 
 impl Change {
@@ -251,6 +260,7 @@ impl Change {
             tab,
             gesture: None,
             frame,
+            preview: false,
         }
     }
 }
@@ -458,7 +468,7 @@ fn check(
     text: &str,
     name: &str,
     knobs: &BTreeMap<String, f64>,
-    (quality, frame): (Quality, u32),
+    (quality, frame, preview): (Quality, u32, bool),
     files: &Files,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
@@ -479,6 +489,8 @@ fn check(
         overrides: Overrides {
             quality: Some(quality),
             knobs: overrides(&values, &desc.knobs),
+            width: preview.then(|| desc.image.width.div_ceil(2)),
+            height: preview.then(|| desc.image.height.div_ceil(2)),
             ..Overrides::default()
         },
         // A live frame is drawn in the page: 8-bit colour is all it needs.
@@ -592,6 +604,7 @@ impl Studio {
                 grids: Vec::new(),
                 ranges: BTreeMap::new(),
                 frame: None,
+                finishing: None,
                 generation: 0,
                 versions: Versions::new(&text_read),
                 frame_number: 0,
@@ -643,6 +656,7 @@ impl Studio {
                 tab: None,
                 gesture: None,
                 frame: None,
+                preview: false,
             });
         }
     }
@@ -672,11 +686,14 @@ impl Studio {
         }
     }
 
-    /// Takes the frame in flight out of the farm (the service is stopping).
+    /// Takes the frames in flight out of the farm (the service is stopping).
     pub fn stop(&self) {
-        let job = self.live().frame.as_ref().map(|f| f.job);
-        if let (Some(job), Some(shared)) = (job, self.farm.get()) {
-            shared.remove_job(job);
+        let live = self.live();
+        let jobs = [&live.frame, &live.finishing].map(|f| f.as_ref().map(|f| f.job));
+        if let Some(shared) = self.farm.get() {
+            for job in jobs.into_iter().flatten() {
+                shared.remove_job(job);
+            }
         }
     }
 
@@ -712,10 +729,13 @@ impl Studio {
             if self.snapshot_tile(&mut live, &raw) {
                 continue;
             }
-            let Some(frame) = live.frame.as_mut() else {
-                continue;
+            let live = &mut *live;
+            let frame = match (live.frame.as_mut(), live.finishing.as_mut()) {
+                (Some(f), _) if f.job == raw.job => f,
+                (_, Some(f)) if f.job == raw.job => f,
+                _ => continue,
             };
-            if frame.job != raw.job || frame.recorded.get(raw.unit) != Some(&false) {
+            if frame.recorded.get(raw.unit) != Some(&false) {
                 continue;
             }
             let unit = frame.units[raw.unit];
@@ -764,6 +784,9 @@ impl Studio {
                     data: data.to_string(),
                 });
                 frame.events.push(event);
+            }
+            if live.finishing.as_ref().is_some_and(|f| f.remaining == 0) {
+                live.finishing = None;
             }
         }
     }
@@ -852,6 +875,7 @@ impl Studio {
             tab: None,
             gesture: None,
             frame: None,
+            preview: false,
         };
         if let Err(e) = self.change_live(&mut live, change) {
             tracing::warn!("the high-quality frame of {}: {e}", self.name);
@@ -889,7 +913,7 @@ impl Studio {
             && live.frame_number == frame_number;
         live.error = None;
         if !same {
-            self.start_frame(shared, live, &checked, change.quality)?;
+            self.start_frame(shared, live, &checked, (change.quality, change.preview))?;
             live.warning = bounds::warning(&checked.built.scene, frame_number);
         }
         live.frame_number = frame_number;
@@ -935,7 +959,14 @@ impl Studio {
         let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
         self.read_files(&text, &mut files)?;
         let frame = change.frame.unwrap_or(live.frame_number);
-        check(&text, &self.name, &knobs, (change.quality, frame), &files)
+        let preview = change.preview && change.quality == Quality::Interactive;
+        check(
+            &text,
+            &self.name,
+            &knobs,
+            (change.quality, frame, preview),
+            &files,
+        )
     }
 
     /// Makes `files` hold the files `text` names, read beside the opened
@@ -970,11 +1001,9 @@ impl Studio {
         shared: &Arc<Shared>,
         live: &mut Live,
         checked: &Checked,
-        quality: Quality,
+        (quality, preview): (Quality, bool),
     ) -> Result<(), String> {
-        if let Some(old) = live.frame.take() {
-            shared.remove_job(old.job);
-        }
+        Self::retire(shared, live, quality);
         live.generation += 1;
         let job = self.next_job.fetch_add(1, Ordering::Relaxed);
         let (interleave, expected) = shared.unit_layout();
@@ -988,6 +1017,7 @@ impl Studio {
             "interleave": interleave,
             "units": units.len(),
             "quality": quality,
+            "preview": preview && quality == Quality::Interactive,
             "frame": checked.built.request.frames.first,
         });
         let event = self.send(Event {
@@ -1009,6 +1039,36 @@ impl Studio {
             _scene: Arc::clone(&checked.built.scene),
         });
         submit(shared, checked, job, frame_units)
+    }
+
+    /// Takes the frames in flight out of the farm before a frame of
+    /// `quality` starts, but for a steered one: an interactive frame that an
+    /// interactive one follows renders to its end, and the new frame waits
+    /// behind it in the farm (the scheduler serves ties oldest first). So
+    /// the workers go from one frame of a drag to the next without waiting
+    /// for the page, and a frame the page has begun to draw is drawn whole.
+    /// One frame at most finishes so, the newest one begun: a frame that
+    /// never began gives its place to the new one, and one older than a
+    /// frame begun (the page draws the newer) leaves the farm.
+    fn retire(shared: &Shared, live: &mut Live, quality: Quality) {
+        let before = live.finishing.take().filter(|f| f.remaining > 0);
+        let old = live.frame.take().filter(|f| f.remaining > 0);
+        let steered = quality == Quality::Interactive
+            && old
+                .as_ref()
+                .is_some_and(|f| f.quality == Quality::Interactive);
+        let (keep, leave) = match (steered, old, before) {
+            (false, old, before) => (None, [old, before]),
+            (true, old, None) => (old, [None, None]),
+            (true, Some(old), Some(before)) if old.remaining < old.units.len() => {
+                (Some(old), [Some(before), None])
+            }
+            (true, old, before) => (before, [old, None]),
+        };
+        live.finishing = keep;
+        for frame in leave.into_iter().flatten() {
+            shared.remove_job(frame.job);
+        }
     }
 
     fn view(&self, live: &Live) -> SceneView {
@@ -1142,6 +1202,7 @@ impl Studio {
             tab: None,
             gesture: None,
             frame: None,
+            preview: false,
         })?;
         *known = Some(text);
         Ok(view)
@@ -1233,7 +1294,14 @@ impl Studio {
             let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
             self.read_files(&live.text, &mut files).map_err(bad)?;
             let at = (Quality::High, live.frame_number);
-            check(&live.text, &self.name, &live.knobs, at, &files).map_err(bad)?
+            check(
+                &live.text,
+                &self.name,
+                &live.knobs,
+                (at.0, at.1, false),
+                &files,
+            )
+            .map_err(bad)?
         };
         let job = self.next_job.fetch_add(1, Ordering::Relaxed);
         let (interleave, expected) = shared.unit_layout();
