@@ -1438,6 +1438,11 @@ impl Studio {
     }
 }
 
+/// The first scene (in path order) under `dir`, relative to it.
+pub fn first_scene(dir: &Path) -> Option<String> {
+    scenes::list(dir).into_iter().next()
+}
+
 /// Thumbnails go to the farm below the live frames: they never slow
 /// steering.
 const THUMBNAIL_PRIORITY: i32 = farm::LIVE_PRIORITY - 1;
