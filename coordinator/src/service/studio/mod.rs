@@ -733,7 +733,9 @@ impl Studio {
         if let Some(rx) = self.raw_rx.lock().unwrap_or_else(|p| p.into_inner()).take() {
             tokio::spawn(Arc::clone(self).record(rx));
         }
-        if self.catalogue.is_some() {
+        // Started on a directory, the thumbnails start with the studio; on a
+        // file, when the page first lists the scenes.
+        if self.catalogue.is_some() && self.browse_first {
             let studio = Arc::clone(self);
             tokio::task::spawn_blocking(move || studio.scan_scenes());
         }
@@ -1815,14 +1817,25 @@ fn high_once_rested(studio: &Arc<Studio>, generation: u64) {
 
 /// The browsed directory's scenes, listed again: `{"root", "scenes"}`.
 async fn list_scenes(State(ctx): State<Ctx>) -> Response {
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.scan_scenes()).await {
-        Ok(Ok(scenes)) => {
+    match blocking(&ctx.studio, Studio::scan_scenes).await {
+        Ok(scenes) => {
             let root = ctx.studio.root.as_ref().map(|r| r.display().to_string());
             Json(serde_json::json!({ "root": root, "scenes": scenes })).into_response()
         }
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+        Err(refused) => refused,
+    }
+}
+
+/// `f` of the studio on a blocking thread: its answer, or the refusal's
+/// response.
+async fn blocking<T: Send + 'static>(
+    studio: &Arc<Studio>,
+    f: impl FnOnce(&Studio) -> Result<T, Refused> + Send + 'static,
+) -> Result<T, Response> {
+    let studio = Arc::clone(studio);
+    match tokio::task::spawn_blocking(move || f(&studio)).await {
+        Ok(answer) => answer.map_err(IntoResponse::into_response),
+        Err(e) => Err(Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response()),
     }
 }
 
@@ -1862,14 +1875,12 @@ async fn open_scene(
         Ok(b) => b,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.open(&ask)).await {
-        Ok(Ok(view)) => {
+    match blocking(&ctx.studio, move |studio| studio.open(&ask)).await {
+        Ok(view) => {
             high_once_rested(&ctx.studio, view.generation);
             Json(view).into_response()
         }
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+        Err(refused) => refused,
     }
 }
 
@@ -1897,11 +1908,9 @@ async fn step(ctx: Ctx, query: TabQueryResult, back: bool) -> Response {
         Ok(Query(q)) => q.tab,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.step(back, tab)).await {
-        Ok(Ok(view)) => Json(view).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.step(back, tab)).await {
+        Ok(view) => Json(view).into_response(),
+        Err(refused) => refused,
     }
 }
 
@@ -1920,11 +1929,9 @@ async fn take_snapshot(
         Ok(b) => b,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.take_snapshot(&name)).await {
-        Ok(Ok(list)) => Json(serde_json::json!({ "snapshots": list })).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.take_snapshot(&name)).await {
+        Ok(list) => Json(serde_json::json!({ "snapshots": list })).into_response(),
+        Err(refused) => refused,
     }
 }
 
@@ -1936,11 +1943,9 @@ async fn restore_snapshot(State(ctx): State<Ctx>, id: IdPath, query: TabQueryRes
         (Err(e), _) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
         (_, Err(e)) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.restore(id, tab)).await {
-        Ok(Ok(view)) => Json(view).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.restore(id, tab)).await {
+        Ok(view) => Json(view).into_response(),
+        Err(refused) => refused,
     }
 }
 
