@@ -1532,10 +1532,15 @@ impl Studio {
     /// Stores `raw` when it is a tile of a thumbnail; returns whether it
     /// was. Every tab learns that a thumbnail is ready by a `scenes` event.
     fn thumbnail_tile(&self, raw: &RawTile) -> bool {
-        let Ok(mut catalogue) = self.catalogue() else {
+        let Some(catalogue) = &self.catalogue else {
             return false;
         };
-        match catalogue.store(raw.job, raw.unit, &raw.pixels) {
+        let stored = catalogue.lock().unwrap_or_else(|p| p.into_inner()).store(
+            raw.job,
+            raw.unit,
+            &raw.pixels,
+        );
+        match stored {
             None => false,
             Some(ready) => {
                 if ready {
@@ -1547,9 +1552,14 @@ impl Studio {
     }
 
     fn thumbnail_gave_up(&self, job: JobId, why: &str) {
-        if let Ok(mut catalogue) = self.catalogue()
-            && catalogue.fail(job, why)
-        {
+        let Some(catalogue) = &self.catalogue else {
+            return;
+        };
+        let failed = catalogue
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .fail(job, why);
+        if failed {
             self.send_scenes_changed();
         }
     }

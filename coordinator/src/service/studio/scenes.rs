@@ -11,8 +11,8 @@
 //!
 //! Paths are relative to the browsed directory, `/`-separated; [`confine`]
 //! refuses any that leaves it (`..`, absolute paths, symlinks out). The
-//! listing skips hidden directories (a name starting with `.`) and
-//! directories linked from elsewhere.
+//! listing skips hidden files and directories (a name starting with `.`)
+//! and links to directories; a linked scene is listed when it lies inside.
 
 use std::collections::HashMap;
 use std::path::{Component, Path, PathBuf};
