@@ -1114,7 +1114,11 @@ impl Studio {
             path: opened
                 .path
                 .as_deref()
-                .and_then(|p| p.strip_prefix(root).ok())
+                .and_then(|p| {
+                    // `studio fur.ron` browses `.`, and names the file without it.
+                    let here = root.as_os_str() == "." && p.is_relative();
+                    p.strip_prefix(root).ok().or(here.then_some(p))
+                })
                 .map(|p| p.to_string_lossy().replace('\\', "/")),
         });
         SceneView {
