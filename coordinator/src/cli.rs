@@ -264,9 +264,10 @@ pub enum Command {
     /// workers that stay between jobs, an HTTP/JSON API and metrics on the
     /// workers' port.
     Serve(ServeArgs),
-    /// The live studio: the service with its local workers and SCENE open in
-    /// a page (at the printed URL) that refines the image as units arrive,
-    /// with a slider per knob and the scene's text editable.
+    /// The live studio: the service with its local workers and SCENE (or the
+    /// first scene of DIR) open in a page (at the printed URL) that refines
+    /// the image as units arrive, with a slider per knob, the scene's text
+    /// editable and a browser of the directory's scenes.
     Studio(StudioArgs),
     /// Queue a job on a running service; prints its id.
     Submit(SubmitArgs),
@@ -390,8 +391,11 @@ pub struct ServeArgs {
 #[command(mut_arg("local_workers", |a| a.help("Local worker processes to start (default: one per core)")))]
 #[command(mut_arg("token", |a| a.help("Shared secret workers and the page must present")))]
 pub struct StudioArgs {
-    /// The scene file (RON) to open; Save writes it back (the old file to SCENE.bak).
-    #[arg(value_name = "SCENE")]
+    /// The scene file (RON) to open, or a directory: the page's scene browser
+    /// lists every `*.ron` scene under it (a file's own directory for a file)
+    /// with thumbnails, and opens the first in path order. Save writes the
+    /// open scene back (the file before to SCENE.~N~).
+    #[arg(value_name = "SCENE|DIR")]
     pub scene: PathBuf,
     /// Where it listens and its local workers.
     #[command(flatten)]

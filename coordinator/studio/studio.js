@@ -487,6 +487,9 @@ function listen() {
   });
   source.addEventListener('tile', (e) => receive(JSON.parse(e.data)));
   source.addEventListener('snapshots', (e) => showSnapshots(JSON.parse(e.data).snapshots));
+  source.addEventListener('scenes', () => {
+    if (browserShown) refreshScenes();
+  });
   // Another tab's edit: its text, values and ranges (this tab's own edits
   // come back in the answer to its request).
   source.addEventListener('scene', (e) => {
@@ -693,6 +696,7 @@ function showScene(view, { text, sliders }) {
   studio.version = Math.max(studio.version, view.version);
   if (view.frame !== undefined && !pending) showFrameNumber(view.frame);
   $('scene-name').textContent = view.name;
+  document.title = `${view.browser?.path ?? view.name} · hypertexture studio`;
   $('save').disabled = !view.savable;
   $('error').textContent = view.error || '';
   if (text) {
@@ -1421,7 +1425,9 @@ function textDirty() {
  * unless this tab's text has edits of its own, the text. */
 function others(view) {
   if (view.version <= studio.version) return;
-  showScene(view, { text: !textDirty(), sliders: true });
+  const switched = studio.view !== null && view.name !== studio.view.name;
+  if (switched) sceneSwitched();
+  showScene(view, { text: switched || !textDirty(), sliders: true });
 }
 
 /** An edit refused because another tab changed the same value or lines:
@@ -1527,7 +1533,10 @@ $('text').addEventListener('input', () => {
 function save(over) {
   $('changed-on-disk').hidden = true;
   call('POST', over ? '/studio/save?over=true' : '/studio/save').then(
-    (r) => { $('action-result').textContent = r.saved; },
+    (r) => {
+      $('action-result').textContent = r.saved;
+      if (browserShown) refreshScenes();
+    },
     (e) => {
       $('action-result').textContent = e.message;
       if (e.status === 409) $('changed-on-disk').hidden = false;
@@ -1655,6 +1664,7 @@ function showHistory(view) {
   }
   if (view.snapshots) showSnapshots(view.snapshots);
   drawBounds();
+  offerBrowser(view);
 }
 
 studio.snapshots = [];
@@ -1898,3 +1908,144 @@ call('GET', '/studio/scene').then((view) => {
   showScene(view, { text: true, sliders: true });
   listen();
 }, (e) => { $('error').textContent = e.message; });
+
+// ---- The scene browser ------------------------------------------------------
+// The browsed directory's scenes (GET /studio/scenes), each with its
+// thumbnail, fetched once per key (a new key: the scene's text or files
+// changed). A `scenes` event says a thumbnail is ready. Opening a scene
+// switches every tab: its text, controls, history and snapshots.
+
+studio.scenes = [];        // the last listing
+studio.thumbnails = {};    // path → {key, url} of each thumbnail loaded
+let browserShown = false;
+let browserOffered = false;
+let listing = false;       // a listing on its way
+let listAgain = false;     // another asked meanwhile
+
+function showBrowser(on) {
+  browserShown = on;
+  $('browser').hidden = !on;
+  $('scenes-toggle').setAttribute('aria-pressed', String(on));
+  if (on) refreshScenes();
+}
+$('scenes-toggle').addEventListener('click', () => showBrowser(!browserShown));
+
+/** Shows the browser's button (and, the first time, the browser itself
+ * when the studio was started on a directory); marks the live scene. */
+function offerBrowser(view) {
+  $('scenes-toggle').hidden = !view.browser;
+  if (view.browser && !browserOffered) {
+    browserOffered = true;
+    if (view.browser.first) showBrowser(true);
+  }
+  markLive();
+}
+
+async function refreshScenes() {
+  if (listing) {
+    listAgain = true;
+    return;
+  }
+  listing = true;
+  try {
+    const { root, scenes } = await call('GET', '/studio/scenes');
+    studio.scenes = scenes;
+    $('browser-root').textContent = root;
+    listScenes(scenes);
+    await Promise.all(scenes.filter((s) => s.ready && studio.thumbnails[s.path]?.key !== s.key)
+      .map(loadThumbnail));
+  } catch (e) {
+    $('browser-message').textContent = e.message;
+  } finally {
+    listing = false;
+    if (listAgain) {
+      listAgain = false;
+      refreshScenes();
+    }
+  }
+}
+
+async function loadThumbnail(s) {
+  const response = await fetch('/studio/scenes/thumbnail?path=' + encodeURIComponent(s.path),
+    { headers: headers(false) });
+  if (!response.ok) return;
+  const url = URL.createObjectURL(await response.blob());
+  const old = studio.thumbnails[s.path];
+  if (old) URL.revokeObjectURL(old.url);
+  studio.thumbnails[s.path] = { key: s.key, url };
+  for (const img of document.querySelectorAll('#scene-list img')) {
+    if (img.dataset.path === s.path) img.src = url;
+  }
+}
+
+function listScenes(scenes) {
+  const box = $('scene-list');
+  box.innerHTML = '';
+  for (const s of scenes) {
+    const item = document.createElement('li');
+    const b = document.createElement('button');
+    b.type = 'button';
+    b.className = 'scene';
+    b.dataset.path = s.path;
+    b.title = s.title ? `${s.path}: ${s.title}` : s.path;
+    const img = document.createElement('img');
+    img.dataset.path = s.path;
+    img.alt = s.title || s.name;
+    const thumb = studio.thumbnails[s.path];
+    if (thumb && thumb.key === s.key) img.src = thumb.url;
+    img.hidden = Boolean(s.error);
+    const name = document.createElement('span');
+    name.className = 'scene-name';
+    name.textContent = s.path;
+    b.append(img, name);
+    if (s.error) {
+      const error = document.createElement('span');
+      error.className = 'scene-error';
+      error.textContent = s.error;
+      b.append(error);
+    }
+    b.addEventListener('click', () => openScene(s.path, false));
+    item.append(b);
+    box.append(item);
+  }
+  markLive();
+}
+
+function markLive() {
+  const live = studio.view?.browser?.path;
+  for (const b of document.querySelectorAll('#scene-list button.scene')) {
+    const on = b.dataset.path === live;
+    b.classList.toggle('live', on);
+    if (on) b.setAttribute('aria-current', 'true');
+    else b.removeAttribute('aria-current');
+  }
+}
+
+/** Opens scene `path` for every tab; unsaved edits of the scene shown are
+ * refused unless `discard`: the browser offers "Discard and open". */
+function openScene(path, discard) {
+  $('discard-open').hidden = true;
+  $('browser-message').textContent = '';
+  call('POST', '/studio/open', { path, base: studio.version, discard, tab: TAB }).then((view) => {
+    sceneSwitched();
+    showScene(view, { text: true, sliders: true });
+  }, (e) => {
+    $('browser-message').textContent = e.message;
+    if (e.status === 409 && e.message.startsWith('unsaved edits')) {
+      $('discard-open').hidden = false;
+      $('discard-open').onclick = () => openScene(path, true);
+    }
+  });
+}
+
+/** Another scene is shown: nothing of the one before is sent with it. */
+function sceneSwitched() {
+  clearTimeout(editTimer);
+  editTimer = null;
+  queued = null;
+  for (const key of Object.keys(knobValues)) delete knobValues[key];
+  for (const key of Object.keys(paramValues)) delete paramValues[key];
+  $('conflict').hidden = true;
+  $('changed-on-disk').hidden = true;
+  if (compare) closeCompare();
+}

@@ -23,6 +23,7 @@ use crate::support::{
 };
 use serde_json::{Value, json};
 
+mod browser;
 mod curves;
 
 const COMPLETE_HIGH: &str = "studio.drawn && studio.quality === 'high'";

@@ -35,7 +35,7 @@ use tonic::{Request, Response, Status};
 pub use crate::farm::scheduler::{Accepted, JobId};
 use crate::farm::scheduler::{Next, Refusal, Scheduler};
 use crate::image::canvas::FrameImage;
-pub use view::{QueueView, WorkerSummary};
+pub use view::{LIVE_PRIORITY, QueueView, WorkerSummary};
 
 /// The largest HTTP/2 frame the coordinator accepts (the protocol's default is
 /// 16 KiB, less than a tile of whole-set units at 512²).

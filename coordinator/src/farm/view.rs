@@ -11,6 +11,9 @@ use hypertexture_proto::convert::WireError;
 use super::scheduler::{JobId, JobPlan, JobProgress, Resume};
 use super::{FarmStats, Shared, WireJob};
 
+/// The studio's live frames' priority: above every other job.
+pub const LIVE_PRIORITY: i32 = i32::MAX;
+
 /// A worker in the farm, as the service lists it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WorkerSummary {
@@ -130,12 +133,12 @@ impl Shared {
         view
     }
 
-    /// Adds a job of one frame, `frame`, of `units` that goes before every
-    /// other and whose units are not rendered twice (the studio's live
-    /// frames: their first coarse image waits for nothing).
+    /// Adds a job of one frame, `frame`, of `units` at `priority` whose
+    /// units are not rendered twice (the studio's live frames, at
+    /// [`LIVE_PRIORITY`]: their first coarse image waits for nothing).
     pub fn add_live_frame(
         &self,
-        (id, frame): (JobId, u32),
+        (id, frame, priority): (JobId, u32, i32),
         units: Vec<WorkUnit>,
         (width, height): (u32, u32),
         format: PixelFormat,
@@ -143,7 +146,7 @@ impl Shared {
     ) -> Result<(), WireError> {
         let plan = JobPlan {
             frames: FrameRange::one(frame),
-            ..JobPlan::one_frame(id, i32::MAX, units, (width, height), format)
+            ..JobPlan::one_frame(id, priority, units, (width, height), format)
         };
         self.add_job(plan, Resume::default(), wire)
     }

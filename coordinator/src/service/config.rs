@@ -53,7 +53,7 @@ pub struct ServeConfig {
 /// `coordinator studio`'s settings.
 #[derive(Clone, Debug)]
 pub struct StudioConfig {
-    /// The scene file to open.
+    /// The scene file to open, or a directory whose first scene opens.
     pub scene: PathBuf,
     /// Where to listen.
     pub listen: SocketAddr,
@@ -110,6 +110,7 @@ impl ServeConfig {
             },
             drain_timeout: self.drain_timeout,
             studio_scene: None,
+            studio_root: None,
             accept_older_store: self.accept_older_store,
             output_roots,
             max_queued: self.max_queued,
@@ -123,14 +124,11 @@ impl StudioConfig {
     /// or in the working directory; the store is a fresh temporary
     /// directory unless given.
     pub fn service_config(self) -> Result<ServiceConfig, ServiceError> {
+        let (scene, scene_dir, browse_first) = self.opened()?;
         let data = self.data.unwrap_or_else(|| {
             std::env::temp_dir().join(format!("hypertexture-studio-{}", std::process::id()))
         });
-        let scene_dir = match self.scene.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let mut dirs = vec![scene_dir];
+        let mut dirs = vec![scene_dir.clone()];
         if let Ok(cwd) = std::env::current_dir()
             && cwd.parent().is_some()
         {
@@ -155,12 +153,36 @@ impl StudioConfig {
                 allow_hosts: self.allow_hosts,
             },
             drain_timeout: Duration::from_secs(5),
-            studio_scene: Some(self.scene),
+            studio_scene: Some(scene),
+            studio_root: Some((scene_dir, browse_first)),
             accept_older_store: false,
             output_roots,
             max_queued: limits::DEFAULT_MAX_QUEUED,
             keep_ended: limits::KeepEnded::default(),
         })
+    }
+}
+
+impl StudioConfig {
+    /// The scene to open, the directory the scene browser lists, and whether
+    /// the page opens with the browser shown: a directory's first scene (in
+    /// path order), shown; or a file and its own directory. A directory
+    /// without scenes is an error naming it.
+    fn opened(&self) -> Result<(PathBuf, PathBuf, bool), ServiceError> {
+        if self.scene.is_dir() {
+            let first = crate::service::studio::first_scene(&self.scene).ok_or_else(|| {
+                ServiceError::Studio(format!(
+                    "{}: no scenes (`*.ron` files) in this directory",
+                    self.scene.display()
+                ))
+            })?;
+            return Ok((self.scene.join(first), self.scene.clone(), true));
+        }
+        let dir = match self.scene.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        Ok((self.scene.clone(), dir, false))
     }
 }
 

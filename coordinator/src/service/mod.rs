@@ -52,6 +52,9 @@ pub struct ServiceConfig {
     pub drain_timeout: Duration,
     /// The scene the studio (at `/`) opens, if any (`coordinator studio SCENE`).
     pub studio_scene: Option<PathBuf>,
+    /// The directory the studio's scene browser lists, and whether the page
+    /// opens with it shown.
+    pub studio_root: Option<(PathBuf, bool)>,
     /// Open a store older than its generation file (`--accept-older-store`).
     pub accept_older_store: bool,
     /// The directories outputs may be written in.
@@ -1038,14 +1041,16 @@ pub async fn serve(
 ) -> Result<(), ServiceError> {
     let service = open_service(&config)?;
     let control: Arc<dyn Control> = Arc::new(Arc::clone(&service));
-    let studio = Arc::new(
-        studio::Studio::new(
-            config.studio_scene.as_deref(),
-            &config.data,
-            config.farm.token.clone(),
-        )
-        .map_err(ServiceError::Studio)?,
-    );
+    let studio = studio::Studio::new(
+        config.studio_scene.as_deref(),
+        &config.data,
+        config.farm.token.clone(),
+    )
+    .map_err(ServiceError::Studio)?;
+    let studio = Arc::new(match &config.studio_root {
+        Some((root, first)) => studio.browsing(root.clone(), *first),
+        None => studio,
+    });
     let routes = studio::router(Arc::clone(&studio), Arc::clone(&control))
         .merge(crate::service::api::router(
             control,

@@ -28,8 +28,18 @@
 //! the edits rest for [`REST`], the server draws the high-quality frame
 //! itself.
 //!
-//! Lock order: the studio's state, then the farm's state. The tile sink takes
-//! no studio lock.
+//! `coordinator studio DIR` (or a scene file, whose directory is browsed)
+//! lists the directory's scenes with thumbnails the farm renders below the
+//! live frame's priority ([`scenes`]). Opening one (`POST /studio/open`)
+//! switches the live scene for every tab: Save, Reload and Render final act
+//! on its file from then on. The undo history and the snapshots belong to
+//! the scene: an open drops those of the scene before, and its first
+//! version is newer than any of that scene's, so an edit a tab made on the
+//! scene before is refused as stale rather than applied to the new text.
+//!
+//! Lock order: the studio's state, then the scene browser's catalogue, then
+//! the farm's state; the opened file's name and path are a leaf lock, set
+//! only with the studio's state held. The tile sink takes no studio lock.
 //!
 //! | Method and path          | What                                                      |
 //! |--------------------------|-----------------------------------------------------------|
@@ -40,12 +50,15 @@
 //! | `POST /studio/reload`    | takes SCENE's text from disk: a new frame                 |
 //! | `POST /studio/final`     | queues the shown text as a job writing `STEM.final.NNNN.png` (the next free N) |
 //! | `GET /studio/final/N`    | final render N's PNG                                      |
-//! | `GET /studio/events`     | Server-Sent Events: `scene`, `frame`, `tile`, `tiles`, `done`, `status`, `error`, `snapshots` |
+//! | `GET /studio/events`     | Server-Sent Events: `scene`, `frame`, `tile`, `tiles`, `done`, `status`, `error`, `snapshots`, `scenes` (a thumbnail is ready) |
 //! | `GET /studio/tiles?generation=G&from=A&to=B` | the pixels of the current frame's tiles A..B, one after another |
 //! | `POST /studio/undo[?tab=T]`, `POST /studio/redo[?tab=T]` | steps back or forward through the one history of every tab's edits: a new version; 409 when there is no step |
 //! | `POST /studio/snapshots` | `{"name": N}`: a snapshot of the shown state, its image rendered by the farm; answers the list |
 //! | `POST /studio/snapshots/ID/restore[?tab=T]` | sets the snapshot's text and frame back, as an edit |
 //! | `GET /studio/snapshots/ID/pixels` | its image's 8-bit sRGB RGBA, row-major (409 until rendered) |
+//! | `GET /studio/scenes`     | the browsed directory's scenes ([`scenes`]): each one's path, name, title, thumbnail state and error; 404 when the studio browses none |
+//! | `GET /studio/scenes/thumbnail?path=REL` | a scene's thumbnail (PNG): 409 while it renders, 404 for a path not listed or a scene that does not build, 400 for a path outside the directory |
+//! | `POST /studio/open`      | `{"path": REL, "base": V, "discard": false}`: that scene becomes the live one, in every tab; 400 outside the directory, 404 no such scene, 409 for unsaved edits (unless `discard`) or a stale `base` |
 //!
 //! With a token, the data routes (not the static page, which holds nothing of
 //! the service) need `Authorization: Bearer <token>`; the event stream alone
@@ -80,6 +93,7 @@ use snapshots::{Render, Snapshot, SnapshotView, Snapshots};
 use versions::{Edit, Origin, Stale, Versions};
 
 mod bounds;
+mod scenes;
 mod shape;
 mod snapshots;
 mod versions;
@@ -177,8 +191,9 @@ struct Live {
     warning: Option<String>,
 }
 
-/// The studio of a service.
-pub struct Studio {
+/// The scene file the studio shows.
+#[derive(Clone, Debug)]
+struct Opened {
     /// The scene file opened (Save writes it), if any.
     path: Option<PathBuf>,
     /// The scene's name in messages.
@@ -186,8 +201,43 @@ pub struct Studio {
     /// Where "render final" writes its images: `PREFIX.0001.png`,
     /// `PREFIX.0002.png`, … (the prefix is `DIR/STEM.final`).
     final_prefix: PathBuf,
-    /// The last final render's number handed out.
-    last_final: Mutex<u32>,
+}
+
+impl Opened {
+    /// The scene file at `path`, its final renders beside it.
+    fn file(path: &Path) -> Opened {
+        let stem = path
+            .file_stem()
+            .map_or_else(|| "scene".into(), |s| s.to_string_lossy().into_owned());
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let prefix = dir.join(format!("{stem}.final"));
+        let prefix = std::path::absolute(&prefix).unwrap_or(prefix);
+        Opened {
+            path: Some(path.to_path_buf()),
+            name: path.display().to_string(),
+            final_prefix: prefix,
+        }
+    }
+}
+
+/// The studio of a service.
+pub struct Studio {
+    /// The scene shown (a leaf lock: taken after the live state's, and
+    /// changed with it held).
+    opened: Mutex<Opened>,
+    /// The final renders handed out, by number: their files.
+    finals: Mutex<BTreeMap<u32, PathBuf>>,
+    /// The scenes of the browsed directory and their thumbnails (none when
+    /// the studio browses no directory). Taken after the live state's lock,
+    /// before the farm's.
+    catalogue: Option<Mutex<scenes::Catalogue>>,
+    /// The directory browsed, if any.
+    root: Option<PathBuf>,
+    /// Whether the page opens with the scene browser shown.
+    browse_first: bool,
     live: Mutex<Live>,
     raw: mpsc::UnboundedSender<RawTile>,
     raw_rx: Mutex<Option<mpsc::UnboundedReceiver<RawTile>>>,
@@ -275,12 +325,25 @@ pub struct KnobView {
     default: f64,
 }
 
+/// The scene browser as the page shows it.
+#[derive(Clone, Debug, Serialize)]
+pub struct BrowserView {
+    /// The directory browsed.
+    root: String,
+    /// The page opens with the browser shown.
+    first: bool,
+    /// The scene shown, relative to `root` (none: not a file inside it).
+    path: Option<String>,
+}
+
 /// The scene as the page shows it.
 #[derive(Clone, Debug, Serialize)]
 pub struct SceneView {
     name: String,
     /// Whether Save can write the file.
     savable: bool,
+    /// The scene browser, when the studio browses a directory.
+    browser: Option<BrowserView>,
     /// The text for the current knob values.
     text: String,
     knobs: Vec<KnobView>,
@@ -462,13 +525,46 @@ struct Files {
     sent: Vec<farm::Asset>,
 }
 
+/// Makes `files` hold the files `text` names, read beside the scene file
+/// `name`. A text that does not parse keeps the files: its build gives the
+/// parse error.
+fn load_files(text: &str, name: &str, files: &mut Files) -> Result<(), String> {
+    let Ok(desc) = hypertexture::scene::parse(text, name) else {
+        return Ok(());
+    };
+    let paths = desc.mesh_paths();
+    if paths == files.paths {
+        return Ok(());
+    }
+    let assets = hypertexture::scene::Assets::load(&desc, name, Default::default())
+        .map_err(|e| e.to_string())?;
+    let sent = farm::Asset::read_all(&assets.hashes(), name)?;
+    *files = Files {
+        paths,
+        assets,
+        sent,
+    };
+    Ok(())
+}
+
+/// The size a live frame is rendered at.
+#[derive(Clone, Copy, Debug)]
+enum Size {
+    /// The scene's own.
+    Scene,
+    /// Half its width and height (rounded up): a preview.
+    Half,
+    /// This width and height (a thumbnail).
+    Exactly(u32, u32),
+}
+
 /// Parses and builds `text` at `quality` with `knobs` (clamped to their
 /// ranges; absent ones at their defaults): the CLI's parser and messages.
 fn check(
     text: &str,
     name: &str,
     knobs: &BTreeMap<String, f64>,
-    (quality, frame, preview): (Quality, u32, bool),
+    (quality, frame, size): (Quality, u32, Size),
     files: &Files,
 ) -> Result<Checked, String> {
     let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
@@ -485,12 +581,20 @@ fn check(
             (k.clone(), v)
         })
         .collect();
+    let (width, height) = match size {
+        Size::Scene => (None, None),
+        Size::Half => (
+            Some(desc.image.width.div_ceil(2)),
+            Some(desc.image.height.div_ceil(2)),
+        ),
+        Size::Exactly(w, h) => (Some(w), Some(h)),
+    };
     let request = RenderRequest {
         overrides: Overrides {
+            width,
+            height,
             quality: Some(quality),
             knobs: overrides(&values, &desc.knobs),
-            width: preview.then(|| desc.image.width.div_ceil(2)),
-            height: preview.then(|| desc.image.height.div_ceil(2)),
             ..Overrides::default()
         },
         // A live frame is drawn in the page: 8-bit colour is all it needs.
@@ -527,11 +631,12 @@ fn overrides(
     )
 }
 
-/// Puts the frame of `checked` on the farm as live job `job` of `units`.
+/// Puts the frame of `checked` on the farm as live job `job` of `units`, at
+/// `priority`.
 fn submit(
     shared: &Shared,
     checked: &Checked,
-    job: JobId,
+    (job, priority): (JobId, i32),
     units: Vec<WorkUnit>,
 ) -> Result<(), String> {
     let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
@@ -549,7 +654,7 @@ fn submit(
     };
     shared
         .add_live_frame(
-            (job, checked.built.request.frames.first),
+            (job, checked.built.request.frames.first, priority),
             units,
             (width, height),
             PixelFormat::Srgb8,
@@ -562,35 +667,31 @@ impl Studio {
     /// A studio of the scene at `path` (none: an empty editor), whose final
     /// renders go beside the scene (or into the working directory).
     pub fn new(path: Option<&Path>, data: &Path, token: Option<String>) -> Result<Studio, String> {
-        let (text, name, final_prefix) = match path {
+        let (text, opened) = match path {
             Some(p) => {
                 let text = std::fs::read_to_string(p)
                     .map_err(|e| format!("{}: cannot read the scene: {e}", p.display()))?;
-                let stem = p
-                    .file_stem()
-                    .map_or_else(|| "scene".into(), |s| s.to_string_lossy().into_owned());
-                let dir = match p.parent() {
-                    Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-                    _ => PathBuf::from("."),
-                };
-                let prefix = dir.join(format!("{stem}.final"));
-                let prefix = std::path::absolute(&prefix).unwrap_or(prefix);
-                (text, p.display().to_string(), prefix)
+                (text, Opened::file(p))
             }
             // Without a scene, in the directory serve runs in (an output root).
             None => (
                 String::new(),
-                "scene.ron".to_string(),
-                std::path::absolute("studio.final").unwrap_or_else(|_| data.join("studio.final")),
+                Opened {
+                    path: None,
+                    name: "scene.ron".to_string(),
+                    final_prefix: std::path::absolute("studio.final")
+                        .unwrap_or_else(|_| data.join("studio.final")),
+                },
             ),
         };
         let text_read = text.clone();
         let (raw, raw_rx) = mpsc::unbounded_channel();
         Ok(Studio {
-            path: path.map(Path::to_path_buf),
-            name,
-            final_prefix,
-            last_final: Mutex::new(0),
+            opened: Mutex::new(opened),
+            finals: Mutex::new(BTreeMap::new()),
+            catalogue: None,
+            root: None,
+            browse_first: false,
             live: Mutex::new(Live {
                 shown: text.clone(),
                 text,
@@ -622,6 +723,24 @@ impl Studio {
         })
     }
 
+    /// The studio with a scene browser over the directory `root`; the page
+    /// opens with it shown when `first`.
+    pub fn browsing(self, root: PathBuf, first: bool) -> Studio {
+        Studio {
+            catalogue: Some(Mutex::new(scenes::Catalogue::new(root.clone()))),
+            root: Some(root),
+            browse_first: first,
+            ..self
+        }
+    }
+
+    fn opened(&self) -> Opened {
+        self.opened
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
     /// The message of the current text's error, if it has one (the same the
     /// page shows at its line and column).
     pub fn error(&self) -> Option<String> {
@@ -643,6 +762,12 @@ impl Studio {
         let _ = self.farm.set(shared);
         if let Some(rx) = self.raw_rx.lock().unwrap_or_else(|p| p.into_inner()).take() {
             tokio::spawn(Arc::clone(self).record(rx));
+        }
+        // Started on a directory, the thumbnails start with the studio; on a
+        // file, when the page first lists the scenes.
+        if self.catalogue.is_some() && self.browse_first {
+            let studio = Arc::clone(self);
+            tokio::task::spawn_blocking(move || studio.scan_scenes());
         }
         let text = self.live().text.clone();
         if !text.is_empty() {
@@ -679,6 +804,7 @@ impl Studio {
         }
         if let Some(why) = gave_up {
             self.snapshot_gave_up(job, &why);
+            self.thumbnail_gave_up(job, &why);
             self.send(Event {
                 name: "error",
                 data: serde_json::json!({ "error": why }).to_string(),
@@ -726,7 +852,7 @@ impl Studio {
                 return;
             };
             let mut live = self.live();
-            if self.snapshot_tile(&mut live, &raw) {
+            if self.snapshot_tile(&mut live, &raw) || self.thumbnail_tile(&raw) {
                 continue;
             }
             let live = &mut *live;
@@ -878,7 +1004,7 @@ impl Studio {
             preview: false,
         };
         if let Err(e) = self.change_live(&mut live, change) {
-            tracing::warn!("the high-quality frame of {}: {e}", self.name);
+            tracing::warn!("the high-quality frame of {}: {e}", self.opened().name);
         }
     }
 
@@ -957,41 +1083,25 @@ impl Studio {
             params::with_values(&text, &change.params)?
         };
         let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
-        self.read_files(&text, &mut files)?;
+        let name = self.read_files(&text, &mut files)?;
         let frame = change.frame.unwrap_or(live.frame_number);
-        let preview = change.preview && change.quality == Quality::Interactive;
-        check(
-            &text,
-            &self.name,
-            &knobs,
-            (change.quality, frame, preview),
-            &files,
-        )
+        let size = if change.preview && change.quality == Quality::Interactive {
+            Size::Half
+        } else {
+            Size::Scene
+        };
+        check(&text, &name, &knobs, (change.quality, frame, size), &files)
     }
 
     /// Makes `files` hold the files `text` names, read beside the opened
-    /// scene file (nothing when the studio opened none). A text that does not
-    /// parse keeps the files: its build gives the parse error.
-    fn read_files(&self, text: &str, files: &mut Files) -> Result<(), String> {
-        if self.path.is_none() {
-            return Ok(());
+    /// scene file (nothing when the studio opened none); answers the scene's
+    /// name.
+    fn read_files(&self, text: &str, files: &mut Files) -> Result<String, String> {
+        let opened = self.opened();
+        if opened.path.is_some() {
+            load_files(text, &opened.name, files)?;
         }
-        let Ok(desc) = hypertexture::scene::parse(text, &self.name) else {
-            return Ok(());
-        };
-        let paths = desc.mesh_paths();
-        if paths == files.paths {
-            return Ok(());
-        }
-        let assets = hypertexture::scene::Assets::load(&desc, &self.name, Default::default())
-            .map_err(|e| e.to_string())?;
-        let sent = farm::Asset::read_all(&assets.hashes(), &self.name)?;
-        *files = Files {
-            paths,
-            assets,
-            sent,
-        };
-        Ok(())
+        Ok(opened.name)
     }
 
     /// Takes the frame in flight off the farm and puts the frame of
@@ -1038,7 +1148,7 @@ impl Studio {
             flush_at: None,
             _scene: Arc::clone(&checked.built.scene),
         });
-        submit(shared, checked, job, frame_units)
+        submit(shared, checked, (job, farm::LIVE_PRIORITY), frame_units)
     }
 
     /// Takes the frames in flight out of the farm before a frame of
@@ -1072,9 +1182,24 @@ impl Studio {
     }
 
     fn view(&self, live: &Live) -> SceneView {
+        let opened = self.opened();
+        let browser = self.root.as_ref().map(|root| BrowserView {
+            root: root.display().to_string(),
+            first: self.browse_first,
+            path: opened
+                .path
+                .as_deref()
+                .and_then(|p| {
+                    // `studio fur.ron` browses `.`, and names the file without it.
+                    let here = root.as_os_str() == "." && p.is_relative();
+                    p.strip_prefix(root).ok().or(here.then_some(p))
+                })
+                .map(|p| p.to_string_lossy().replace('\\', "/")),
+        });
         SceneView {
-            name: self.name.clone(),
-            savable: self.path.is_some(),
+            name: opened.name,
+            savable: opened.path.is_some(),
+            browser,
             text: live.shown.clone(),
             knobs: live
                 .declared
@@ -1107,12 +1232,17 @@ impl Studio {
     /// changes nothing writes nothing. Unless `over`, a file changed on disk
     /// since the studio read or wrote it is refused ([`SaveRefused::Changed`]).
     fn save(&self, over: bool) -> Result<String, SaveRefused> {
-        let path = self.path.as_ref().ok_or_else(|| {
+        // The text and its file, together (an open switches both).
+        let (text, path) = {
+            let live = self.live();
+            (live.shown.clone(), self.opened().path)
+        };
+        let path = path.ok_or_else(|| {
             SaveRefused::Other(
                 "no scene file is open (start with `coordinator studio SCENE`)".to_string(),
             )
         })?;
-        let text = self.live().shown.clone();
+        let path = &path;
         let mut known = self.on_disk.lock().unwrap_or_else(|p| p.into_inner());
         let disk = match std::fs::read_to_string(path) {
             Ok(t) => Some(t),
@@ -1139,7 +1269,7 @@ impl Studio {
             }
             None => None,
         };
-        let mut tmp = path.clone().into_os_string();
+        let mut tmp = path.as_os_str().to_os_string();
         tmp.push(".tmp");
         let tmp = PathBuf::from(tmp);
         std::fs::write(&tmp, &text).map_err(|e| io(&tmp, e))?;
@@ -1159,12 +1289,18 @@ impl Studio {
     /// quality and samples, into the next free `PREFIX.NNNN.png` (past every
     /// one on disk and every one handed out), with that number.
     fn final_job(&self) -> (JobSpec, u32) {
-        let mut last = self.last_final.lock().unwrap_or_else(|p| p.into_inner());
-        let number = (*last).max(highest_final(&self.final_prefix)) + 1;
-        *last = number;
+        let (shown, opened) = {
+            let live = self.live();
+            (live.shown.clone(), self.opened())
+        };
+        let mut finals = self.finals.lock().unwrap_or_else(|p| p.into_inner());
+        let last = finals.keys().next_back().copied().unwrap_or(0);
+        let number = last.max(highest_final(&opened.final_prefix)) + 1;
+        let out = final_path(&opened.final_prefix, number);
+        finals.insert(number, out.clone());
         let spec = JobSpec {
-            request: RenderRequest::new(self.live().shown.clone(), self.name.clone()),
-            out: final_path(&self.final_prefix, number).display().to_string(),
+            request: RenderRequest::new(shown, opened.name),
+            out: out.display().to_string(),
             priority: 0,
             require_tags: Vec::new(),
         };
@@ -1173,37 +1309,43 @@ impl Studio {
 
     /// The bytes of final render `number`, once handed out and written.
     fn final_png(&self, number: u32) -> Result<Vec<u8>, Refused> {
-        if number == 0 || number > *self.last_final.lock().unwrap_or_else(|p| p.into_inner()) {
-            return Err(Refused(
-                StatusCode::NOT_FOUND,
-                format!("no final render {number}"),
-            ));
-        }
-        let path = final_path(&self.final_prefix, number);
+        let path = self
+            .finals
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(&number)
+            .cloned()
+            .ok_or_else(|| Refused(StatusCode::NOT_FOUND, format!("no final render {number}")))?;
         std::fs::read(&path)
             .map_err(|e| Refused(StatusCode::NOT_FOUND, format!("{}: {e}", path.display())))
     }
 
     /// Takes the scene file's text from disk, as an edit of the text.
     fn reload(&self) -> Result<SceneView, String> {
-        let path = self.path.as_ref().ok_or_else(|| {
+        // The file and the text it replaces, together (an open switches both).
+        let mut live = self.live();
+        let path = self.opened().path;
+        let path = path.as_ref().ok_or_else(|| {
             "no scene file is open (start with `coordinator studio SCENE`)".to_string()
         })?;
         let text = std::fs::read_to_string(path)
             .map_err(|e| format!("{}: cannot read the scene: {e}", path.display()))?;
         let mut known = self.on_disk.lock().unwrap_or_else(|p| p.into_inner());
-        let view = self.change(Change {
-            text: Some(text.clone()),
-            knobs: BTreeMap::new(),
-            params: BTreeMap::new(),
-            edits: Vec::new(),
-            quality: Quality::High,
-            base: None,
-            tab: None,
-            gesture: None,
-            frame: None,
-            preview: false,
-        })?;
+        let view = self.change_live(
+            &mut live,
+            Change {
+                text: Some(text.clone()),
+                knobs: BTreeMap::new(),
+                params: BTreeMap::new(),
+                edits: Vec::new(),
+                quality: Quality::High,
+                base: None,
+                tab: None,
+                gesture: None,
+                frame: None,
+                preview: false,
+            },
+        )?;
         *known = Some(text);
         Ok(view)
     }
@@ -1292,16 +1434,9 @@ impl Studio {
         let name = live.snapshots.check_name(name).map_err(bad)?;
         let checked = {
             let mut files = self.files.lock().unwrap_or_else(|p| p.into_inner());
-            self.read_files(&live.text, &mut files).map_err(bad)?;
-            let at = (Quality::High, live.frame_number);
-            check(
-                &live.text,
-                &self.name,
-                &live.knobs,
-                (at.0, at.1, false),
-                &files,
-            )
-            .map_err(bad)?
+            let name = self.read_files(&live.text, &mut files).map_err(bad)?;
+            let at = (Quality::High, live.frame_number, Size::Scene);
+            check(&live.text, &name, &live.knobs, at, &files).map_err(bad)?
         };
         let job = self.next_job.fetch_add(1, Ordering::Relaxed);
         let (interleave, expected) = shared.unit_layout();
@@ -1313,7 +1448,7 @@ impl Studio {
             (width, height, interleave),
             Arc::clone(&checked.built.scene),
         );
-        submit(shared, &checked, job, units).map_err(bad)?;
+        submit(shared, &checked, (job, farm::LIVE_PRIORITY), units).map_err(bad)?;
         let snapshot = Snapshot {
             id: 0,
             name,
@@ -1385,6 +1520,255 @@ impl Studio {
     }
 }
 
+/// The first scene (in path order) under `dir`, relative to it.
+pub fn first_scene(dir: &Path) -> Option<String> {
+    scenes::list(dir).into_iter().next()
+}
+
+/// Thumbnails go to the farm below the live frames: they never slow
+/// steering.
+const THUMBNAIL_PRIORITY: i32 = farm::LIVE_PRIORITY - 1;
+
+/// `POST /studio/open`'s body.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OpenScene {
+    /// The scene's path relative to the browsed directory.
+    path: String,
+    /// The version the page showed; absent: the current one.
+    #[serde(default)]
+    base: Option<u64>,
+    /// Open even when the shown scene has unsaved edits (they are lost).
+    #[serde(default)]
+    discard: bool,
+    /// The tab that asked (echoed in the `scene` event).
+    #[serde(default)]
+    tab: Option<String>,
+}
+
+/// The scene browser ([`scenes`]).
+impl Studio {
+    fn catalogue(&self) -> Result<std::sync::MutexGuard<'_, scenes::Catalogue>, Refused> {
+        let catalogue = self.catalogue.as_ref().ok_or_else(|| {
+            Refused(
+                StatusCode::NOT_FOUND,
+                "the studio browses no directory (start it with `coordinator studio DIR`)"
+                    .to_string(),
+            )
+        })?;
+        Ok(catalogue.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    /// Lists the browsed directory's scenes again (read without a lock) and
+    /// puts the thumbnails of contents not seen before on the farm.
+    fn scan_scenes(&self) -> Result<Vec<scenes::SceneEntry>, Refused> {
+        let root = self.catalogue()?.root().to_path_buf();
+        let found = scenes::read(&root);
+        let start = self.catalogue()?.update(found);
+        for (text, name, key) in start {
+            let Some(shared) = self.farm.get() else {
+                self.catalogue()?.not_started(key);
+                continue;
+            };
+            let built = self.thumbnail_job(shared, &text, &name);
+            let mut catalogue = self.catalogue()?;
+            let render = built.and_then(|(checked, units, render)| {
+                let job = (render.job, THUMBNAIL_PRIORITY);
+                submit(shared, &checked, job, units).map(|()| render)
+            });
+            catalogue.started(key, render);
+        }
+        Ok(self.catalogue()?.entries())
+    }
+
+    /// The thumbnail's frame of scene `text` (named `name`, its files read
+    /// beside it): built at interactive quality within [`scenes::THUMB`]
+    /// pixels, its units and its render.
+    fn thumbnail_job(
+        &self,
+        shared: &Shared,
+        text: &str,
+        name: &str,
+    ) -> Result<(Checked, Vec<WorkUnit>, Render), String> {
+        let desc = hypertexture::scene::parse(text, name).map_err(|e| e.to_string())?;
+        let size = scenes::thumbnail_size(desc.image.width, desc.image.height);
+        let mut files = Files::default();
+        load_files(text, name, &mut files)?;
+        let at = (Quality::Interactive, 0, Size::Exactly(size.0, size.1));
+        let checked = check(text, name, &BTreeMap::new(), at, &files)?;
+        let job = self.next_job.fetch_add(1, Ordering::Relaxed);
+        let (interleave, expected) = shared.unit_layout();
+        let (width, height) = (checked.built.scene.width(), checked.built.scene.height());
+        let units = farm_units(width, height, interleave, expected);
+        let render = Render::new(
+            job,
+            units.clone(),
+            (width, height, interleave),
+            Arc::clone(&checked.built.scene),
+        );
+        Ok((checked, units, render))
+    }
+
+    /// Stores `raw` when it is a tile of a thumbnail; returns whether it
+    /// was. Every tab learns that a thumbnail is ready by a `scenes` event.
+    fn thumbnail_tile(&self, raw: &RawTile) -> bool {
+        let Some(catalogue) = &self.catalogue else {
+            return false;
+        };
+        let stored = catalogue.lock().unwrap_or_else(|p| p.into_inner()).store(
+            raw.job,
+            raw.unit,
+            &raw.pixels,
+        );
+        match stored {
+            None => false,
+            Some(ready) => {
+                if ready {
+                    self.send_scenes_changed();
+                }
+                true
+            }
+        }
+    }
+
+    fn thumbnail_gave_up(&self, job: JobId, why: &str) {
+        let Some(catalogue) = &self.catalogue else {
+            return;
+        };
+        let failed = catalogue
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .fail(job, why);
+        if failed {
+            self.send_scenes_changed();
+        }
+    }
+
+    fn send_scenes_changed(&self) {
+        self.send(Event {
+            name: "scenes",
+            data: "{}".to_string(),
+        });
+    }
+
+    /// Scene `path`'s thumbnail (PNG): 400 for a path outside the browsed
+    /// directory, 404 for one not listed or a scene without a thumbnail
+    /// (its error), 409 while it renders.
+    fn thumbnail(&self, path: &str) -> Result<Arc<Vec<u8>>, Refused> {
+        let catalogue = self.catalogue()?;
+        if let Err(scenes::Bad::Outside(why)) = scenes::confine(catalogue.root(), path) {
+            return Err(Refused(StatusCode::BAD_REQUEST, why));
+        }
+        catalogue.thumbnail(path).map_err(|(listed, why)| {
+            let rendering = listed && why.ends_with("still rendering");
+            let code = if rendering {
+                StatusCode::CONFLICT
+            } else {
+                StatusCode::NOT_FOUND
+            };
+            Refused(code, why)
+        })
+    }
+
+    /// Makes scene `ask.path` of the browsed directory the live scene: its
+    /// text, a new frame, a history and snapshots of its own (those of the
+    /// scene before are dropped), and every tab follows. Refused: a path
+    /// outside the directory (400), no such scene (404), a page on an older
+    /// version or unsaved edits of the shown scene unless `discard` (409).
+    fn open(&self, ask: &OpenScene) -> Result<SceneView, Refused> {
+        let root = self.catalogue()?.root().to_path_buf();
+        let path = scenes::confine(&root, &ask.path).map_err(|bad| match bad {
+            scenes::Bad::Outside(why) => Refused(StatusCode::BAD_REQUEST, why),
+            scenes::Bad::Missing(why) => Refused(StatusCode::NOT_FOUND, why),
+        })?;
+        let text = std::fs::read_to_string(&path).map_err(|e| {
+            Refused(
+                StatusCode::NOT_FOUND,
+                format!("{}: cannot read the scene: {e}", path.display()),
+            )
+        })?;
+        let mut live = self.live();
+        let now = live.versions.current().number;
+        if let Some(base) = ask.base.filter(|&b| b != now) {
+            return Err(Refused(
+                StatusCode::CONFLICT,
+                format!(
+                    "the page shows version {base} and the studio is at version {now}: \
+                     look at the current scene before opening another"
+                ),
+            ));
+        }
+        if !ask.discard {
+            self.unsaved(&live)?;
+        }
+        *self.opened.lock().unwrap_or_else(|p| p.into_inner()) = Opened::file(&path);
+        *self.on_disk.lock().unwrap_or_else(|p| p.into_inner()) = Some(text.clone());
+        *self.files.lock().unwrap_or_else(|p| p.into_inner()) = Files::default();
+        self.forget(&mut live, &text);
+        let mut change = Change::set_text(text, ask.tab.clone(), Some(0));
+        change.quality = Quality::Interactive;
+        // A scene that does not build opens all the same: its error shows.
+        if let Err(e) = self.change_live(&mut live, change) {
+            tracing::info!("opened {}: {e}", path.display());
+        }
+        let view = self.view(&live);
+        self.send(Event {
+            name: "scene",
+            data: serde_json::json!({ "tab": ask.tab, "view": view }).to_string(),
+        });
+        Ok(view)
+    }
+
+    /// 409 when the shown text differs from its file on disk.
+    fn unsaved(&self, live: &Live) -> Result<(), Refused> {
+        let opened = self.opened();
+        let Some(path) = &opened.path else {
+            return Ok(());
+        };
+        if std::fs::read_to_string(path).ok().as_deref() == Some(live.shown.as_str()) {
+            return Ok(());
+        }
+        let name = path
+            .file_name()
+            .map_or_else(|| opened.name.clone(), |n| n.to_string_lossy().into_owned());
+        Err(Refused(
+            StatusCode::CONFLICT,
+            format!(
+                "unsaved edits to {name}: save them first, or open the other scene discarding \
+                 them"
+            ),
+        ))
+    }
+
+    /// Clears what belongs to the scene shown before an open: its frame
+    /// (off the farm), its undo history, its snapshots (their renders off
+    /// the farm), its controls and its sliders' ranges. The text becomes
+    /// `text`, at frame 0.
+    fn forget(&self, live: &mut Live, text: &str) {
+        if let Some(shared) = self.farm.get() {
+            let frame = live.frame.take().map(|f| f.job);
+            for job in frame.into_iter().chain(live.snapshots.jobs()) {
+                shared.remove_job(job);
+            }
+        }
+        live.frame = None;
+        live.snapshots.clear();
+        live.versions.restart(text);
+        live.text = text.to_string();
+        live.shown = text.to_string();
+        live.knobs.clear();
+        live.declared.clear();
+        live.error = None;
+        live.params.clear();
+        live.curves.clear();
+        live.distortions.clear();
+        live.grids.clear();
+        live.ranges.clear();
+        live.frame_number = 0;
+        live.warning = None;
+    }
+}
+
 /// The router's state.
 #[derive(Clone)]
 struct Ctx {
@@ -1418,6 +1802,9 @@ pub fn router(studio: Arc<Studio>, control: Arc<dyn Control>) -> Router {
             "/studio/snapshots/{id}/pixels",
             axum::routing::get(snapshot_pixels),
         )
+        .route("/studio/scenes", axum::routing::get(list_scenes))
+        .route("/studio/scenes/thumbnail", axum::routing::get(thumbnail))
+        .route("/studio/open", axum::routing::post(open_scene))
         .layer(middleware::from_fn_with_state(ctx.clone(), check_token));
     Router::new()
         .route("/", axum::routing::get(page))
@@ -1500,16 +1887,90 @@ async fn post_scene(
     match ctx.studio.edit(change) {
         Ok(view) => {
             if interactive {
-                let studio = Arc::clone(&ctx.studio);
-                let generation = view.generation;
-                tokio::spawn(async move {
-                    tokio::time::sleep(REST).await;
-                    let _ = tokio::task::spawn_blocking(move || studio.rested(generation)).await;
-                });
+                high_once_rested(&ctx.studio, view.generation);
             }
             Json(view).into_response()
         }
         Err(refused) => refused.into_response(),
+    }
+}
+
+/// Draws frame `generation` at high quality once the edits rest
+/// ([`Studio::rested`]).
+fn high_once_rested(studio: &Arc<Studio>, generation: u64) {
+    let studio = Arc::clone(studio);
+    tokio::spawn(async move {
+        tokio::time::sleep(REST).await;
+        let _ = tokio::task::spawn_blocking(move || studio.rested(generation)).await;
+    });
+}
+
+/// The browsed directory's scenes, listed again: `{"root", "scenes"}`.
+async fn list_scenes(State(ctx): State<Ctx>) -> Response {
+    match blocking(&ctx.studio, Studio::scan_scenes).await {
+        Ok(scenes) => {
+            let root = ctx.studio.root.as_ref().map(|r| r.display().to_string());
+            Json(serde_json::json!({ "root": root, "scenes": scenes })).into_response()
+        }
+        Err(refused) => refused,
+    }
+}
+
+/// `f` of the studio on a blocking thread: its answer, or the refusal's
+/// response.
+async fn blocking<T: Send + 'static>(
+    studio: &Arc<Studio>,
+    f: impl FnOnce(&Studio) -> Result<T, Refused> + Send + 'static,
+) -> Result<T, Response> {
+    let studio = Arc::clone(studio);
+    match tokio::task::spawn_blocking(move || f(&studio)).await {
+        Ok(answer) => answer.map_err(IntoResponse::into_response),
+        Err(e) => Err(Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response()),
+    }
+}
+
+/// `GET /studio/scenes/thumbnail`'s query.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScenePath {
+    path: String,
+}
+
+async fn thumbnail(
+    State(ctx): State<Ctx>,
+    query: Result<Query<ScenePath>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let path = match query {
+        Ok(Query(q)) => q.path,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match ctx.studio.thumbnail(&path) {
+        Ok(png) => (
+            [
+                (header::CONTENT_TYPE, "image/png"),
+                (header::CACHE_CONTROL, "no-cache"),
+            ],
+            png.as_slice().to_vec(),
+        )
+            .into_response(),
+        Err(refused) => refused.into_response(),
+    }
+}
+
+async fn open_scene(
+    State(ctx): State<Ctx>,
+    body: Result<Json<OpenScene>, axum::extract::rejection::JsonRejection>,
+) -> Response {
+    let Json(ask) = match body {
+        Ok(b) => b,
+        Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
+    };
+    match blocking(&ctx.studio, move |studio| studio.open(&ask)).await {
+        Ok(view) => {
+            high_once_rested(&ctx.studio, view.generation);
+            Json(view).into_response()
+        }
+        Err(refused) => refused,
     }
 }
 
@@ -1537,11 +1998,9 @@ async fn step(ctx: Ctx, query: TabQueryResult, back: bool) -> Response {
         Ok(Query(q)) => q.tab,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.step(back, tab)).await {
-        Ok(Ok(view)) => Json(view).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.step(back, tab)).await {
+        Ok(view) => Json(view).into_response(),
+        Err(refused) => refused,
     }
 }
 
@@ -1560,11 +2019,9 @@ async fn take_snapshot(
         Ok(b) => b,
         Err(e) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.take_snapshot(&name)).await {
-        Ok(Ok(list)) => Json(serde_json::json!({ "snapshots": list })).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.take_snapshot(&name)).await {
+        Ok(list) => Json(serde_json::json!({ "snapshots": list })).into_response(),
+        Err(refused) => refused,
     }
 }
 
@@ -1576,11 +2033,9 @@ async fn restore_snapshot(State(ctx): State<Ctx>, id: IdPath, query: TabQueryRes
         (Err(e), _) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
         (_, Err(e)) => return Refused(StatusCode::BAD_REQUEST, e.body_text()).into_response(),
     };
-    let studio = Arc::clone(&ctx.studio);
-    match tokio::task::spawn_blocking(move || studio.restore(id, tab)).await {
-        Ok(Ok(view)) => Json(view).into_response(),
-        Ok(Err(refused)) => refused.into_response(),
-        Err(e) => Refused(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    match blocking(&ctx.studio, move |studio| studio.restore(id, tab)).await {
+        Ok(view) => Json(view).into_response(),
+        Err(refused) => refused,
     }
 }
 

@@ -92,6 +92,11 @@ impl Render {
         true
     }
 
+    /// The image's width and height.
+    pub fn size(&self) -> (u32, u32) {
+        (self.canvas.width(), self.canvas.height())
+    }
+
     /// The image, once whole.
     pub fn pixels(&self) -> Option<&Arc<Vec<u8>>> {
         self.pixels.as_ref()
@@ -157,6 +162,16 @@ impl Snapshots {
             ..snapshot
         });
         self.last_id
+    }
+
+    /// Drops every snapshot (their ids are not given again).
+    pub fn clear(&mut self) {
+        self.list.clear();
+    }
+
+    /// The farm's jobs of the snapshots' images.
+    pub fn jobs(&self) -> Vec<JobId> {
+        self.list.iter().map(|s| s.render.job).collect()
     }
 
     pub fn get(&self, id: u64) -> Option<&Snapshot> {

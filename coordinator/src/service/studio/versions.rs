@@ -39,6 +39,8 @@ pub struct Versions {
     redo: VecDeque<Version>,
     /// The tab and gesture of the step the last edit belongs to.
     gesture: Option<(String, String)>,
+    /// The version of the text as opened.
+    opened: u64,
 }
 
 /// What made a new state, for the undo history.
@@ -85,7 +87,18 @@ impl Versions {
             undo: VecDeque::new(),
             redo: VecDeque::new(),
             gesture: None,
+            opened: 0,
         }
+    }
+
+    /// Another scene's text is opened: a history of its own (nothing to undo
+    /// or redo, no older version to merge with), its first version one past
+    /// the current, so that every tab takes it as newer.
+    pub fn restart(&mut self, shown: &str) {
+        let number = self.current().number + 1;
+        *self = Versions::new(shown);
+        self.kept[0].number = number;
+        self.opened = number;
     }
 
     pub fn current(&self) -> &Version {
@@ -124,7 +137,7 @@ impl Versions {
                     return false;
                 }
                 let step = tab.zip(gesture);
-                let first_build = before.number == 0 && before.shown == shown;
+                let first_build = before.number == self.opened && before.shown == shown;
                 if (step.is_none() || step != self.gesture) && !first_build {
                     push_bounded(&mut self.undo, before.clone());
                 }
@@ -414,6 +427,21 @@ mod tests {
             v.rebase(Some(1), Edit::default()),
             Err(Stale::Unknown(_))
         ));
+    }
+
+    #[test]
+    fn another_scene_starts_a_history_of_its_own_at_a_newer_version() {
+        let mut v = versions();
+        v.record(&TEXT.replace("b: 2.0", "b: 3.0"), &knobs(&[("bias", 0.3)]));
+        assert_eq!(v.steps(), (1, 0));
+        v.restart("Other()");
+        assert_eq!(v.current().number, 3);
+        assert_eq!(v.steps(), (0, 0), "nothing of the scene before");
+        assert!(v.record("Other()", &knobs(&[("k", 1.0)])));
+        assert_eq!(v.steps(), (0, 0), "its first build is no step");
+        assert!(matches!(v.at(Some(2)), Err(Stale::Unknown(_))));
+        assert!(v.record("Other(x)", &knobs(&[("k", 1.0)])));
+        assert_eq!(v.undo_to().unwrap().shown, "Other()");
     }
 
     fn edit(tab: &str, gesture: &str) -> Origin {
