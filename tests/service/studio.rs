@@ -543,6 +543,10 @@ fn two_tabs_stay_in_sync_and_the_camera_moves_in_the_image() {
         ),
         60,
     );
+    // The orbited view, once drawn at high quality (`orbit.png`).
+    b.wait_until(COMPLETE_HIGH, 120);
+    let shot = b.call("Page.captureScreenshot", json!({ "format": "png" }));
+    write_screenshot(&shot, &dir.join("orbit.png"));
     // F frames the march's bounds: look_at at their centre.
     a.eval("document.getElementById('image').focus()");
     a.key("f", 70);
@@ -1595,6 +1599,10 @@ fn latency() {
     let seen = drag.iter().filter(|t| t["first"].is_number()).count();
     let previews = drag.iter().filter(|t| t["preview"] == true).count();
     assert!(seen >= 1, "dragging shows frames: {drag:?}");
+    assert!(
+        previews >= 1 && drawn_whole >= 1,
+        "a held slider asks for previews, drawn whole: {drag:?}"
+    );
     let inputs = browser.eval(&format!(
         "JSON.stringify(studio.inputs.slice({inputs_before}))"
     ));

@@ -460,3 +460,44 @@ fn a_transfer_grid_is_painted_with_the_brush() {
     assert_eq!(view(&url)["grids"][0]["values"][0], 1.0);
     close(browser, studio);
 }
+
+/// A distortion's vector field switched in its menu: the field is written
+/// into the text, and the image changes to the in-process render of the new
+/// text.
+#[test]
+fn a_vector_field_switched_changes_the_text_and_the_image() {
+    let Some(chromium) = chromium_or_skip() else {
+        return;
+    };
+    let (dir, _, original, studio, url, mut browser) =
+        opened(&chromium, "studio-field", "scenes/gilet/field_boundary.ron");
+    assert!(original.contains("field: Boundary,"), "{original}");
+    let before = browser.canvas();
+    assert_eq!(
+        browser.eval("document.getElementById('field-distortion').value"),
+        json!("Boundary")
+    );
+    let generation = browser.eval("studio.generation");
+    browser.eval(
+        "(() => { const f = document.getElementById('field-distortion'); \
+         f.value = 'Curl'; f.dispatchEvent(new Event('change')); })()",
+    );
+    until(60, "the field reaches the text", || {
+        text(&url).contains("field: Curl(")
+    });
+    let edited_text = text(&url);
+    assert!(!edited_text.contains("field: Boundary,"), "{edited_text}");
+    rested(&mut browser, &generation);
+    let after = browser.canvas();
+    assert_ne!(after, before, "the image changes");
+    let edited = dir.join("edited.ron");
+    std::fs::write(&edited, text(&url)).unwrap();
+    let reference = dir.join("edited.png");
+    in_process_file(&edited, &reference, &[]);
+    assert_eq!(
+        after,
+        decode_png(&reference).into_raw(),
+        "as the CLI renders it"
+    );
+    close(browser, studio);
+}

@@ -6,7 +6,11 @@
 //! the highest priority, never stored): each change of the text or of a knob
 //! takes the frame in flight out of the farm (its units are no longer handed
 //! out, and tiles still coming are ignored) and adds the new one. Knob values
-//! travel to workers in `Job.knobs` over the unchanged scene text.
+//! travel to workers in `Job.knobs` over the unchanged scene text. While a
+//! control is dragged, the page asks for previews (interactive frames at half
+//! the width and height), and a begun interactive frame renders to its end
+//! with the next one queued behind it ([`Studio::retire`]), so that the
+//! workers never wait for the page between the values of a drag.
 //!
 //! Tiles reach the page by Server-Sent Events (`/studio/events`): the farm's
 //! [`TileSink`](crate::farm::TileSink) hands each accepted tile of a live
