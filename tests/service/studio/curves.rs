@@ -48,6 +48,22 @@ fn close(browser: Browser, mut studio: Running) {
     let _ = studio.child.wait();
 }
 
+/// The page's image differs from `before` and is byte for byte the
+/// in-process render of the studio's text (written to `dir/edited.ron`).
+fn changed_as_the_cli_renders(browser: &mut Browser, before: &[u8], dir: &Path, url: &str) {
+    let after = browser.canvas();
+    assert_ne!(after, before, "the image changes");
+    let edited = dir.join("edited.ron");
+    std::fs::write(&edited, text(url)).unwrap();
+    let reference = dir.join("edited.png");
+    in_process_file(&edited, &reference, &[]);
+    assert_eq!(
+        after,
+        decode_png(&reference).into_raw(),
+        "as the CLI renders it"
+    );
+}
+
 /// Waits for the high-quality frame after frame `generation`.
 fn rested(browser: &mut Browser, generation: &Value) {
     browser.wait_until(
@@ -396,17 +412,7 @@ fn a_distortion_term_disabled_changes_the_text_and_the_image() {
     });
     assert_eq!(text(&url), original.replacen("operator: Blend),", off, 1));
     rested(&mut browser, &generation);
-    let after = browser.canvas();
-    assert_ne!(after, before, "the image changes");
-    let edited = dir.join("edited.ron");
-    std::fs::write(&edited, text(&url)).unwrap();
-    let reference = dir.join("edited.png");
-    in_process_file(&edited, &reference, &[]);
-    assert_eq!(
-        after,
-        decode_png(&reference).into_raw(),
-        "as the CLI renders it"
-    );
+    changed_as_the_cli_renders(&mut browser, &before, &dir, &url);
     assert_eq!(
         browser.eval("document.getElementById('enabled-distortion.terms[4]').checked"),
         json!(false)
@@ -488,16 +494,6 @@ fn a_vector_field_switched_changes_the_text_and_the_image() {
     let edited_text = text(&url);
     assert!(!edited_text.contains("field: Boundary,"), "{edited_text}");
     rested(&mut browser, &generation);
-    let after = browser.canvas();
-    assert_ne!(after, before, "the image changes");
-    let edited = dir.join("edited.ron");
-    std::fs::write(&edited, text(&url)).unwrap();
-    let reference = dir.join("edited.png");
-    in_process_file(&edited, &reference, &[]);
-    assert_eq!(
-        after,
-        decode_png(&reference).into_raw(),
-        "as the CLI renders it"
-    );
+    changed_as_the_cli_renders(&mut browser, &before, &dir, &url);
     close(browser, studio);
 }
