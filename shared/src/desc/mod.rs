@@ -882,11 +882,22 @@ fn default_field_mib() -> Positive {
 /// the softness.
 pub const FIELD_VOXELS_PER_SOFTNESS: f32 = 4.0;
 
+/// The largest displacement of a distortion (0 without one).
+fn max_displacement(d: Option<&DistortionDesc>) -> f32 {
+    d.map_or(0.0, |d| {
+        crate::field::distortion::Distortion::build(d).max_displacement()
+    })
+}
+
 impl MeshDesc {
     /// The field's lengths in the mesh's own coordinates, or `None` for
     /// `sdf: Exact` (or a hard mesh, softness 0, whose D needs the sign
-    /// alone).
-    pub fn field_spec(&self) -> Option<crate::mesh::BandSpec> {
+    /// alone). Under a distortion that moves points by up to `moves` (0
+    /// without one) the band reaches that much and
+    /// [`crate::mesh::FIELD_MARGIN_VOXELS`] voxels farther, so that the
+    /// distortion reads its vector field from the band wherever it matters
+    /// ([`crate::field::soft::SoftMesh::covers_distortion`]).
+    pub fn field_spec(&self, moves: f32) -> Option<crate::mesh::BandSpec> {
         let SdfDesc::Field { voxel, max_mib } = self.sdf else {
             return None;
         };
@@ -894,9 +905,14 @@ impl MeshDesc {
             return None;
         }
         let voxel = voxel.map_or(self.softness / FIELD_VOXELS_PER_SOFTNESS, |v| v.0) / self.scale;
+        let outer = if moves > 0.0 {
+            (self.softness + moves) / self.scale + crate::mesh::FIELD_MARGIN_VOXELS * voxel
+        } else {
+            self.softness / self.scale
+        };
         Some(crate::mesh::BandSpec {
             voxel,
-            outer: self.softness / self.scale,
+            outer,
             inner: 2.0 * voxel,
             max_bytes: (f64::from(max_mib.0) * 1048576.0) as u64,
         })
@@ -975,6 +991,20 @@ impl ObjectDesc {
         }
     }
 
+    /// [`ObjectDesc::for_each_mesh_mut`], with what a distortion can move
+    /// each mesh's points by: `moves` for this object if it is a mesh, a
+    /// hypertexture's distortion's for its object if that is a mesh, else 0.
+    pub fn for_each_mesh_moved_mut(&mut self, moves: f32, f: &mut impl FnMut(&mut MeshDesc, f32)) {
+        match self {
+            ObjectDesc::Mesh(m) => f(m, moves),
+            ObjectDesc::Hypertexture(h) => {
+                let moves = max_displacement(h.distortion.as_ref());
+                h.object.for_each_mesh_moved_mut(moves, f);
+            }
+            other => other.for_each_mesh_mut(&mut |m| f(m, 0.0)),
+        }
+    }
+
     /// Whether the fur's projection onto the inner surface (and the boundary
     /// vector fields) are defined for this object: a primitive.
     pub fn is_primitive(&self) -> bool {
@@ -1024,17 +1054,18 @@ impl SceneDesc {
     /// the first that cannot be built is the error: its path and why.
     pub fn attach_mesh_fields(&mut self) -> Result<(), (String, String)> {
         let mut error = None;
-        let mut attach = |m: &mut MeshDesc| {
-            if let (Some(mesh), Some(spec), None) = (&m.mesh, m.field_spec(), &error) {
+        let mut attach = |m: &mut MeshDesc, moves: f32| {
+            if let (Some(mesh), Some(spec), None) = (&m.mesh, m.field_spec(moves), &error) {
                 match crate::mesh::Band::shared(mesh, &spec) {
                     Ok(band) => m.field = Some(band),
                     Err(e) => error = Some((m.path.clone(), e)),
                 }
             }
         };
-        self.object.for_each_mesh_mut(&mut attach);
+        let moves = max_displacement(self.distortion.as_ref());
+        self.object.for_each_mesh_moved_mut(moves, &mut attach);
         for o in self.objects.values_mut() {
-            o.for_each_mesh_mut(&mut attach);
+            o.for_each_mesh_moved_mut(0.0, &mut attach);
         }
         error.map_or(Ok(()), Err)
     }
@@ -1521,17 +1552,17 @@ mod tests {
         };
         let default = mesh("object: Mesh(path: \"a.obj\", softness: 0.08, scale: 2.0),");
         assert_eq!(default.sdf, SdfDesc::default());
-        let spec = default.field_spec().expect("a field by default");
+        let spec = default.field_spec(0.0).expect("a field by default");
         // Lengths in the mesh's own coordinates: the scene's over the scale.
         assert_eq!((spec.voxel, spec.outer), (0.01, 0.04));
         assert_eq!(spec.max_bytes, crate::mesh::DEFAULT_MAX_FIELD_BYTES);
         let set = mesh(
             "object: Mesh(path: \"a.obj\", softness: 0.08, sdf: Field(voxel: Some(0.004), max_mib: 16)),",
         );
-        let spec = set.field_spec().expect("a field");
+        let spec = set.field_spec(0.0).expect("a field");
         assert_eq!((spec.voxel, spec.max_bytes), (0.004, 16 << 20));
         let exact = mesh("object: Mesh(path: \"a.obj\", softness: 0.08, sdf: Exact),");
-        assert_eq!((exact.sdf, exact.field_spec()), (SdfDesc::Exact, None));
+        assert_eq!((exact.sdf, exact.field_spec(0.0)), (SdfDesc::Exact, None));
         for (bad, says) in [
             ("sdf: Field(voxel: Some(-0.1))", "a positive number"),
             ("sdf: Fast", "Fast"),

@@ -611,12 +611,20 @@ impl Noise {
             let rows = self.gradient_of.as_ptr();
             sum8!(c, |corner, di| {
                 // SAFETY: `corners` are < 511, so the row is in the table.
-                let row = |l: usize| {
-                    let m = corners[corner][l] as usize;
-                    _mm_load_ps((*rows.add(m + di)).0.as_ptr())
-                };
-                let pair = |l: usize| _mm256_set_m128(row(l + 4), row(l));
-                let (r0, r1, r2, r3) = (pair(0), pair(1), pair(2), pair(3));
+                // (Macros, not closures: a closure is compiled without the
+                // enclosing copy's instruction set, and its intrinsics become
+                // calls.)
+                macro_rules! row {
+                    ($l:expr) => {
+                        _mm_load_ps((*rows.add(corners[corner][$l] as usize + di)).0.as_ptr())
+                    };
+                }
+                macro_rules! pair {
+                    ($l:expr) => {
+                        _mm256_set_m128(row!($l + 4), row!($l))
+                    };
+                }
+                let (r0, r1, r2, r3) = (pair!(0), pair!(1), pair!(2), pair!(3));
                 let (lo01, lo23) = (
                     _mm256_castps_pd(_mm256_unpacklo_ps(r0, r1)),
                     _mm256_castps_pd(_mm256_unpacklo_ps(r2, r3)),
@@ -753,38 +761,49 @@ impl Noise {
                     // Rows m and m + 1 of a lane (corners (0, dj, dk) and
                     // (1, dj, dk)) are one 32-byte load. SAFETY: `corners`
                     // are < 511, so both rows are in the table.
-                    let pair = |l: usize| {
-                        let m = corners[dj + 2 * dk][l] as usize;
-                        _mm256_loadu_ps((*rows.add(m)).0.as_ptr())
-                    };
+                    // (Macros, not closures: a closure is compiled without
+                    // the enclosing copy's instruction set, and its
+                    // intrinsics become calls.)
+                    macro_rules! pair {
+                        ($l:expr) => {
+                            _mm256_loadu_ps(
+                                (*rows.add(corners[dj + 2 * dk][$l] as usize)).0.as_ptr(),
+                            )
+                        };
+                    }
                     // The blocks of `quad(l)`: lane l's rows m and m + 1,
                     // then lane l + 4's. After the in-block transposes of
                     // quads 0..4 and 8..12, blocks 0 and 2 of the two hold
                     // corner (0, dj, dk)'s lanes 0..16 in order, blocks 1 and
                     // 3 corner (1, dj, dk)'s.
-                    let quad = |l: usize| {
-                        _mm512_castpd_ps(_mm512_insertf64x4::<1>(
-                            _mm512_castps_pd(_mm512_castps256_ps512(pair(l))),
-                            _mm256_castps_pd(pair(l + 4)),
-                        ))
-                    };
-                    let transpose = |r0: __m512, r1: __m512, r2: __m512, r3: __m512| {
-                        let (lo01, lo23) = (
-                            _mm512_castps_pd(_mm512_unpacklo_ps(r0, r1)),
-                            _mm512_castps_pd(_mm512_unpacklo_ps(r2, r3)),
-                        );
-                        let (hi01, hi23) = (
-                            _mm512_castps_pd(_mm512_unpackhi_ps(r0, r1)),
-                            _mm512_castps_pd(_mm512_unpackhi_ps(r2, r3)),
-                        );
-                        [
-                            _mm512_castpd_ps(_mm512_unpacklo_pd(lo01, lo23)),
-                            _mm512_castpd_ps(_mm512_unpackhi_pd(lo01, lo23)),
-                            _mm512_castpd_ps(_mm512_unpacklo_pd(hi01, hi23)),
-                        ]
-                    };
-                    let low = transpose(quad(0), quad(1), quad(2), quad(3));
-                    let high = transpose(quad(8), quad(9), quad(10), quad(11));
+                    macro_rules! quad {
+                        ($l:expr) => {
+                            _mm512_castpd_ps(_mm512_insertf64x4::<1>(
+                                _mm512_castps_pd(_mm512_castps256_ps512(pair!($l))),
+                                _mm256_castps_pd(pair!($l + 4)),
+                            ))
+                        };
+                    }
+                    macro_rules! transpose {
+                        ($r0:expr, $r1:expr, $r2:expr, $r3:expr) => {{
+                            let (r0, r1, r2, r3) = ($r0, $r1, $r2, $r3);
+                            let (lo01, lo23) = (
+                                _mm512_castps_pd(_mm512_unpacklo_ps(r0, r1)),
+                                _mm512_castps_pd(_mm512_unpacklo_ps(r2, r3)),
+                            );
+                            let (hi01, hi23) = (
+                                _mm512_castps_pd(_mm512_unpackhi_ps(r0, r1)),
+                                _mm512_castps_pd(_mm512_unpackhi_ps(r2, r3)),
+                            );
+                            [
+                                _mm512_castpd_ps(_mm512_unpacklo_pd(lo01, lo23)),
+                                _mm512_castpd_ps(_mm512_unpackhi_pd(lo01, lo23)),
+                                _mm512_castpd_ps(_mm512_unpacklo_pd(hi01, hi23)),
+                            ]
+                        }};
+                    }
+                    let low = transpose!(quad!(0), quad!(1), quad!(2), quad!(3));
+                    let high = transpose!(quad!(8), quad!(9), quad!(10), quad!(11));
                     // Blocks 0, 2 of each (0x88) or 1, 3 of each (0xdd).
                     let near = [
                         _mm512_shuffle_f32x4::<0x88>(low[0], high[0]),

@@ -9,6 +9,7 @@
 use glam::Vec3;
 
 use crate::math::simd::{LANES, Lanes};
+use crate::mesh::SampleLanes;
 
 /// The paper's quadratic falloff, with the squared radii precomputed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -340,6 +341,9 @@ pub struct SoftMesh {
     inv_scale: f32,
     /// The falloff of inner radius 0 and outer radius s.
     pub falloff: Falloff,
+    /// Whether the field's band reaches past what a distortion of the mesh
+    /// can move a point by ([`SoftMesh::covering`]).
+    covered: bool,
 }
 
 /// Where a point lies for a soft mesh: what D needs.
@@ -368,6 +372,52 @@ impl SoftMesh {
             scale,
             inv_scale: 1.0 / scale,
             falloff: Falloff::new(softness / 2.0, softness),
+            covered: false,
+        }
+    }
+
+    /// The mesh under a distortion that moves points by at most `moves`
+    /// (0 without one): [`SoftMesh::covers_distortion`] when its field's
+    /// band reaches `moves` and [`crate::mesh::FIELD_MARGIN_VOXELS`] voxels
+    /// past the soft region (as [`crate::desc::MeshDesc::field_spec`] builds
+    /// it under a distortion).
+    pub fn covering(self, moves: f32) -> Self {
+        let covered = self.field.as_ref().is_some_and(|f| {
+            moves == 0.0
+                || f.reach()
+                    >= (self.falloff.outer() + moves) * self.inv_scale
+                        + crate::mesh::FIELD_MARGIN_VOXELS * f.voxel()
+        });
+        SoftMesh { covered, ..self }
+    }
+
+    /// Whether the field's band reaches so far that from any point beyond
+    /// it (a slot beyond the band, or a sample [`crate::mesh::Sample::Outside`]
+    /// or `Inside`), every point the distortion can move it to has D = 0
+    /// (or 1 inside): there H is 0 (or the hard region) whatever the
+    /// distortion's vector, which is then taken as 0.
+    pub fn covers_distortion(&self) -> bool {
+        self.covered
+    }
+
+    /// Whether x lies in a slot of the field wholly beyond its band (no
+    /// field: false).
+    #[inline]
+    pub fn beyond(&self, x: Vec3) -> bool {
+        self.field
+            .as_ref()
+            .is_some_and(|f| f.beyond((x - self.centre) * self.inv_scale))
+    }
+
+    /// [`SoftMesh::beyond`] at each lane's point: bit l for lane l.
+    #[inline(always)]
+    pub fn beyond_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> u32 {
+        match &self.field {
+            Some(f) => {
+                let m = self.to_mesh_lanes(x, y, z);
+                f.beyond_lanes(&m[0], &m[1], &m[2])
+            }
+            None => 0,
         }
     }
 
@@ -465,10 +515,132 @@ impl SoftMesh {
         self.closest_near(x).point
     }
 
+    /// The lanes' points in the mesh's coordinates, `(x − centre) / scale`
+    /// as [`SoftMesh::near`] computes it.
+    #[inline(always)]
+    fn to_mesh_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> [Lanes; 3] {
+        let (c, k) = (self.centre, self.inv_scale);
+        [
+            std::array::from_fn(|l| (x[l] - c.x) * k),
+            std::array::from_fn(|l| (y[l] - c.y) * k),
+            std::array::from_fn(|l| (z[l] - c.z) * k),
+        ]
+    }
+
+    /// [`SoftMesh::density`] at each lane's point (the same bits): the field
+    /// read a register at a time, or the exact search point by point.
+    #[inline(always)]
+    pub fn density_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> Lanes {
+        match self.sample_lanes(x, y, z) {
+            Some(s) => self.density_sampled(x, y, z, &s),
+            None => std::array::from_fn(|l| self.density(Vec3::new(x[l], y[l], z[l]))),
+        }
+    }
+
+    /// The field at each lane's point, or `None` without a field.
+    #[inline(always)]
+    pub fn sample_lanes(&self, x: &Lanes, y: &Lanes, z: &Lanes) -> Option<SampleLanes> {
+        let field = self.field.as_ref()?;
+        let m = self.to_mesh_lanes(x, y, z);
+        Some(field.sample_lanes(&m[0], &m[1], &m[2]))
+    }
+
+    /// [`SoftMesh::density_lanes`] from the field's samples `s` at the
+    /// lanes' points ([`SoftMesh::sample_lanes`]).
+    #[inline(always)]
+    pub fn density_sampled(&self, x: &Lanes, y: &Lanes, z: &Lanes, s: &SampleLanes) -> Lanes {
+        let (lo, hi) = self.support();
+        let mut out = [0.0; LANES];
+        for l in 0..LANES {
+            let beyond = x[l] < lo.x
+                || y[l] < lo.y
+                || z[l] < lo.z
+                || x[l] > hi.x
+                || y[l] > hi.y
+                || z[l] > hi.z;
+            // `to_scene`'s distance.
+            let d = s.distance[l] * self.scale;
+            let near = if d <= 0.0 {
+                1.0
+            } else {
+                self.falloff.density_select(d * d)
+            };
+            out[l] = if beyond || s.outside >> l & 1 != 0 {
+                0.0
+            } else if s.inside >> l & 1 != 0 {
+                1.0
+            } else {
+                near
+            };
+        }
+        out
+    }
+
+    /// [`SoftMesh::project`] of the lanes set in `live` (the same bits), in
+    /// place: the field read a register at a time; the exact search for
+    /// the points outside its band, and for every point without one.
+    #[inline(always)]
+    pub fn project_lanes_live(&self, x: &mut Lanes, y: &mut Lanes, z: &mut Lanes, live: u32) {
+        match self.sample_lanes(x, y, z) {
+            Some(s) => self.project_sampled(x, y, z, live, &s),
+            None => {
+                for l in 0..LANES {
+                    if live >> l & 1 != 0 {
+                        let p = self.project(Vec3::new(x[l], y[l], z[l]));
+                        (x[l], y[l], z[l]) = (p.x, p.y, p.z);
+                    }
+                }
+            }
+        }
+    }
+
+    /// [`SoftMesh::project_lanes_live`] from the field's samples `s` at the
+    /// lanes' points ([`SoftMesh::sample_lanes`]).
+    #[inline(always)]
+    pub fn project_sampled(
+        &self,
+        x: &mut Lanes,
+        y: &mut Lanes,
+        z: &mut Lanes,
+        live: u32,
+        s: &SampleLanes,
+    ) {
+        // The exact search's points first, while x holds the lanes' points.
+        let exact = (s.outside | s.inside) & live;
+        let mut found = [Vec3::ZERO; LANES];
+        let mut rest = exact;
+        while rest != 0 {
+            let l = rest.trailing_zeros() as usize;
+            rest &= rest - 1;
+            found[l] = self.closest(Vec3::new(x[l], y[l], z[l])).point;
+        }
+        let (c, k) = (self.centre, self.scale);
+        for l in 0..LANES {
+            if live >> l & 1 != 0 {
+                // `to_scene`'s point, coordinate by coordinate.
+                x[l] = c.x + s.point[0][l] * k;
+                y[l] = c.y + s.point[1][l] * k;
+                z[l] = c.z + s.point[2][l] * k;
+            }
+        }
+        let mut rest = exact;
+        while rest != 0 {
+            let l = rest.trailing_zeros() as usize;
+            rest &= rest - 1;
+            (x[l], y[l], z[l]) = (found[l].x, found[l].y, found[l].z);
+        }
+    }
+
     /// The nearest point of the outer (D = 0) surface, s outside the mesh.
     #[inline]
     pub fn boundary_point(&self, x: Vec3) -> Vec3 {
-        let mut c = self.closest_near(x);
+        let mut c = match self.near(x) {
+            Near::At(c) => c,
+            // Nothing the vector does matters here (`covers_distortion`):
+            // none.
+            Near::Outside | Near::Inside if self.covered => return x,
+            Near::Outside | Near::Inside => self.closest(x),
+        };
         let away = if c.distance > 0.0 {
             x - c.point
         } else {

@@ -280,19 +280,7 @@ impl Band {
         let ((cx, tx), (cy, ty), (cz, tz)) = (local(g.x, sx), local(g.y, sy), local(g.z, sz));
         let base = brick as usize * SAMPLES + cx + SIDE * (cy + SIDE * cz);
         let v = |dx: usize, dy: usize, dz: usize| self.samples[base + dx + SIDE * (dy + SIDE * dz)];
-        let lerp = |a: [f32; 4], b: [f32; 4], t: f32| {
-            [
-                a[0] + (b[0] - a[0]) * t,
-                a[1] + (b[1] - a[1]) * t,
-                a[2] + (b[2] - a[2]) * t,
-                a[3] + (b[3] - a[3]) * t,
-            ]
-        };
-        let x00 = lerp(v(0, 0, 0), v(1, 0, 0), tx);
-        let x10 = lerp(v(0, 1, 0), v(1, 1, 0), tx);
-        let x01 = lerp(v(0, 0, 1), v(1, 0, 1), tx);
-        let x11 = lerp(v(0, 1, 1), v(1, 1, 1), tx);
-        let r = lerp(lerp(x00, x10, ty), lerp(x01, x11, ty), tz);
+        let r = trilinear(&self.samples[base..], [tx, ty, tz]).to_array();
         if !r[0].is_finite() {
             // A corner beyond the reach: the whole cell is on its side.
             let far = (0..8)
@@ -310,12 +298,43 @@ impl Band {
     }
 }
 
+mod lanes;
 mod measure;
 
+pub use lanes::SampleLanes;
 pub use measure::{FieldError, displaced_icosphere_obj};
 
 #[cfg(test)]
 mod tests;
+
+/// The samples of a cell, from its corner (0, 0, 0) at `cell[0]`, interpolated
+/// at `t` within it: `a + (b − a)·t` along x, then y, then z, the four
+/// values (distance and closest point) in one register.
+#[inline(always)]
+fn trilinear(cell: &[[f32; 4]], [tx, ty, tz]: [f32; 3]) -> glam::Vec4 {
+    let v = |d: usize| glam::Vec4::from_array(cell[d]);
+    let lerp = |a: glam::Vec4, b: glam::Vec4, t: f32| a + (b - a) * t;
+    let (dy, dz) = (SIDE, SIDE * SIDE);
+    let x00 = lerp(v(0), v(1), tx);
+    let x10 = lerp(v(dy), v(dy + 1), tx);
+    let x01 = lerp(v(dz), v(dz + 1), tx);
+    let x11 = lerp(v(dy + dz), v(dy + dz + 1), tx);
+    lerp(lerp(x00, x10, ty), lerp(x01, x11, ty), tz)
+}
+
+/// The distance from the surface within which samples are exact, for an
+/// outer and an inner reach: the larger, and a little more.
+fn reach(outer: f32, inner: f32) -> f32 {
+    outer.max(inner) * 1.001
+}
+
+/// The voxels a field's band reaches past the soft region and a
+/// distortion's largest displacement, so that from any point beyond the
+/// band no displaced point reaches the soft region (see
+/// [`crate::field::soft::SoftMesh::covers_distortion`]): a displaced point
+/// lies within a voxel's diagonal (√3) of a lattice point beyond the reach
+/// twice over, once from a far sample's cell and once from its own cell.
+pub const FIELD_MARGIN_VOXELS: f32 = 4.0;
 
 /// The lattice of a field being built.
 struct Grid {
@@ -345,7 +364,7 @@ impl Grid {
             voxel,
             side,
             dims: span.to_array().map(|s| (s.ceil().min(1e9) as usize).max(1)),
-            reach: spec.outer.max(spec.inner) * 1.001,
+            reach: reach(spec.outer, spec.inner),
         }
     }
 

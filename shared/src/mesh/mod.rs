@@ -36,7 +36,8 @@ mod topology;
 mod winding;
 
 pub use band::{
-    Band, BandKey, BandSpec, DEFAULT_MAX_FIELD_BYTES, FieldError, Sample, displaced_icosphere_obj,
+    Band, BandKey, BandSpec, DEFAULT_MAX_FIELD_BYTES, FIELD_MARGIN_VOXELS, FieldError, Sample,
+    SampleLanes, displaced_icosphere_obj,
 };
 
 use std::collections::BTreeMap;

@@ -8,12 +8,20 @@
 
 use glam::Vec3;
 
-use super::dmf::Settling;
+use super::dmf::{InnerSurface, Settling};
 use super::{Density, Hypertexture};
 use crate::field::domain::{Field, Points, zip};
 use crate::field::motion::Pose;
-use crate::field::soft::{Falloff, ProjectBlock, boolean};
+use crate::field::soft::{Falloff, ProjectBlock, SoftMesh, boolean};
+use crate::math::dual::DualPoint;
 use crate::math::simd::{Isa, LANES, Lanes, lane_mask};
+
+/// Every lane's bit.
+const ALL_LANES: u32 = if LANES == 32 {
+    u32::MAX
+} else {
+    (1 << LANES) - 1
+};
 
 /// `f(point)` lane by lane.
 #[inline(always)]
@@ -94,7 +102,11 @@ impl Density {
                 t.project_lanes(&mut p.x, &mut p.y, &mut p.z);
                 p
             }
-            Density::Mesh(m) => x.map(|p| m.project(p)),
+            Density::Mesh(m) => {
+                let mut p = *x;
+                m.project_lanes_live(&mut p.x, &mut p.y, &mut p.z, u32::MAX);
+                p
+            }
             _ => *x,
         }
     }
@@ -118,7 +130,7 @@ impl Density {
             Density::Sphere(s) => s.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
             Density::Box(b) => each_live(x, live, |p| b.project(p)),
             Density::Torus(t) => t.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
-            Density::Mesh(m) => each_live(x, live, |p| m.project(p)),
+            Density::Mesh(m) => m.project_lanes_live(&mut x.x, &mut x.y, &mut x.z, live),
             _ => {}
         }
     }
@@ -153,6 +165,10 @@ impl Density {
         let child = |d: &Density| d.eval_object_lanes(x, field, isa);
         match self {
             Density::Hypertexture(h) => {
+                let beyond = h.empty_lanes(x);
+                if beyond == ALL_LANES {
+                    return [0.0; LANES];
+                }
                 let mut p = *x;
                 for w in &h.warps {
                     p = w.apply_lanes(&p, field, isa);
@@ -160,7 +176,13 @@ impl Density {
                 if let Some(d) = &h.distortion {
                     p = d.apply_lanes(&p, &h.object, field, isa);
                 }
-                h.object.eval_object_lanes(&p, field, isa)
+                let mut v = h.object.eval_object_lanes(&p, field, isa);
+                for (l, v) in v.iter_mut().enumerate() {
+                    if beyond >> l & 1 != 0 {
+                        *v = 0.0;
+                    }
+                }
+                v
             }
             Density::Union(v) => v
                 .iter()
@@ -194,8 +216,7 @@ impl Density {
             Density::Sphere(s) => s.density_lanes(&x.x, &x.y, &x.z),
             Density::Box(b) => each(x, |p| b.density(p)),
             Density::Torus(t) => t.density_lanes(&x.x, &x.y, &x.z),
-            // The scalar query lane by lane: a tree search per point.
-            Density::Mesh(m) => each(x, |p| m.density(p)),
+            Density::Mesh(m) => m.density_lanes(&x.x, &x.y, &x.z),
             Density::Expression(program) => program.eval_lanes(x, &[0.0; LANES], field, isa)[0]
                 .map(crate::field::shaping::clamp01),
             Density::Union(v) => v.iter().fold([0.0; LANES], |a, d| {
@@ -262,6 +283,39 @@ impl Density {
     }
 }
 
+/// A mesh's inner surface with its field's samples at the points `at`:
+/// the projection of those points is read from them ([`SoftMesh::project_sampled`]),
+/// of any others from the field again (the same bits).
+struct SampledMesh<'a> {
+    object: &'a Density,
+    mesh: &'a SoftMesh,
+    at: Points,
+    sample: crate::mesh::SampleLanes,
+}
+
+impl InnerSurface for SampledMesh<'_> {
+    #[inline(always)]
+    fn project(&self, x: Vec3) -> Vec3 {
+        self.object.project(x)
+    }
+
+    #[inline(always)]
+    fn project_dual(&self, x: &DualPoint) -> DualPoint {
+        InnerSurface::project_dual(self.object, x)
+    }
+
+    #[inline(always)]
+    fn project_lanes_in_place(&self, x: &mut Points, live: u32) {
+        let bits = |p: &Points| [p.x, p.y, p.z].map(|a| a.map(f32::to_bits));
+        if bits(x) == bits(&self.at) {
+            self.mesh
+                .project_sampled(&mut x.x, &mut x.y, &mut x.z, live, &self.sample);
+        } else {
+            self.object.project_lanes_in_place(x, live);
+        }
+    }
+}
+
 /// A soft sphere's D at `c + (x − c)·s`, settled when the squared distances
 /// `d2 = |x − c|²` scaled by every s of the range give one value.
 struct SettlingSphere<'a> {
@@ -315,8 +369,60 @@ impl Hypertexture {
     /// [`Density::eval_lanes_simd`]).
     #[inline(always)]
     fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
+        let beyond = self.empty_lanes(x);
+        if beyond == ALL_LANES {
+            return [0.0; LANES];
+        }
+        let mut v = self.eval_lanes_near(x, field, isa);
+        for (l, v) in v.iter_mut().enumerate() {
+            if beyond >> l & 1 != 0 {
+                *v = 0.0;
+            }
+        }
+        v
+    }
+
+    /// Bit l: H is 0 at lane l's point for certain ([`Hypertexture::empty_at`]).
+    #[inline(always)]
+    pub(super) fn empty_lanes(&self, x: &Points) -> u32 {
+        match &self.object {
+            Density::Mesh(m) if self.empty_beyond => m.beyond_lanes(&x.x, &x.y, &x.z),
+            _ => 0,
+        }
+    }
+
+    /// [`Hypertexture::eval_lanes_simd`] without the test for empty space.
+    #[inline(always)]
+    fn eval_lanes_near(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
         let p = self.warped_lanes(x, field, isa);
+        // A mesh's field is read once for D and for the projection.
+        if let Density::Mesh(mesh) = &self.object
+            && let Some(sample) = mesh.sample_lanes(&p.x, &p.y, &p.z)
+        {
+            let d = mesh.density_sampled(&p.x, &p.y, &p.z, &sample);
+            let sampled = SampledMesh {
+                object: &self.object,
+                mesh,
+                at: p,
+                sample,
+            };
+            return self.modulate_lanes(d, &p, &sampled, field, isa);
+        }
         let d = self.object.eval_child(&p, field, isa);
+        self.modulate_lanes(d, &p, &self.object, field, isa)
+    }
+
+    /// The value DMFs at the lanes' points `p` (under the warps and the
+    /// distortion) of D = `d`, reading `object`'s inner surface.
+    #[inline(always)]
+    fn modulate_lanes(
+        &self,
+        d: Lanes,
+        p: &Points,
+        object: &impl InnerSurface,
+        field: &Field,
+        isa: Isa,
+    ) -> Lanes {
         // Lanes at D = 0, or in the solid hard region, keep D (as `eval`).
         let kept = d.map(|d| self.keeps(d));
         if kept.iter().all(|&k| k) {
@@ -330,7 +436,7 @@ impl Hypertexture {
             if v.iter().all(|&v| v == 0.0) {
                 break;
             }
-            let next = m.apply_lanes(&v, &p, &self.object, field, isa, live);
+            let next = m.apply_lanes(&v, p, object, field, isa, live);
             // A lane at 0 stopped there (`eval` breaks out: every DMF keeps 0).
             v = zip(&v, &next, |v, n| if v == 0.0 { v } else { n });
         }

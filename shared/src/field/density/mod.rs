@@ -285,6 +285,9 @@ pub struct Hypertexture {
     /// Whether the object is a sphere under one warp that scales about its
     /// centre, whose lanes can settle as the octaves go (see `lanes.rs`).
     settles: bool,
+    /// Whether H is 0 at every point in a slot of the object's distance
+    /// field beyond its band ([`Hypertexture::empty_at`]).
+    empty_beyond: bool,
 }
 
 impl Hypertexture {
@@ -311,7 +314,33 @@ impl Hypertexture {
             distortion: None,
             solid_core: true,
             settles,
+            empty_beyond: false,
         }
+        .with_empty_space()
+    }
+
+    /// The chain with [`Hypertexture::empty_beyond`] found: the object is a
+    /// mesh read from a distance field, no warp moves x, and the field
+    /// reaches past the distortion's largest displacement (so that D is 0
+    /// within it of any point beyond the band, and the distortion's vector
+    /// there moves nothing that matters: [`SoftMesh::covering`]).
+    fn with_empty_space(mut self) -> Hypertexture {
+        let moves = self
+            .distortion
+            .as_ref()
+            .map_or(0.0, Distortion::max_displacement);
+        let mesh = match &mut self.object {
+            Density::Mesh(m) if self.warps.is_empty() => Some(m),
+            _ => None,
+        };
+        self.empty_beyond = match mesh {
+            Some(m) => {
+                *m = m.clone().covering(moves);
+                m.covers_distortion()
+            }
+            None => false,
+        };
+        self
     }
 
     /// The same chain with the hard region solid or shaped by the DMFs.
@@ -331,7 +360,17 @@ impl Hypertexture {
 
     /// The same chain with Gilet & Dischler's distortion after the warps.
     pub fn with_distortion(self, distortion: Option<Distortion>) -> Hypertexture {
-        Hypertexture { distortion, ..self }
+        Hypertexture { distortion, ..self }.with_empty_space()
+    }
+
+    /// Whether H(x) is 0 for certain because x lies in a slot of the mesh's
+    /// field wholly beyond its band ([`Hypertexture::empty_beyond`]).
+    #[inline(always)]
+    fn empty_at(&self, x: Vec3) -> bool {
+        match &self.object {
+            Density::Mesh(m) if self.empty_beyond => m.beyond(x),
+            _ => false,
+        }
     }
 
     /// The distortion, if any.
@@ -347,6 +386,9 @@ impl Hypertexture {
     /// H at x.
     #[inline]
     pub fn eval(&self, x: Vec3, field: &Field) -> f32 {
+        if self.empty_at(x) {
+            return 0.0;
+        }
         let mut p = x;
         for w in &self.warps {
             p = w.apply(p, field);
@@ -373,6 +415,9 @@ impl Hypertexture {
     /// its hard region).
     #[inline]
     pub fn eval_object(&self, x: Vec3, field: &Field) -> f32 {
+        if self.empty_at(x) {
+            return 0.0;
+        }
         let mut p = x;
         for w in &self.warps {
             p = w.apply(p, field);

@@ -99,7 +99,7 @@ fn case(object: &str, dmfs: &str, hard_core: HardCore) -> (Density, Vec<DmfDesc>
             mesh.expect("the icosphere is a closed mesh"),
         ));
         // Its distance field, as a scene attaches it (`sdf: Field`, the default).
-        m.field = m.field_spec().map(|spec| {
+        m.field = m.field_spec(0.0).map(|spec| {
             let mesh = m.mesh.as_ref().expect("attached");
             crate::mesh::Band::shared(mesh, &spec).expect("a small field")
         });
