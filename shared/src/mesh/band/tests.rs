@@ -131,3 +131,155 @@ fn a_field_over_the_cap_is_refused_with_its_size() {
     let e = Band::build(&mesh, &small).unwrap_err();
     assert!(e.contains("not a positive length"), "{e}");
 }
+
+/// The field as the straightforward build makes it: [`Mesh::closest`] at
+/// every slot's centre, every block's centre and every sample of a near
+/// block, on one thread.
+fn reference(mesh: &Mesh, spec: &BandSpec) -> Band {
+    let grid = Grid::new(mesh, spec);
+    let half = grid.side * 0.5 * 3f32.sqrt();
+    let mut slots: Vec<u32> = (0..grid.dims.iter().product())
+        .map(|i| {
+            let d = mesh
+                .closest(grid.slot_origin(i) + Vec3::splat(grid.side * 0.5))
+                .distance;
+            if d.abs() - half <= grid.reach {
+                0
+            } else if d < 0.0 {
+                INSIDE
+            } else {
+                OUTSIDE
+            }
+        })
+        .collect();
+    let mut samples = Vec::new();
+    let mut bricks = 0;
+    for (i, slot) in slots.iter_mut().enumerate() {
+        if *slot == 0 {
+            samples.extend(reference_brick(&grid, mesh, i));
+            *slot = bricks;
+            bricks += 1;
+        }
+    }
+    Band {
+        key: Band::key(mesh, spec),
+        origin: grid.origin,
+        inv_voxel: 1.0 / spec.voxel,
+        dims: grid.dims,
+        slots,
+        samples,
+    }
+}
+
+/// The samples of the brick in `slot`: [`Mesh::closest`] at each block's
+/// centre, and at each sample of a near block.
+fn reference_brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
+    const BLOCKS: usize = BRICK / 2;
+    let base = grid.slot_origin(slot);
+    let lattice =
+        |x: usize, y: usize, z: usize| base + Vec3::new(x as f32, y as f32, z as f32) * grid.voxel;
+    let half = grid.voxel * 3f32.sqrt();
+    let mut far = [0i8; BLOCKS * BLOCKS * BLOCKS];
+    for (k, f) in far.iter_mut().enumerate() {
+        let (x, y, z) = (k % BLOCKS, k / BLOCKS % BLOCKS, k / (BLOCKS * BLOCKS));
+        let d = mesh
+            .closest(lattice(2 * x + 1, 2 * y + 1, 2 * z + 1))
+            .distance;
+        if d.abs() - half > grid.reach {
+            *f = if d < 0.0 { -1 } else { 1 };
+        }
+    }
+    let blocks = |x: usize| {
+        let hi = (x / 2).min(BLOCKS - 1);
+        let lo = if x.is_multiple_of(2) && x > 0 {
+            x / 2 - 1
+        } else {
+            hi
+        };
+        lo..=hi
+    };
+    let mut out = Vec::with_capacity(SAMPLES);
+    for z in 0..SIDE {
+        for y in 0..SIDE {
+            for x in 0..SIDE {
+                let mut side = 0;
+                let mut near = false;
+                for bz in blocks(z) {
+                    for by in blocks(y) {
+                        for bx in blocks(x) {
+                            let f = far[bx + BLOCKS * (by + BLOCKS * bz)];
+                            near |= f == 0;
+                            side = f;
+                        }
+                    }
+                }
+                out.push(if near {
+                    let c = mesh.closest(lattice(x, y, z));
+                    [c.distance, c.point.x, c.point.y, c.point.z]
+                } else {
+                    [f32::INFINITY.copysign(f32::from(side)), 0.0, 0.0, 0.0]
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The build's field against the straightforward one: the same slots and
+/// the same bits in every sample, on every instruction-set path.
+fn assert_as_reference(name: &str, mesh: &Mesh, spec: &BandSpec) {
+    let want = reference(mesh, spec);
+    let got = Band::build_on(mesh, spec, 2).unwrap();
+    assert_eq!(got.slots, want.slots, "{name}: slots");
+    let first = got
+        .samples
+        .iter()
+        .zip(&want.samples)
+        .position(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits));
+    if let Some(i) = first {
+        panic!(
+            "{name}: sample {i} of {} is {:?}, not {:?}",
+            want.samples.len(),
+            got.samples[i],
+            want.samples[i]
+        );
+    }
+    assert_eq!(got.digest(), want.digest(), "{name}");
+    eprintln!(
+        "{name}: {} bricks, digest {:016x}",
+        want.bricks(),
+        want.digest()
+    );
+}
+
+#[test]
+fn the_build_gives_the_straightforward_field_on_spot() {
+    assert_as_reference("spot", &spot(), &spec(0.07));
+}
+
+#[test]
+fn the_build_gives_the_straightforward_field_on_open_meshes() {
+    let open = Mesh::from_obj(
+        "open-cube.obj",
+        crate::mesh::tests::open_cube_obj(0.5).as_bytes(),
+        Default::default(),
+    )
+    .unwrap();
+    assert!(!open.is_closed());
+    assert_as_reference("open cube", &open, &spec(0.1));
+    let teddy = crate::mesh::tests::teddy();
+    assert!(!teddy.is_closed());
+    assert_as_reference("teddy", &teddy, &spec(0.05));
+}
+
+#[test]
+fn the_build_gives_the_straightforward_field_on_a_cube_and_an_icosphere() {
+    let cube = Mesh::from_obj(
+        "cube.obj",
+        crate::mesh::tests::cube_obj(0.5).as_bytes(),
+        Default::default(),
+    )
+    .unwrap();
+    assert_as_reference("cube", &cube, &spec(0.1));
+    assert_as_reference("icosphere", &icosphere(), &spec(0.1));
+}
