@@ -339,10 +339,19 @@ impl Distortion {
     ) -> Points {
         let primitive = object.primitive();
         let mut v = Points::default();
+        // A mesh's boundary points from its field a register at a time.
+        let boundary = match (&self.field, primitive) {
+            (VectorField::Boundary, Some(Primitive::Mesh(m))) => Some(m.boundary_point_lanes(x)),
+            _ => None,
+        };
         let mut len2 = [0.0f32; LANES];
         let mut live = 0u32;
         for (l, len2) in len2.iter_mut().enumerate() {
-            let vl = self.field.at(x.get(l), primitive, field);
+            // `VectorField::at`.
+            let vl = match &boundary {
+                Some(b) => b.get(l) - x.get(l),
+                None => self.field.at(x.get(l), primitive, field),
+            };
             v.set(l, vl);
             *len2 = vl.length_squared();
             // As `apply`: a lane goes on unless `len2 <= 1e-20` (NaN too).

@@ -8,6 +8,7 @@
 
 use glam::Vec3;
 
+use crate::field::domain::Points;
 use crate::math::simd::{LANES, Lanes};
 use crate::mesh::SampleLanes;
 
@@ -651,6 +652,47 @@ impl SoftMesh {
             c = self.closest(x);
         }
         c.point + direction_or(away, c.outward) * self.falloff.outer()
+    }
+
+    /// [`SoftMesh::boundary_point`] at each lane's point (the same bits):
+    /// the field read a register at a time, the exact search where the
+    /// scalar path takes it.
+    #[inline(always)]
+    pub fn boundary_point_lanes(&self, x: &Points) -> Points {
+        let Some(s) = self.sample_lanes(&x.x, &x.y, &x.z) else {
+            return x.map(|p| self.boundary_point(p));
+        };
+        let mut out = Points::default();
+        // Lanes the scalar path answers (off the band without the
+        // distortion's cover, or on the surface).
+        let mut scalar = if self.covered {
+            0
+        } else {
+            s.outside | s.inside
+        };
+        let outer = self.falloff.outer();
+        for l in 0..LANES {
+            let p = x.get(l);
+            if (s.outside | s.inside) >> l & 1 != 0 {
+                out.set(l, p);
+                continue;
+            }
+            // `to_scene`, then the scalar path's formula.
+            let point =
+                self.centre + Vec3::new(s.point[0][l], s.point[1][l], s.point[2][l]) * self.scale;
+            let distance = s.distance[l] * self.scale;
+            let away = if distance > 0.0 { p - point } else { point - p };
+            if away.length_squared() <= 1e-20 {
+                scalar |= 1 << l;
+            }
+            out.set(l, point + direction_or(away, Vec3::ZERO) * outer);
+        }
+        while scalar != 0 {
+            let l = scalar.trailing_zeros() as usize;
+            scalar &= scalar - 1;
+            out.set(l, self.boundary_point(x.get(l)));
+        }
+        out
     }
 
     /// The distance from x to the outer (D = 0) surface, 0 outside it.
