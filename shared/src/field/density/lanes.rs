@@ -369,7 +369,14 @@ impl Hypertexture {
     /// [`Density::eval_lanes_simd`]).
     #[inline(always)]
     fn eval_lanes_simd(&self, x: &Points, field: &Field, isa: Isa) -> Lanes {
-        let beyond = self.empty_lanes(x);
+        // Without a distortion (and so, with `empty_beyond`, at x itself) a
+        // lane beyond the band is one the field's samples put outside: D is
+        // +0 there, and H keeps it, so the slots are found once, below.
+        let beyond = if self.distortion.is_some() {
+            self.empty_lanes(x)
+        } else {
+            0
+        };
         if beyond == ALL_LANES {
             return [0.0; LANES];
         }
