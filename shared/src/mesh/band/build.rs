@@ -334,16 +334,6 @@ fn bounds2(p: Vec3, ch: &Chunk, s: f32) -> Lanes {
     })
 }
 
-/// The squared distances from the box `lo`..`hi` to the chunk's boxes.
-#[inline(always)]
-fn box_gaps2(lo: Vec3, hi: Vec3, ch: &Chunk) -> Lanes {
-    each(|l| {
-        let gap = |k: usize| max(max(ch.lo[k][l] - hi[k], lo[k] - ch.hi[k][l]), 0.0);
-        let (x, y, z) = (gap(0), gap(1), gap(2));
-        x * x + y * y + z * z
-    })
-}
-
 /// What a search of a list found.
 enum Found {
     /// The least squared distance, its closest point's bits and the side
@@ -695,7 +685,7 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
     let mut bound = [0f32; BLOCK_COUNT];
     let mut centre: [Option<[f32; 4]>; BLOCK_COUNT] = [None; BLOCK_COUNT];
     let mut far = [0i8; BLOCK_COUNT];
-    let mut lower = vec![[0f32; W]; all.chunks.len()];
+    let mut mins = vec![0f32; all.chunks.len()];
     let side_of = |d: f32| if d < 0.0 { -1 } else { 1 };
     for k in 0..BLOCK_COUNT {
         first[k] = near.len();
@@ -704,7 +694,6 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             2 * (k / BLOCKS % BLOCKS),
             2 * (k / (BLOCKS * BLOCKS)),
         );
-        let (blo, bhi) = (lattice(x, y, z), lattice(x + 2, y + 2, z + 2));
         let c = lattice(x + 1, y + 1, z + 1);
         // The farthest the anchors place the centre from the surface.
         let by_anchor = anchors
@@ -719,17 +708,16 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             };
             continue;
         }
-        // The triangles' lower bounds at the centre, and the least.
         let mut least = (f32::INFINITY, 0usize);
-        for (n, (lower, ch)) in lower.iter_mut().zip(&all.chunks).enumerate() {
-            *lower = bounds2(c, ch, s);
-            let m = min_lane(lower);
-            if m < least.0 {
-                least = (m, n);
+        for (n, (m, ch)) in mins.iter_mut().zip(&all.chunks).enumerate() {
+            *m = min_lane(&bounds2(c, ch, s));
+            if *m < least.0 {
+                least = (*m, n);
             }
         }
         let least = (least.0, {
-            let (lower, ch) = (&lower[least.1], &all.chunks[least.1]);
+            let ch = &all.chunks[least.1];
+            let lower = bounds2(c, ch, s);
             let l = (0..W).find(|&l| lower[l] == least.0).unwrap_or(0);
             ch.tri[l]
         });
@@ -773,32 +761,25 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             continue;
         }
         // Every point of the block lies within u of the triangle of least
-        // bound: the block's list holds the triangles within u of the
-        // block.
-        let u = slack.widen(farthest(mesh, blo, bhi, least.1));
-        let (u2, v2) = (u * u, slack.widen(u + half).powi(2));
-        for (n, ch) in all.chunks.iter().enumerate() {
-            let gaps = box_gaps2(blo, bhi, ch);
-            let lower = &lower[n];
-            let key = min_lane(&each(|l| {
-                if gaps[l] <= u2 && lower[l] <= v2 {
-                    lower[l]
-                } else {
-                    f32::INFINITY
-                }
-            }));
-            if key < f32::INFINITY {
+        // bound (dc from the centre, which lies within `half` of every
+        // point): the block's list holds the triangles within u of the
+        // block, whose bounds at the centre are within u + half.
+        let dc = distance2(mesh, c, least.1).sqrt();
+        let u = slack.widen(dc + half);
+        let v2 = slack.widen(u + half).powi(2);
+        for (n, &m) in mins.iter().enumerate() {
+            if m <= v2 {
                 near.push(Near {
-                    key: key.sqrt() * (1.0 - 1e-6),
+                    key: m.sqrt() * (1.0 - 1e-6),
                     chunk: n as u32,
                 });
             }
         }
         near[first[k]..].sort_unstable_by(|a, b| a.key.total_cmp(&b.key));
-        bound[k] = u2;
-        if u - half > grid.reach {
+        bound[k] = u * u;
+        if slack.widen(dc) - half > grid.reach {
             // Not surely near: the centre's exact sample decides.
-            let v = sample(mesh, c, s, &all, &near[first[k]..], u2, &slack);
+            let v = sample(mesh, c, s, &all, &near[first[k]..], u * u, &slack);
             if v[0].abs() - half > grid.reach {
                 far[k] = side_of(v[0]);
                 anchors.push(Anchor {
