@@ -428,6 +428,23 @@ impl Mesh {
         found
     }
 
+    /// [`Mesh::closest`] at `p` and the index of the triangle it takes.
+    pub(crate) fn closest_and_triangle(&self, p: Vec3) -> (Closest, usize) {
+        let mut best = f32::INFINITY;
+        let mut found = (p, 0usize, Feature::Face);
+        self.bvh.visit(p, |i| {
+            let (q, feature) = closest_on_triangle(p, self.triangles[i].v);
+            let d2 = (p - q).length_squared();
+            if d2 < best {
+                best = d2;
+                found = (q, i, feature);
+            }
+            best
+        });
+        let (point, i, feature) = found;
+        (self.signed(p, best, point, i, feature), i)
+    }
+
     /// The signed distance to the surface (negative inside).
     #[inline]
     pub fn signed_distance(&self, p: Vec3) -> f32 {

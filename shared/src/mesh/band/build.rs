@@ -7,10 +7,34 @@
 //! has a triangle within that distance U, and only triangles within U of
 //! the box can be closest to any of its points. The brick's list holds the
 //! triangles within U of the brick (T₀ closest to its centre), a block's
-//! list those of the brick's list within U of the block (T₀ closest to the
-//! block's centre). A point's search skips the triangles whose box lies
-//! farther than the best distance so far, starting from its neighbour's
-//! closest triangle.
+//! list those of the brick's list within U of the block (T₀ the one whose
+//! lower bound at the block's centre is least), in chunks sorted by the
+//! least lower bound of their triangles at the block's centre. A point's
+//! search takes the chunks in that order, skips those whose triangles'
+//! lower bounds lie beyond the best distance so far, and stops at the first
+//! chunk whose bound at the centre lies beyond it by more than the point's
+//! distance from the centre.
+//!
+//! A triangle's lower bound at a point p is the larger of the distance to
+//! its box and √(a² + b²), a the distance from p to the slab of the
+//! triangle's plane that holds its corners and b the distance from p's
+//! component across the plane's normal to a ball about the triangle's box's
+//! centre that holds the triangle: any x of the triangle lies within the
+//! slab and the ball, and |p − x|² is the sum of its squares along and
+//! across the normal.
+//!
+//! A block whose centre lies farther from the soft region than its
+//! half-diagonal has ±∞ samples, the side of its centre. A lower bound on
+//! the centre's distance settles "far" without the closest triangle: a
+//! point known to lie farther than r from the surface (the brick's centre,
+//! an exact centre, a far block's centre with its lower bound) bounds the
+//! distance at every point within r by the triangle inequality, and else
+//! the least of the triangles' lower bounds. On a closed mesh the side is
+//! the pseudo-normal's, the side of the surface (exact on such a mesh), so
+//! it is the side of any point whose ball of distance from the surface
+//! holds the block's centre; with no such point, the centre's exact sample
+//! gives it. On any other mesh the side is the winding number's at the
+//! centre, as [`Mesh::closest`] takes it.
 //!
 //! The result is [`Mesh::closest`]'s to the bit: the squared distance to
 //! each triangle is `closest_on_triangle`'s arithmetic lane by lane (the
@@ -37,8 +61,12 @@ const FAR: f32 = 1e30;
 /// Blocks along a brick's edge.
 const BLOCKS: usize = BRICK / 2;
 
+/// Blocks in a brick.
+const BLOCK_COUNT: usize = BLOCKS * BLOCKS * BLOCKS;
+
 /// [`W`] triangles as structure of arrays (x, y, z per field): the corners
-/// and edges as `closest_on_triangle` forms them, and their boxes.
+/// and edges as `closest_on_triangle` forms them, their boxes and the data
+/// of their lower bounds.
 #[derive(Clone, Copy)]
 struct Chunk {
     a: [Lanes; 3],
@@ -55,6 +83,13 @@ struct Chunk {
     /// The pseudo-normals of the corners a, b, c, the edges ab, bc, ca and
     /// the face.
     normal: [[Lanes; 3]; 7],
+    /// The centre of the box.
+    mid: [Lanes; 3],
+    /// The largest distance from `mid` to a corner, rounded up.
+    radius: Lanes,
+    /// The least and the largest of `normal[6]·(corner − mid)` over the
+    /// corners, widened by their rounding.
+    across: [Lanes; 2],
     /// The triangles' indices ([`u32::MAX`] in unused lanes).
     tri: [u32; W],
 }
@@ -69,6 +104,9 @@ const EMPTY: Chunk = Chunk {
     lo: [[FAR; W]; 3],
     hi: [[FAR; W]; 3],
     normal: [[[0.0; W]; 3]; 7],
+    mid: [[FAR; W]; 3],
+    radius: [0.0; W],
+    across: [[0.0; W]; 2],
     tri: [u32::MAX; W],
 };
 
@@ -96,6 +134,20 @@ impl List {
             t.normal,
         ];
         let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+        let mid = (lo + hi) * 0.5;
+        let radius = (a - mid)
+            .length()
+            .max((b - mid).length())
+            .max((c - mid).length())
+            * (1.0 + 1e-6);
+        let across = [a, b, c].map(|v| t.normal.dot(v - mid));
+        // The rounding of a dot product of a unit vector: a few units of the
+        // last place of the radius.
+        let round = radius * 1e-6;
+        let across = [
+            across[0].min(across[1]).min(across[2]) - round,
+            across[0].max(across[1]).max(across[2]) + round,
+        ];
         let l = self.len % W;
         if l == 0 {
             self.chunks.push(EMPTY);
@@ -110,30 +162,16 @@ impl List {
             ch.bc[k][l] = bc[k];
             ch.lo[k][l] = lo[k];
             ch.hi[k][l] = hi[k];
+            ch.mid[k][l] = mid[k];
             for (n, v) in ch.normal.iter_mut().zip(normal) {
                 n[k][l] = v[k];
             }
         }
+        ch.radius[l] = radius;
+        ch.across[0][l] = across[0];
+        ch.across[1][l] = across[1];
         ch.tri[l] = i;
         self.len += 1;
-    }
-
-    /// Appends to `out` the indices of the chunks with a triangle whose box
-    /// lies within `r` of the box `lo`..`hi`.
-    #[inline(always)]
-    fn near(&self, lo: Vec3, hi: Vec3, r: f32, out: &mut Vec<u16>) {
-        let r2 = r * r;
-        for (n, ch) in self.chunks.iter().enumerate() {
-            let mut d2 = [0.0; W];
-            for (l, d2) in d2.iter_mut().enumerate() {
-                let gap = |k: usize| max(max(ch.lo[k][l] - hi[k], lo[k] - ch.hi[k][l]), 0.0);
-                let (x, y, z) = (gap(0), gap(1), gap(2));
-                *d2 = x * x + y * y + z * z;
-            }
-            if mask(|l| d2[l] <= r2) != 0 {
-                out.push(n as u16);
-            }
-        }
     }
 }
 
@@ -274,24 +312,34 @@ fn closest_lanes(p: Vec3, ch: &Chunk, signed: bool) -> ([Lanes; 3], Mask, Lanes)
     (q, outside, dot(&d, &d))
 }
 
-/// The squared distances from `p` to the chunk's boxes.
+/// Lower bounds of the squared distances from `p` to the chunk's
+/// triangles, each bound's lengths shortened by `s` (see the module's
+/// doc): the squared distance to the box, or the sum of the squares of the
+/// distances to the slab and to the ball across the normal, the larger.
 #[inline(always)]
-fn box_distances2(p: Vec3, ch: &Chunk) -> Lanes {
-    let mut out = [0.0; W];
-    for (l, out) in out.iter_mut().enumerate() {
+fn bounds2(p: Vec3, ch: &Chunk, s: f32) -> Lanes {
+    let n = &ch.normal[6];
+    each(|l| {
+        let d = [p.x - ch.mid[0][l], p.y - ch.mid[1][l], p.z - ch.mid[2][l]];
+        let t = n[0][l] * d[0] + n[1][l] * d[1] + n[2][l] * d[2];
+        let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let slab = max(max(t - ch.across[1][l], ch.across[0][l] - t) - s, 0.0);
+        // |d|² − t², less the rounding of both (a few units of the last
+        // place of |d|²).
+        let sideways = max(r2 * (1.0 - 4e-6) - t * t, 0.0).sqrt();
+        let ball = max(sideways - ch.radius[l] - s, 0.0);
         let gap = |k: usize| max(max(ch.lo[k][l] - p[k], p[k] - ch.hi[k][l]), 0.0);
         let (x, y, z) = (gap(0), gap(1), gap(2));
-        *out = x * x + y * y + z * z;
-    }
-    out
+        max(slab * slab + ball * ball, x * x + y * y + z * z)
+    })
 }
 
 /// What a search of a list found.
 enum Found {
     /// The least squared distance, its closest point's bits and the side
     /// (all ones outside) by its pseudo-normal, which all the triangles at
-    /// that distance give, and one of them.
-    One(f32, [u32; 3], u32, u32),
+    /// that distance give.
+    One(f32, [u32; 3], u32),
     /// Triangles at the least squared distance `m` with different closest
     /// points or sides.
     Tie(f32),
@@ -311,29 +359,57 @@ impl Slack {
     fn widen(&self, r: f32) -> f32 {
         r * (1.0 + 1e-5) + self.length
     }
+
+    /// `r` shortened by the slack.
+    #[inline(always)]
+    fn shrink(&self, r: f32) -> f32 {
+        r * (1.0 - 1e-5) - self.length
+    }
+}
+
+/// A chunk of a block's list: its index in the brick's list and the least
+/// lower bound of its triangles' distances from the block's centre.
+#[derive(Clone, Copy)]
+struct Near {
+    key: f32,
+    chunk: u32,
 }
 
 /// The triangles of `list`'s chunks `near` at the least squared distance
-/// from `p`, which is at most `bound` (a triangle's squared distance from
-/// `p`); `signed`: the side from the pseudo-normals.
+/// from `p`, which is at most `bound` (squared); `off` is at least the
+/// distance from `p` to the centre `near`'s keys were measured from;
+/// `signed`: the side from the pseudo-normals.
 #[inline(always)]
-fn search(p: Vec3, list: &List, near: &[u16], bound: f32, slack: &Slack, signed: bool) -> Found {
+fn search(
+    p: Vec3,
+    off: f32,
+    list: &List,
+    near: &[Near],
+    bound: f32,
+    slack: &Slack,
+    signed: bool,
+) -> Found {
     let mut best = [f32::INFINITY; W];
-    let mut tri = [u32::MAX; W];
     let mut point = [[0u32; W]; 3];
     let mut side = [0u32; W];
     let mut tie = [0u32; W];
-    // A box farther than the least distance so far, widened, holds no
+    // A bound farther than the least distance so far, widened, holds no
     // triangle as close: (√d·(1 + 10⁻⁵) + s)² ≤ d·(1 + 3·10⁻⁵) + 2s√b + s²
     // for d ≤ b.
     let s = slack.length;
     let pad = 2.0 * s * bound.sqrt() * (1.0 + 1e-5) + s * s;
     let mut least = bound;
     let mut within = bound * (1.0 + 3e-5) + pad;
-    for &n in near {
-        let ch = &list.chunks[n as usize];
-        let boxes = box_distances2(p, ch);
-        if mask(|l| boxes[l] <= within) == 0 {
+    let mut radius = within.sqrt() * (1.0 + 1e-6);
+    for nr in near {
+        // The keys ascend: the triangles of this chunk and the next ones lie
+        // farther than `radius` from p.
+        if nr.key - off > radius {
+            break;
+        }
+        let ch = &list.chunks[nr.chunk as usize];
+        let lower = bounds2(p, ch, s);
+        if mask(|l| lower[l] <= within) == 0 {
             continue;
         }
         let (q, outside, d2) = closest_lanes(p, ch, signed);
@@ -347,7 +423,6 @@ fn search(p: Vec3, list: &List, near: &[u16], bound: f32, slack: &Slack, signed:
         let equal = when(|l| d2[l] == best[l]);
         for l in 0..W {
             tie[l] = !better[l] & (tie[l] | (equal[l] & !same[l]));
-            tri[l] = (better[l] & ch.tri[l]) | (!better[l] & tri[l]);
             side[l] = (better[l] & outside[l]) | (!better[l] & side[l]);
         }
         best = pick(&better, &d2, &best);
@@ -356,8 +431,12 @@ fn search(p: Vec3, list: &List, near: &[u16], bound: f32, slack: &Slack, signed:
                 point[k][l] = (better[l] & q[k][l].to_bits()) | (!better[l] & point[k][l]);
             }
         }
-        least = least.min(min_lane(&d2));
-        within = least * (1.0 + 3e-5) + pad;
+        let m = min_lane(&d2);
+        if m < least {
+            least = m;
+            within = least * (1.0 + 3e-5) + pad;
+            radius = within.sqrt() * (1.0 + 1e-6);
+        }
     }
     let m = min_lane(&best);
     if m == f32::INFINITY {
@@ -381,26 +460,28 @@ fn search(p: Vec3, list: &List, near: &[u16], bound: f32, slack: &Slack, signed:
         }
     }
     match one {
-        Some(l) => Found::One(m, [point[0][l], point[1][l], point[2][l]], side[l], tri[l]),
+        Some(l) => Found::One(m, [point[0][l], point[1][l], point[2][l]], side[l]),
         None => Found::None,
     }
 }
 
 /// The sample at `p` from the triangles of `list`'s chunks `near` (which
-/// hold every triangle that may be closest to `p`), searched within `bound`
-/// (a triangle's squared distance from `p`), and a closest triangle.
+/// hold every triangle that may be closest to `p`, their keys measured
+/// from a point within `off` of `p`), searched within `bound` (squared,
+/// at least the squared distance to a triangle).
 #[inline(always)]
 fn sample(
     mesh: &Mesh,
     p: Vec3,
+    off: f32,
     list: &List,
-    near: &[u16],
+    near: &[Near],
     bound: f32,
     slack: &Slack,
-) -> ([f32; 4], u32) {
+) -> [f32; 4] {
     let signed = mesh.sign == Sign::PseudoNormal;
-    match search(p, list, near, bound, slack, signed) {
-        Found::One(m, q, side, i) => {
+    match search(p, off, list, near, bound, slack, signed) {
+        Found::One(m, q, side) => {
             let outside = if signed {
                 side != 0
             } else {
@@ -408,10 +489,10 @@ fn sample(
             };
             let d = m.sqrt();
             let q = q.map(f32::from_bits);
-            ([if outside { d } else { -d }, q[0], q[1], q[2]], i)
+            [if outside { d } else { -d }, q[0], q[1], q[2]]
         }
         Found::Tie(m) => first_visited(mesh, p, list, near, m, slack),
-        Found::None => (reference(mesh, p), mesh.closest_triangle(p) as u32),
+        Found::None => reference(mesh, p),
     }
 }
 
@@ -424,20 +505,26 @@ fn first_visited(
     mesh: &Mesh,
     p: Vec3,
     list: &List,
-    near: &[u16],
+    near: &[Near],
     m: f32,
     slack: &Slack,
-) -> ([f32; 4], u32) {
+) -> [f32; 4] {
     let within = slack.widen(m.sqrt()).powi(2);
     let mut first: Option<(u32, Vec3, crate::mesh::Feature)> = None;
-    for &n in near {
-        let ch = &list.chunks[n as usize];
-        let boxes = box_distances2(p, ch);
-        for (&i, &b) in ch.tri.iter().zip(&boxes) {
-            if b > within || i == u32::MAX {
+    for nr in near {
+        let ch = &list.chunks[nr.chunk as usize];
+        for &i in &ch.tri {
+            if i == u32::MAX {
                 continue;
             }
-            let (q, feature) = closest_on_triangle(p, mesh.triangles[i as usize].v);
+            let [a, b, c] = mesh.triangles[i as usize].v;
+            let gap = (a.min(b).min(c) - p)
+                .max(p - a.max(b).max(c))
+                .max(Vec3::ZERO);
+            if gap.length_squared() > within {
+                continue;
+            }
+            let (q, feature) = closest_on_triangle(p, [a, b, c]);
             if (p - q).length_squared() != m {
                 continue;
             }
@@ -456,9 +543,9 @@ fn first_visited(
     match first {
         Some((i, q, feature)) => {
             let c = mesh.signed(p, m, q, i as usize, feature);
-            ([c.distance, c.point.x, c.point.y, c.point.z], i)
+            [c.distance, c.point.x, c.point.y, c.point.z]
         }
-        None => (reference(mesh, p), mesh.closest_triangle(p) as u32),
+        None => reference(mesh, p),
     }
 }
 
@@ -477,22 +564,64 @@ fn distance2(mesh: &Mesh, p: Vec3, i: u32) -> f32 {
     (p - q).length_squared()
 }
 
-/// The largest distance from the box `lo`..`hi` to triangle `i` (at a
-/// corner).
+/// About the largest distance from the box `lo`..`hi` to triangle `i` (at
+/// a corner; `closest_on_triangle`'s cases for the 8 corners at once, the
+/// rounding left to the caller's slack).
 #[inline(always)]
 fn farthest(mesh: &Mesh, lo: Vec3, hi: Vec3, i: u32) -> f32 {
-    (0..8)
-        .map(|k| {
-            let pick = |bit: usize, a: f32, b: f32| if k & bit != 0 { b } else { a };
-            let corner = Vec3::new(
-                pick(1, lo.x, hi.x),
-                pick(2, lo.y, hi.y),
-                pick(4, lo.z, hi.z),
-            );
-            distance2(mesh, corner, i)
-        })
-        .fold(0.0, f32::max)
-        .sqrt()
+    let [a, b, c] = mesh.triangles[i as usize].v;
+    let (ab, ac) = (b - a, c - a);
+    let corner = |k: usize| each(|l| if l >> k & 1 != 0 { hi[k] } else { lo[k] });
+    let p = [corner(0), corner(1), corner(2)];
+    let rel = |v: Vec3| [0, 1, 2].map(|k| each(|l| p[k][l] - v[k]));
+    let dot = |u: Vec3, d: &[Lanes; 3]| each(|l| u.x * d[0][l] + u.y * d[1][l] + u.z * d[2][l]);
+    let (ap, bp, cp) = (rel(a), rel(b), rel(c));
+    let (d1, d2) = (dot(ab, &ap), dot(ac, &ap));
+    let (d3, d4) = (dot(ab, &bp), dot(ac, &bp));
+    let (d5, d6) = (dot(ab, &cp), dot(ac, &cp));
+    let out = each(|l| {
+        let vc = d1[l] * d4[l] - d3[l] * d2[l];
+        let vb = d5[l] * d2[l] - d1[l] * d6[l];
+        let va = d3[l] * d6[l] - d5[l] * d4[l];
+        let (u, v) = if d1[l] <= 0.0 && d2[l] <= 0.0 {
+            (0.0, 0.0)
+        } else if d3[l] >= 0.0 && d4[l] <= d3[l] {
+            (1.0, 0.0)
+        } else if vc <= 0.0 && d1[l] >= 0.0 && d3[l] <= 0.0 {
+            (d1[l] / (d1[l] - d3[l]), 0.0)
+        } else if d6[l] >= 0.0 && d5[l] <= d6[l] {
+            (0.0, 1.0)
+        } else if vb <= 0.0 && d2[l] >= 0.0 && d6[l] <= 0.0 {
+            (0.0, d2[l] / (d2[l] - d6[l]))
+        } else if va <= 0.0 && (d4[l] - d3[l]) >= 0.0 && (d5[l] - d6[l]) >= 0.0 {
+            let w = (d4[l] - d3[l]) / ((d4[l] - d3[l]) + (d5[l] - d6[l]));
+            (1.0 - w, w)
+        } else {
+            let denom = 1.0 / (va + vb + vc);
+            (vb * denom, vc * denom)
+        };
+        let e = [0, 1, 2].map(|k| ap[k][l] - ab[k] * u - ac[k] * v);
+        e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    });
+    if out.iter().any(|d| d.is_nan()) {
+        return f32::INFINITY;
+    }
+    out.iter().fold(0.0f32, |m, &d| m.max(d)).sqrt() * (1.0 + 1e-6)
+}
+
+/// The side of `p` by the winding number (−1 inside, 1 outside), as
+/// [`Mesh::closest`] takes it.
+fn winding_side(mesh: &Mesh, p: Vec3) -> i8 {
+    if mesh.winding_number(p) < 0.5 { 1 } else { -1 }
+}
+
+/// A point whose distance from the surface is at least `r`, and its side
+/// (−1 inside, 1 outside) where known.
+#[derive(Clone, Copy)]
+struct Anchor {
+    p: Vec3,
+    r: f32,
+    side: i8,
 }
 
 /// The samples of the brick in `slot`. The brick is cut into blocks of
@@ -507,10 +636,33 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
     let slack = Slack {
         length: 1e-5 * grid.scale,
     };
+    let s = slack.length;
+    let signed = mesh.sign == Sign::PseudoNormal;
     let half = grid.voxel * 3f32.sqrt();
-    // The brick's list.
+    // A block's centre lies beyond the band when its exact distance d has
+    // |d| − half > reach; `lower` is a lower bound of the true distance.
+    let beyond = |lower: f32| slack.shrink(lower) - half > grid.reach;
+    // The brick's list, and its centre as the first anchor.
     let (lo, hi) = (lattice(0, 0, 0), lattice(BRICK, BRICK, BRICK));
-    let mut hint = mesh.closest_triangle(lattice(BRICK / 2, BRICK / 2, BRICK / 2)) as u32;
+    let middle = lattice(BRICK / 2, BRICK / 2, BRICK / 2);
+    let mut anchors: Vec<Anchor> = Vec::with_capacity(BLOCK_COUNT + 1);
+    let hint = if signed {
+        let (c, i) = mesh.closest_and_triangle(middle);
+        anchors.push(Anchor {
+            p: middle,
+            r: slack.shrink(c.distance.abs()),
+            side: if c.distance < 0.0 { -1 } else { 1 },
+        });
+        i as u32
+    } else {
+        let i = mesh.closest_triangle(middle) as u32;
+        anchors.push(Anchor {
+            p: middle,
+            r: slack.shrink(distance2(mesh, middle, i).sqrt()),
+            side: 0,
+        });
+        i
+    };
     let reach = slack.widen(farthest(mesh, lo, hi, hint));
     let mut found = Vec::new();
     mesh.bvh.near_box(lo, hi, reach, &mut found);
@@ -525,45 +677,123 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             all.push(mesh, i);
         }
     }
-    // Per block: the chunks that may hold a closest triangle (within the
-    // distance from the block to the previous centre's), its centre's sample
-    // and triangle, and 0 near, else the side (-1 inside, 1 outside).
-    let block_box = |k: usize| {
+    // Per block: far (the side), or near with its list of chunks, the
+    // bound of its samples' squared distances, and its centre's sample when
+    // computed.
+    let mut near: Vec<Near> = Vec::new();
+    let mut first = [0usize; BLOCK_COUNT + 1];
+    let mut bound = [0f32; BLOCK_COUNT];
+    let mut centre: [Option<[f32; 4]>; BLOCK_COUNT] = [None; BLOCK_COUNT];
+    let mut far = [0i8; BLOCK_COUNT];
+    let mut mins = vec![0f32; all.chunks.len()];
+    let side_of = |d: f32| if d < 0.0 { -1 } else { 1 };
+    for k in 0..BLOCK_COUNT {
+        first[k] = near.len();
         let (x, y, z) = (
             2 * (k % BLOCKS),
             2 * (k / BLOCKS % BLOCKS),
             2 * (k / (BLOCKS * BLOCKS)),
         );
-        (lattice(x, y, z), lattice(x + 2, y + 2, z + 2))
-    };
-    let mut near = Vec::new();
-    let mut first = [0usize; BLOCKS * BLOCKS * BLOCKS + 1];
-    let mut centre = [([0.0f32; 4], 0u32); BLOCKS * BLOCKS * BLOCKS];
-    let mut far = [0i8; BLOCKS * BLOCKS * BLOCKS];
-    for k in 0..BLOCKS * BLOCKS * BLOCKS {
-        let (lo, hi) = block_box(k);
-        all.near(lo, hi, slack.widen(farthest(mesh, lo, hi, hint)), &mut near);
-        first[k + 1] = near.len();
-        let p = lattice(
-            2 * (k % BLOCKS) + 1,
-            2 * (k / BLOCKS % BLOCKS) + 1,
-            2 * (k / (BLOCKS * BLOCKS)) + 1,
-        );
-        let c = sample(
-            mesh,
-            p,
-            &all,
-            &near[first[k]..],
-            distance2(mesh, p, hint),
-            &slack,
-        );
-        hint = c.1;
-        centre[k] = c;
-        let d = c.0[0];
-        if d.abs() - half > grid.reach {
-            far[k] = if d < 0.0 { -1 } else { 1 };
+        let c = lattice(x + 1, y + 1, z + 1);
+        // The farthest the anchors place the centre from the surface.
+        let by_anchor = anchors
+            .iter()
+            .map(|a| (a.r - (c - a.p).length() * (1.0 + 1e-6) - s, a.side))
+            .fold((f32::NEG_INFINITY, 0), |m, a| if a.0 > m.0 { a } else { m });
+        if beyond(by_anchor.0) {
+            far[k] = if signed {
+                by_anchor.1
+            } else {
+                winding_side(mesh, c)
+            };
+            continue;
+        }
+        let mut least = (f32::INFINITY, 0usize);
+        for (n, (m, ch)) in mins.iter_mut().zip(&all.chunks).enumerate() {
+            *m = min_lane(&bounds2(c, ch, s));
+            if *m < least.0 {
+                least = (*m, n);
+            }
+        }
+        let least = (least.0, {
+            let ch = &all.chunks[least.1];
+            let lower = bounds2(c, ch, s);
+            let l = (0..W).find(|&l| lower[l] == least.0).unwrap_or(0);
+            ch.tri[l]
+        });
+        let least_bound = least.0.sqrt() * (1.0 - 1e-6);
+        if beyond(least_bound) {
+            let side = if !signed {
+                winding_side(mesh, c)
+            } else {
+                match anchors
+                    .iter()
+                    .find(|a| a.side != 0 && (c - a.p).length() * (1.0 + 1e-6) + s < a.r)
+                {
+                    Some(a) => a.side,
+                    None => {
+                        let keys: Vec<Near> = (0..all.chunks.len())
+                            .map(|n| Near {
+                                key: 0.0,
+                                chunk: n as u32,
+                            })
+                            .collect();
+                        let b = distance2(mesh, c, least.1);
+                        let v = sample(
+                            mesh,
+                            c,
+                            s,
+                            &all,
+                            &keys,
+                            slack.widen(b.sqrt()).powi(2),
+                            &slack,
+                        );
+                        side_of(v[0])
+                    }
+                }
+            };
+            far[k] = side;
+            anchors.push(Anchor {
+                p: c,
+                r: least_bound,
+                side,
+            });
+            continue;
+        }
+        // Every point of the block lies within u of the triangle of least
+        // bound (dc from the centre, which lies within `half` of every
+        // point): the block's list holds the triangles within u of the
+        // block, whose bounds at the centre are within u + half.
+        let dc = distance2(mesh, c, least.1).sqrt();
+        let u = slack.widen(dc + half);
+        let v2 = slack.widen(u + half).powi(2);
+        for (n, &m) in mins.iter().enumerate() {
+            if m <= v2 {
+                near.push(Near {
+                    key: m.sqrt() * (1.0 - 1e-6),
+                    chunk: n as u32,
+                });
+            }
+        }
+        near[first[k]..].sort_unstable_by(|a, b| a.key.total_cmp(&b.key));
+        bound[k] = u * u;
+        if slack.widen(dc) - half > grid.reach {
+            // Not surely near: the centre's exact sample decides.
+            let v = sample(mesh, c, s, &all, &near[first[k]..], u * u, &slack);
+            if v[0].abs() - half > grid.reach {
+                far[k] = side_of(v[0]);
+                anchors.push(Anchor {
+                    p: c,
+                    r: slack.shrink(v[0].abs()),
+                    side: if signed { side_of(v[0]) } else { 0 },
+                });
+                near.truncate(first[k]);
+                continue;
+            }
+            centre[k] = Some(v);
         }
     }
+    first[BLOCK_COUNT] = near.len();
     // The blocks a sample's coordinate lies in: one, or two on a face
     // between blocks.
     let blocks = |x: usize| {
@@ -603,7 +833,7 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             }
         }
     }
-    for (k, &(c, tri)) in centre.iter().enumerate() {
+    for k in 0..BLOCK_COUNT {
         if far[k] != 0 {
             continue;
         }
@@ -613,26 +843,24 @@ pub(super) fn brick(grid: &Grid, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
             2 * (k / BLOCKS % BLOCKS),
             2 * (k / (BLOCKS * BLOCKS)),
         );
-        let mut hint = tri;
+        let c = lattice(bx + 1, by + 1, bz + 1);
         for z in bz..=bz + 2 {
             for y in by..=by + 2 {
                 for x in bx..=bx + 2 {
-                    let s = x + SIDE * (y + SIDE * z);
-                    if owner[s] as usize != k {
+                    let i = x + SIDE * (y + SIDE * z);
+                    if owner[i] as usize != k {
                         continue;
                     }
-                    if (x, y, z) == (bx + 1, by + 1, bz + 1) {
-                        out[s] = c;
+                    if let (Some(v), true) = (centre[k], (x, y, z) == (bx + 1, by + 1, bz + 1)) {
+                        out[i] = v;
                         continue;
                     }
                     let p = lattice(x, y, z);
-                    let (v, i) = sample(mesh, p, &all, near, distance2(mesh, p, hint), &slack);
-                    out[s] = v;
-                    hint = i;
+                    let off = (p - c).length() * (1.0 + 1e-6) + s;
+                    out[i] = sample(mesh, p, off, &all, near, bound[k], &slack);
                 }
             }
         }
     }
-
     out
 }
