@@ -136,9 +136,10 @@ impl List {
         let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
         let mid = (lo + hi) * 0.5;
         let radius = (a - mid)
-            .length()
-            .max((b - mid).length())
-            .max((c - mid).length())
+            .length_squared()
+            .max((b - mid).length_squared())
+            .max((c - mid).length_squared())
+            .sqrt()
             * (1.0 + 1e-6);
         let across = [a, b, c].map(|v| t.normal.dot(v - mid));
         // The rounding of a dot product of a unit vector: a few units of the
