@@ -6,10 +6,12 @@
 //! to a triangle T₀ is at one of the box's corners: every point of the box
 //! has a triangle within that distance U, and only triangles within U of
 //! the box can be closest to any of its points. The brick's list holds the
-//! triangles within U of the brick (T₀ closest to its centre), a block's
-//! list those of the brick's list within U of the block (T₀ the one whose
-//! lower bound at the block's centre is least), in chunks sorted by the
-//! least lower bound of their triangles at the block's centre. A point's
+//! triangles within U of the brick (T₀ closest to its centre). Every point
+//! of a block lies within U = |c − T₀| + h of a triangle T₀ (c the block's
+//! centre, h its half-diagonal; T₀ the triangle whose lower bound at c is
+//! least), so the block's list holds the chunks of the brick's list with a
+//! triangle whose bound at c is within U + h, sorted by the least bound of
+//! their triangles at c. A point's
 //! search takes the chunks in that order, skips those whose triangles'
 //! lower bounds lie beyond the best distance so far, and stops at the first
 //! chunk whose bound at the centre lies beyond it by more than the point's
@@ -136,9 +138,10 @@ impl List {
         let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
         let mid = (lo + hi) * 0.5;
         let radius = (a - mid)
-            .length()
-            .max((b - mid).length())
-            .max((c - mid).length())
+            .length_squared()
+            .max((b - mid).length_squared())
+            .max((c - mid).length_squared())
+            .sqrt()
             * (1.0 + 1e-6);
         let across = [a, b, c].map(|v| t.normal.dot(v - mid));
         // The rounding of a dot product of a unit vector: a few units of the
