@@ -882,13 +882,6 @@ fn default_field_mib() -> Positive {
 /// the softness.
 pub const FIELD_VOXELS_PER_SOFTNESS: f32 = 4.0;
 
-/// The largest displacement of a distortion (0 without one).
-fn max_displacement(d: Option<&DistortionDesc>) -> f32 {
-    d.map_or(0.0, |d| {
-        crate::field::distortion::Distortion::build(d).max_displacement()
-    })
-}
-
 impl MeshDesc {
     /// The field's lengths in the mesh's own coordinates, or `None` for
     /// `sdf: Exact` (or a hard mesh, softness 0, whose D needs the sign
@@ -994,12 +987,18 @@ impl ObjectDesc {
     /// [`ObjectDesc::for_each_mesh_mut`], with what a distortion can move
     /// each mesh's points by: `moves` for this object if it is a mesh, a
     /// hypertexture's distortion's for its object if that is a mesh, else 0.
-    pub fn for_each_mesh_moved_mut(&mut self, moves: f32, f: &mut impl FnMut(&mut MeshDesc, f32)) {
+    /// `displacement` gives a distortion's largest displacement.
+    pub fn for_each_mesh_moved_mut(
+        &mut self,
+        moves: f32,
+        displacement: &impl Fn(&DistortionDesc) -> f32,
+        f: &mut impl FnMut(&mut MeshDesc, f32),
+    ) {
         match self {
             ObjectDesc::Mesh(m) => f(m, moves),
             ObjectDesc::Hypertexture(h) => {
-                let moves = max_displacement(h.distortion.as_ref());
-                h.object.for_each_mesh_moved_mut(moves, f);
+                let moves = h.distortion.as_ref().map_or(0.0, displacement);
+                h.object.for_each_mesh_moved_mut(moves, displacement, f);
             }
             other => other.for_each_mesh_mut(&mut |m| f(m, 0.0)),
         }
@@ -1052,7 +1051,12 @@ impl SceneDesc {
     /// Gives every attached mesh with `sdf: Field` its distance field (built
     /// once per process, mesh and resolution: [`crate::mesh::Band::shared`]);
     /// the first that cannot be built is the error: its path and why.
-    pub fn attach_mesh_fields(&mut self) -> Result<(), (String, String)> {
+    /// `displacement` gives a distortion's largest displacement (the field
+    /// layer's `Distortion::max_displacement`).
+    pub fn attach_mesh_fields(
+        &mut self,
+        displacement: &impl Fn(&DistortionDesc) -> f32,
+    ) -> Result<(), (String, String)> {
         let mut error = None;
         let mut attach = |m: &mut MeshDesc, moves: f32| {
             if let (Some(mesh), Some(spec), None) = (&m.mesh, m.field_spec(moves), &error) {
@@ -1062,10 +1066,11 @@ impl SceneDesc {
                 }
             }
         };
-        let moves = max_displacement(self.distortion.as_ref());
-        self.object.for_each_mesh_moved_mut(moves, &mut attach);
+        let moves = self.distortion.as_ref().map_or(0.0, displacement);
+        self.object
+            .for_each_mesh_moved_mut(moves, displacement, &mut attach);
         for o in self.objects.values_mut() {
-            o.for_each_mesh_moved_mut(0.0, &mut attach);
+            o.for_each_mesh_moved_mut(0.0, displacement, &mut attach);
         }
         error.map_or(Ok(()), Err)
     }

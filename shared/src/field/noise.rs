@@ -761,9 +761,7 @@ impl Noise {
                     // Rows m and m + 1 of a lane (corners (0, dj, dk) and
                     // (1, dj, dk)) are one 32-byte load. SAFETY: `corners`
                     // are < 511, so both rows are in the table.
-                    // (Macros, not closures: a closure is compiled without
-                    // the enclosing copy's instruction set, and its
-                    // intrinsics become calls.)
+                    // Macros: a closure's intrinsics would be calls.
                     macro_rules! pair {
                         ($l:expr) => {
                             _mm256_loadu_ps(

@@ -24,8 +24,6 @@ use std::sync::{Arc, Mutex, Weak};
 use glam::Vec3;
 
 use super::Mesh;
-use crate::math::random::Fnv1a;
-use crate::math::simd::{Isa, per_isa};
 
 /// Cells along a brick's edge.
 const BRICK: usize = 8;
@@ -226,9 +224,8 @@ impl Band {
         for (b, &i) in brick_slot.iter().enumerate() {
             slots[i] = b as u32;
         }
-        let isa = Isa::detect();
         let samples: Vec<Vec<[f32; 4]>> = par_map(threads, brick_slot.len(), |b| {
-            grid.brick(mesh, brick_slot[b], isa)
+            grid.brick(mesh, brick_slot[b])
         });
         Ok(Band {
             key: Band::key(mesh, spec),
@@ -238,21 +235,6 @@ impl Band {
             slots,
             samples: samples.concat(),
         })
-    }
-
-    /// FNV-1a of the slots and the samples' bits: equal digests, equal
-    /// fields.
-    pub fn digest(&self) -> u64 {
-        let mut h = Fnv1a::default();
-        h.write(self.dims.iter().flat_map(|&d| (d as u64).to_le_bytes()));
-        h.write(self.slots.iter().flat_map(|s| s.to_le_bytes()));
-        h.write(
-            self.samples
-                .iter()
-                .flatten()
-                .flat_map(|v| v.to_bits().to_le_bytes()),
-        );
-        h.finish()
     }
 
     /// The number of bricks.
@@ -316,7 +298,6 @@ impl Band {
     }
 }
 
-mod build;
 mod lanes;
 mod measure;
 
@@ -368,8 +349,6 @@ struct Grid {
     /// The distance from the surface within which samples are exact (the
     /// soft region, or the inner reach if farther).
     reach: f32,
-    /// The largest magnitude of a coordinate in the grid.
-    scale: f32,
 }
 
 impl Grid {
@@ -380,15 +359,12 @@ impl Grid {
         let grow = Vec3::splat(spec.outer + voxel);
         let origin = lo - grow;
         let span = (hi + grow - origin) / side;
-        let dims = span.to_array().map(|s| (s.ceil().min(1e9) as usize).max(1));
-        let end = origin + Vec3::new(dims[0] as f32, dims[1] as f32, dims[2] as f32) * side;
         Grid {
             origin,
             voxel,
             side,
-            dims,
+            dims: span.to_array().map(|s| (s.ceil().min(1e9) as usize).max(1)),
             reach: reach(spec.outer, spec.inner),
-            scale: origin.abs().max(end.abs()).max_element(),
         }
     }
 
@@ -406,12 +382,63 @@ impl Grid {
         self.origin + Vec3::new(x as f32, y as f32, z as f32) * self.side
     }
 
-    /// The samples of the brick in `slot` ([`build::brick`]), on `isa`'s
-    /// lanes (every path gives the same bits).
-    fn brick(&self, mesh: &Mesh, slot: usize, isa: Isa) -> Vec<[f32; 4]> {
-        per_isa!(isa, (grid: &Grid = self, mesh: &Mesh = mesh, slot: usize = slot) -> Vec<[f32; 4]> {
-            scalar => build::brick(grid, mesh, slot),
-            lanes => build::brick(grid, mesh, slot),
-        })
+    /// The samples of the brick in `slot`. The brick is cut into blocks of
+    /// 2³ cells; a block whose centre lies farther from the soft region
+    /// than its half-diagonal holds no point of it, and its samples are ±∞
+    /// (the centre's side); the samples of the other blocks are exact.
+    fn brick(&self, mesh: &Mesh, slot: usize) -> Vec<[f32; 4]> {
+        const BLOCKS: usize = BRICK / 2;
+        let base = self.slot_origin(slot);
+        let lattice = |x: usize, y: usize, z: usize| {
+            base + Vec3::new(x as f32, y as f32, z as f32) * self.voxel
+        };
+        let half = self.voxel * 3f32.sqrt();
+        // Per block: 0 near, else the side (-1 inside, 1 outside).
+        let mut far = [0i8; BLOCKS * BLOCKS * BLOCKS];
+        for (k, f) in far.iter_mut().enumerate() {
+            let (x, y, z) = (k % BLOCKS, k / BLOCKS % BLOCKS, k / (BLOCKS * BLOCKS));
+            let d = mesh
+                .closest(lattice(2 * x + 1, 2 * y + 1, 2 * z + 1))
+                .distance;
+            if d.abs() - half > self.reach {
+                *f = if d < 0.0 { -1 } else { 1 };
+            }
+        }
+        // The blocks a sample's coordinate lies in: one, or two on a face
+        // between blocks.
+        let blocks = |x: usize| {
+            let hi = (x / 2).min(BLOCKS - 1);
+            let lo = if x.is_multiple_of(2) && x > 0 {
+                x / 2 - 1
+            } else {
+                hi
+            };
+            lo..=hi
+        };
+        let mut out = Vec::with_capacity(SAMPLES);
+        for z in 0..SIDE {
+            for y in 0..SIDE {
+                for x in 0..SIDE {
+                    let mut side = 0;
+                    let mut near = false;
+                    for bz in blocks(z) {
+                        for by in blocks(y) {
+                            for bx in blocks(x) {
+                                let f = far[bx + BLOCKS * (by + BLOCKS * bz)];
+                                near |= f == 0;
+                                side = f;
+                            }
+                        }
+                    }
+                    out.push(if near {
+                        let c = mesh.closest(lattice(x, y, z));
+                        [c.distance, c.point.x, c.point.y, c.point.z]
+                    } else {
+                        [f32::INFINITY.copysign(f32::from(side)), 0.0, 0.0, 0.0]
+                    });
+                }
+            }
+        }
+        out
     }
 }

@@ -171,58 +171,6 @@ impl Bvh {
     }
 }
 
-impl Bvh {
-    /// Whether [`Bvh::visit`] at `p` comes to triangle `i` before triangle
-    /// `j` when it prunes neither (`n` triangles in the tree): at the node
-    /// that parts them, the nearer child's first.
-    pub(super) fn visits_before(&self, p: Vec3, i: usize, j: usize, n: usize) -> bool {
-        // A node's triangles are a range: its children split it at the
-        // middle, as the build does.
-        let (mut node, mut lo, mut hi) = (0usize, 0usize, n);
-        loop {
-            let nd = &self.nodes[node];
-            if nd.count > 0 {
-                return i < j;
-            }
-            let mid = lo + (hi - lo) / 2;
-            let (a, b) = (nd.first as usize, nd.first as usize + 1);
-            match (i < mid, j < mid) {
-                (true, true) => (node, hi) = (a, mid),
-                (false, false) => (node, lo) = (b, mid),
-                (i_first, _) => {
-                    let da = box_distance2(p, &self.nodes[a]);
-                    let db = box_distance2(p, &self.nodes[b]);
-                    // `visit` searches b first when it is strictly nearer.
-                    return i_first != (db < da);
-                }
-            }
-        }
-    }
-
-    /// Appends to `out` the index of every triangle in a leaf whose box lies
-    /// within `r` of the box `lo`..`hi` (the leaves in the tree's order).
-    pub(super) fn near_box(&self, lo: Vec3, hi: Vec3, r: f32, out: &mut Vec<u32>) {
-        let r2 = r * r;
-        let mut stack = [0u32; MAX_DEPTH];
-        let mut top = 1;
-        while top > 0 {
-            top -= 1;
-            let node = &self.nodes[stack[top] as usize];
-            let d = (node.min - hi).max(lo - node.max).max(Vec3::ZERO);
-            if d.length_squared() > r2 {
-                continue;
-            }
-            if node.count > 0 {
-                out.extend(node.first..node.first + node.count);
-                continue;
-            }
-            stack[top] = node.first + 1;
-            stack[top + 1] = node.first;
-            top += 2;
-        }
-    }
-}
-
 /// The squared distance from `p` to a node's box (0 inside).
 #[inline(always)]
 fn box_distance2(p: Vec3, node: &Node) -> f32 {

@@ -370,79 +370,22 @@ impl Mesh {
             best
         });
         let (point, i, feature) = found;
-        self.signed(p, best, point, i, feature)
-    }
-
-    /// The [`Closest`] of `p` whose closest point `point` lies on triangle
-    /// `i`'s `feature` at the squared distance `d2`.
-    #[inline(always)]
-    fn signed(&self, p: Vec3, d2: f32, point: Vec3, i: usize, feature: Feature) -> Closest {
         let t = &self.triangles[i];
-        let distance = d2.sqrt();
-        Closest {
-            point,
-            distance: if self.outside(p, point, i, feature) {
-                distance
-            } else {
-                -distance
-            },
-            outward: self.pseudo_normal(i, feature).normalize_or(t.normal),
-        }
-    }
-
-    /// The angle-weighted pseudo-normal of triangle `i`'s `feature`.
-    #[inline(always)]
-    fn pseudo_normal(&self, i: usize, feature: Feature) -> Vec3 {
-        let t = &self.triangles[i];
-        match feature {
+        let pseudo = match feature {
             Feature::Face => t.normal,
             Feature::Edge(k) => t.edge[k],
             Feature::Vertex(k) => t.vertex[k],
-        }
-    }
-
-    /// `p`, whose closest point `point` lies on triangle `i`'s `feature`, is
-    /// outside the mesh (the sign of [`Mesh::closest`]'s distance).
-    #[inline(always)]
-    fn outside(&self, p: Vec3, point: Vec3, i: usize, feature: Feature) -> bool {
-        match self.sign {
-            Sign::PseudoNormal => (p - point).dot(self.pseudo_normal(i, feature)) >= 0.0,
+        };
+        let distance = best.sqrt();
+        let outside = match self.sign {
+            Sign::PseudoNormal => (p - point).dot(pseudo) >= 0.0,
             Sign::Winding => self.winding_number(p) < 0.5,
+        };
+        Closest {
+            point,
+            distance: if outside { distance } else { -distance },
+            outward: pseudo.normalize_or(t.normal),
         }
-    }
-
-    /// The index of a triangle closest to `p` (the one [`Mesh::closest`]
-    /// takes).
-    pub(crate) fn closest_triangle(&self, p: Vec3) -> usize {
-        let mut best = f32::INFINITY;
-        let mut found = 0;
-        self.bvh.visit(p, |i| {
-            let (q, _) = closest_on_triangle(p, self.triangles[i].v);
-            let d2 = (p - q).length_squared();
-            if d2 < best {
-                best = d2;
-                found = i;
-            }
-            best
-        });
-        found
-    }
-
-    /// [`Mesh::closest`] at `p` and the index of the triangle it takes.
-    pub(crate) fn closest_and_triangle(&self, p: Vec3) -> (Closest, usize) {
-        let mut best = f32::INFINITY;
-        let mut found = (p, 0usize, Feature::Face);
-        self.bvh.visit(p, |i| {
-            let (q, feature) = closest_on_triangle(p, self.triangles[i].v);
-            let d2 = (p - q).length_squared();
-            if d2 < best {
-                best = d2;
-                found = (q, i, feature);
-            }
-            best
-        });
-        let (point, i, feature) = found;
-        (self.signed(p, best, point, i, feature), i)
     }
 
     /// The signed distance to the surface (negative inside).

@@ -737,14 +737,16 @@ impl Scene {
                     message: "not among the files sent with the scene".into(),
                 },
             })?;
-        desc.attach_mesh_fields()
-            .map_err(|(mesh, message)| SceneError::Mesh {
-                scene: path.to_string(),
-                error: MeshError {
-                    path: mesh,
-                    message,
-                },
-            })?;
+        desc.attach_mesh_fields(&|d| {
+            crate::field::distortion::Distortion::build(d).max_displacement()
+        })
+        .map_err(|(mesh, message)| SceneError::Mesh {
+            scene: path.to_string(),
+            error: MeshError {
+                path: mesh,
+                message,
+            },
+        })?;
         if let Some(w) = overrides.width {
             desc.image.width = w;
         }
