@@ -89,11 +89,12 @@ fn a_killed_worker_loses_nothing_and_a_late_one_gets_work() {
 fn a_worker_stopped_mid_frame_delivers_or_hands_back_its_units_at_once() {
     let dir = scratch("farm-sigterm");
     let reference = dir.join("reference.png");
-    in_process_at("fur", 256, &reference);
+    // Large enough that one thread is still rendering 300 ms in.
+    in_process_at("fur", 768, &reference);
     let out = dir.join("farm.png");
     let (mut coord, url) = remote_only(
         "fur",
-        256,
+        768,
         &out,
         &["--lease-timeout", "60", "--worker-timeout", "60"],
     );
